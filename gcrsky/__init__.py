@@ -1,0 +1,49 @@
+"""gcrsky: full-sky maps with honest uncertainties from drift-scan visibilities.
+
+Gaussian constrained realisations of the sky's spherical-harmonic coefficients
+(Glasscock et al. 2024), as pure JAX functions.  Conventions: README.md.
+"""
+
+from .api import sample, wiener_filter
+from .layout import ModeTable, alm_to_map, mode_table, n_params, realify, unrealify
+from .normal import LinearSystem, precision_apply, precision_matrix
+from .operator import VisOperator, adjoint, apply, dense_matrix
+from .prior import Prior, flat_prior, isotropic_prior, paper_prior
+from .problem import Config, Problem, build_problem, standard_case
+from .rotation import rotate
+from .sampler import GCRState, SolveInfo, gcr_init, gcr_step, sample_system, wiener_filter_system
+
+__all__ = [
+    "Config",
+    "GCRState",
+    "LinearSystem",
+    "ModeTable",
+    "Prior",
+    "Problem",
+    "SolveInfo",
+    "VisOperator",
+    "adjoint",
+    "alm_to_map",
+    "apply",
+    "build_problem",
+    "dense_matrix",
+    "flat_prior",
+    "gcr_init",
+    "gcr_step",
+    "isotropic_prior",
+    "mode_table",
+    "n_params",
+    "paper_prior",
+    "precision_apply",
+    "precision_matrix",
+    "realify",
+    "rotate",
+    "sample",
+    "sample_system",
+    "standard_case",
+    "unrealify",
+    "wiener_filter",
+    "wiener_filter_system",
+]
+
+__version__ = "0.1.0"

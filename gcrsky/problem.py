@@ -1,0 +1,294 @@
+"""A complete inference problem: instrument, operator, data, noise and prior.
+
+:func:`standard_case` builds the paper's standard case (DESIGN section 7);
+:func:`build_problem` builds any other from explicit ingredients.  A
+:class:`Problem` is an equinox Module (a PyTree), so it can be passed through
+``jax.jit``; its configuration is static metadata.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .instrument import HERA_LATITUDE_DEG, Array, antpairs, gaussian_beam, hex_array, make_array
+from .layout import ModeTable, mode_table, n_params
+from .noise import clean_data, draw_noise, inverse_variance, radiometer_sigma
+from .normal import LinearSystem, precision_matrix
+from .operator import VisOperator, apply
+from .prior import Prior, flat_prior, paper_prior
+from .response import response_matrix
+
+__all__ = ["Config", "Problem", "standard_case", "build_problem", "hours_to_rad"]
+
+log = logging.getLogger(__name__)
+
+
+def hours_to_rad(hours) -> np.ndarray:
+    """Sidereal hours -> radians of rotation (24 h = 2 pi)."""
+    return np.asarray(hours, np.float64) * (2 * np.pi / 24.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Scalar configuration of a simulated problem (defaults: the paper's standard case).
+
+    Units: frequencies Hz, LSTs sidereal hours, lengths metres, latitude degrees,
+    dt seconds, dnu Hz.  ``noise_scale`` multiplies the noise *variance* N,
+    ``prior_scale`` the prior variance S (paper cases B2-B8).
+    """
+
+    lmax: int = 20
+    nside: int = 128
+    freqs_hz: tuple = (100e6, 102e6)
+    n_lst: int = 10
+    lst_range_hours: tuple = (0.0, 8.0)
+    dish_diameter: float = 14.0
+    antenna_spacing: float = 14.6
+    rows: tuple = (3, 4, 3)
+    latitude_deg: float = HERA_LATITUDE_DEG
+    dt_s: float = 60.0
+    dnu_hz: float = 1e6
+    noise_scale: float = 1.0
+    prior_scale: float = 1.0
+    prior_frac: float = 0.1
+    prior_floor_std: float = 0.5
+    flat_prior: bool = False
+    zero_prior_mean: bool = False
+    seed: int = 0
+    sky_source: str = "auto"
+    extend_seed: int = 2024
+
+    def validate(self) -> "Config":
+        if int(self.lmax) != self.lmax or self.lmax < 1:
+            raise ValueError(f"lmax must be an integer >= 1, got {self.lmax}")
+        if self.n_lst < 1:
+            raise ValueError(f"n_lst must be >= 1, got {self.n_lst}")
+        if len(self.lst_range_hours) != 2:
+            raise ValueError("lst_range_hours must be (start, stop) in hours")
+        for name in ("dish_diameter", "antenna_spacing", "dt_s", "dnu_hz", "noise_scale", "prior_scale", "prior_frac"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if 3 * self.nside - 1 < self.lmax:
+            raise ValueError(f"nside={self.nside} cannot resolve lmax={self.lmax} (need 3*nside-1 >= lmax)")
+        return self
+
+    @property
+    def lsts_hours(self) -> np.ndarray:
+        """The observation LSTs: ``linspace(start, stop, n_lst)`` (endpoints included)."""
+        return np.linspace(self.lst_range_hours[0], self.lst_range_hours[1], self.n_lst)
+
+    def to_dict(self) -> dict:
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self).items()}
+
+
+class Problem(eqx.Module):
+    """Data, noise, prior and operator of one inference problem.
+
+    Array attributes (leading Nf = number of frequencies; n = (lmax+1)**2):
+        freqs_hz (Nf,); lsts_rad (Nt,); antpairs (Nbl, 2) with baseline x_j - x_i;
+        response (Nf, Nbl, n) complex at ``lst_ref_rad``; auto_response (Nf, Nant, n);
+        data (Nf, Nt, Nbl) complex (K sr); sigma (Nf, Nt, Nbl) per-component noise std;
+        weights (Nf, Nt, Nbl) in [0, 1]; prior (mean, inv_var (Nf, n));
+        a_true (Nf, n) or None.
+    """
+
+    freqs_hz: jax.Array
+    lsts_rad: jax.Array
+    antpairs: np.ndarray
+    response: jax.Array
+    auto_response: jax.Array
+    data: jax.Array
+    sigma: jax.Array
+    weights: jax.Array
+    prior: Prior
+    a_true: Optional[jax.Array]
+    lst_ref_rad: float = eqx.field(static=True)
+    lmax: int = eqx.field(static=True)
+    nside: int = eqx.field(static=True)
+    config: Optional[Config] = eqx.field(static=True, default=None)
+    sky_note: str = eqx.field(static=True, default="")
+
+    @property
+    def n(self) -> int:
+        return n_params(self.lmax)
+
+    @property
+    def modes(self) -> ModeTable:
+        return mode_table(self.lmax)
+
+    def operator(self) -> VisOperator:
+        """The visibility operator for this problem's LSTs."""
+        return VisOperator(self.response, self.lsts_rad - self.lst_ref_rad)
+
+    def system(self) -> LinearSystem:
+        """The linear system (operator, data, inverse noise, prior)."""
+        iv = self.weights / self.sigma**2
+        return LinearSystem(self.operator(), self.data, iv, self.prior)
+
+    def visibilities(self, a) -> jax.Array:
+        """Noiseless model visibilities for realified ``a`` (Nf, n): complex (Nf, Nt, Nbl)."""
+        return apply(self.operator(), jnp.asarray(a))
+
+    def auto_visibilities(self, a) -> jax.Array:
+        """Real auto-correlations ``V_ii`` (Nf, Nt, Nant) of the sky ``a``."""
+        return apply(VisOperator(self.auto_response, self.lsts_rad - self.lst_ref_rad), jnp.asarray(a)).real
+
+    def precision_matrix(self) -> jax.Array:
+        """Dense realified posterior precision P, (Nf, n, n)."""
+        return precision_matrix(self.system())
+
+
+def build_problem(
+    array: Array,
+    freqs_hz,
+    lsts_rad,
+    lmax: int,
+    nside: int,
+    *,
+    a_true=None,
+    data=None,
+    sigma=None,
+    weights=None,
+    prior: Prior | None = None,
+    dt_s: float = 60.0,
+    dnu_hz: float = 1e6,
+    noise_scale: float = 1.0,
+    key: jax.Array | None = None,
+    lst_ref_rad: float = 0.0,
+    config: Config | None = None,
+    sky_note: str = "",
+) -> Problem:
+    """Assemble a :class:`Problem`.
+
+    Either give ``data`` (Nf, Nt, Nbl) complex with ``sigma`` (per-component std), or
+    give ``a_true`` (Nf, n) to simulate: model visibilities plus radiometer noise
+    whose sigma comes from the simulated autos (``sigma^2 = V_ii V_jj / (2 dt dnu)``,
+    times ``noise_scale``), drawn with ``key``.  The prior defaults to flat.
+    """
+    freqs = np.atleast_1d(np.asarray(freqs_hz, np.float64))
+    lsts = np.atleast_1d(np.asarray(lsts_rad, np.float64))
+    nant = array.positions_enu_m.shape[0]
+    pairs = antpairs(nant)
+    n = n_params(lmax)
+    resp = response_matrix(array, pairs, freqs, lmax, nside, lst_ref_rad=lst_ref_rad)
+    auto = response_matrix(array, np.stack([np.arange(nant)] * 2, 1), freqs, lmax, nside, lst_ref_rad=lst_ref_rad)
+    angles = jnp.asarray(lsts - lst_ref_rad)
+    if key is None:
+        key = jax.random.PRNGKey(0)
+    shape = (freqs.size, lsts.size, pairs.shape[0])
+    if a_true is not None:
+        a_true = jnp.asarray(a_true, jnp.float64)
+        if a_true.shape != (freqs.size, n):
+            raise ValueError(f"a_true has shape {a_true.shape}, expected {(freqs.size, n)}")
+    if data is None:
+        if a_true is None:
+            raise ValueError("give either data (with sigma) or a_true to simulate from")
+        autos = np.asarray(apply(VisOperator(auto, angles), a_true).real)  # (Nf, Nt, Nant)
+        if sigma is None:
+            sigma = radiometer_sigma(autos[:, :, pairs[:, 0]], autos[:, :, pairs[:, 1]], dt_s, dnu_hz)
+        sigma = np.asarray(sigma, np.float64) * np.sqrt(noise_scale)
+        model = apply(VisOperator(resp, angles), a_true)
+        data = model + draw_noise(key, jnp.asarray(sigma))
+    else:
+        if sigma is None:
+            raise ValueError("real data need their per-component noise sigma")
+        data = np.asarray(data)
+        sigma = np.asarray(sigma, np.float64) * np.sqrt(noise_scale)
+    data = np.asarray(data)
+    if data.shape != shape:
+        raise ValueError(f"data have shape {data.shape}, expected (Nf, Nt, Nbl) = {shape}")
+    sigma = np.broadcast_to(sigma, shape)
+    w = np.ones(shape) if weights is None else np.broadcast_to(np.asarray(weights, np.float64), shape)
+    iv = inverse_variance(sigma, w)
+    data = clean_data(data, iv)
+    if prior is None:
+        prior = flat_prior(freqs.size, n)
+    if prior.mean.shape != (freqs.size, n) or prior.inv_var.shape != (freqs.size, n):
+        raise ValueError(f"prior arrays must be (Nf, n) = {(freqs.size, n)}")
+    return Problem(
+        freqs_hz=jnp.asarray(freqs),
+        lsts_rad=jnp.asarray(lsts),
+        antpairs=pairs,
+        response=resp,
+        auto_response=auto,
+        data=jnp.asarray(data, jnp.complex128),
+        sigma=jnp.asarray(sigma),
+        weights=jnp.asarray(w),
+        prior=Prior(jnp.asarray(prior.mean, jnp.float64), jnp.asarray(prior.inv_var, jnp.float64)),
+        a_true=a_true,
+        lst_ref_rad=float(lst_ref_rad),
+        lmax=int(lmax),
+        nside=int(nside),
+        config=config,
+        sky_note=sky_note,
+    )
+
+
+_OVERRIDES = {f.name for f in dataclasses.fields(Config)}
+
+
+def standard_case(**overrides) -> Problem:
+    """The paper's standard case, with keyword overrides of any :class:`Config` field.
+
+    10-antenna hexagon (rows 3, 4, 3; 14.6 m), 14 m Gaussian dishes at latitude
+    -30.7215 deg, channels 100 and 102 MHz, 10 LSTs over 0-8 h, dt = 60 s,
+    dnu = 1 MHz, lmax 20, nside 128, GSM truth (GSM2016 if on disk, else the
+    pyradiosky GSM map shipped offline), radiometer noise from the autos, the 10%
+    prior with 0.5 K floor and ``a0 ~ N(a_true, S)`` (monopole kept true).
+
+    Common overrides: ``lmax, nside, n_lst, lst_range_hours, dish_diameter,
+    noise_scale, prior_scale, flat_prior, zero_prior_mean, seed``.
+    """
+    unknown = set(overrides) - _OVERRIDES
+    if unknown:
+        raise TypeError(f"unknown standard_case overrides {sorted(unknown)}; allowed: {sorted(_OVERRIDES)}")
+    for k in ("freqs_hz", "lst_range_hours", "rows"):
+        if k in overrides:
+            overrides[k] = tuple(np.atleast_1d(overrides[k]).tolist())
+    cfg = Config(**overrides).validate()
+    return problem_from_config(cfg)
+
+
+def problem_from_config(cfg: Config) -> Problem:
+    """Build the simulated problem a :class:`Config` describes."""
+    from .sky import sky_truth
+
+    freqs = np.asarray(cfg.freqs_hz, np.float64)
+    truth = sky_truth(freqs, cfg.lmax, source=cfg.sky_source, extend_seed=cfg.extend_seed)
+    log.info("sky truth: %s", truth.note)
+    array = make_array(hex_array(cfg.rows, cfg.antenna_spacing), cfg.latitude_deg, gaussian_beam(cfg.dish_diameter))
+    k_noise, k_prior = jax.random.split(jax.random.PRNGKey(cfg.seed))
+    a_true = jnp.asarray(truth.alm)
+    if cfg.flat_prior:
+        prior = flat_prior(freqs.size, n_params(cfg.lmax), mean=np.zeros((freqs.size, n_params(cfg.lmax))))
+    else:
+        prior = paper_prior(
+            a_true,
+            k_prior,
+            frac=cfg.prior_frac,
+            floor_std=cfg.prior_floor_std,
+            prior_scale=cfg.prior_scale,
+            zero_mean=cfg.zero_prior_mean,
+        )
+    return build_problem(
+        array,
+        freqs,
+        hours_to_rad(cfg.lsts_hours),
+        cfg.lmax,
+        cfg.nside,
+        a_true=a_true,
+        prior=prior,
+        dt_s=cfg.dt_s,
+        dnu_hz=cfg.dnu_hz,
+        noise_scale=cfg.noise_scale,
+        key=k_noise,
+        config=cfg,
+        sky_note=truth.note,
+    )
