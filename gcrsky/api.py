@@ -80,10 +80,13 @@ def _warn_unconverged(info, what: str) -> None:
 
     bad = ~np.asarray(info.converged)
     if bad.any():
+        err = np.asarray(info.err_sigma)
+        worst = float(np.max(np.where(np.isfinite(err), err, np.inf)))
         logging.getLogger("gcrsky").warning(
-            "%s: %d of %d solves did not converge (worst error %.3g posterior sigma)",
+            "%s: %d of %d solves did not converge (worst error estimate %.3g posterior sigma; "
+            "inf/NaN means a singular or indefinite precision matrix)",
             what,
             int(bad.sum()),
             bad.size,
-            float(np.nanmax(np.asarray(info.err_sigma))),
+            worst,
         )

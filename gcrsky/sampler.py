@@ -23,6 +23,7 @@ jittable, usable inside ``lax.scan``.
 
 from __future__ import annotations
 
+import logging
 from functools import partial
 from typing import Literal, NamedTuple
 
@@ -153,6 +154,13 @@ def resolve_preconditioner(system: LinearSystem, kind: str = "auto") -> str:
 
     Must be called outside jit (inspects the prior's values).
     """
+    nflat = int(jnp.sum(system.prior.inv_var <= 0))
+    if nflat:
+        logging.getLogger(__name__).warning(
+            "flat prior (S^-1 = 0) in %d modes: P may be singular; directions the data do not "
+            "constrain have no posterior and solves along them are reported as unconverged",
+            nflat,
+        )
     if kind != "auto":
         if kind == "nystrom" and not bool(jnp.all(system.prior.inv_var > 0)):
             raise ValueError("the Nystrom preconditioner needs S^-1 > 0 in every mode; use 'mblock' for a flat prior")
