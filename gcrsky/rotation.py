@@ -3,8 +3,10 @@
 A rotation of the sky by ``dphi`` in right ascension is diagonal in (l, m):
 ``a_lm -> a_lm exp(i m dphi)``.  With the co-rotating frame of
 :mod:`gcrsky.response`, the visibility at local sidereal angle ``t`` is
-``R(t_ref) . rotate(a, t - t_ref)``: the sky at a later LST looks like the
-reference sky shifted to larger RA.
+``R(t_ref) . rotate(a, t - t_ref)``: ``rotate(a, d)`` is the map ``I(RA + d)``, i.e.
+the sky shifted to *smaller* RA by ``d``, so that the direction that saw RA ``alpha``
+at the reference angle sees RA ``alpha + d`` (pinned against matvis in
+``tests/test_matvis.py`` and by ``tests/test_operator.py``).
 
 On the realified vector this is a 2x2 rotation of each (Re a_lm, Im a_lm) pair by
 ``m dphi``; ``m = 0`` entries are unchanged.  The angle is a traced value (vmap
