@@ -119,8 +119,8 @@ def pcg(matvec, precond, b, x0, *, tol: float = DEFAULT_TOL, maxiter: int = 2000
 
 
 def _solve_cg(system, precision, pc, b, x0, tol, maxiter):
-    """Solve P x = b for b (Nf, n) or (Nf, k, n) batches with per-frequency CG."""
-    nf = b.shape[0]
+    """Solve P x = b for b (Nf, n) or (Nf, k, n) batches: CG vmapped over frequencies
+    (and over the k right-hand sides); every solve keeps its own iteration count."""
 
     def one_freq(f, bf, x0f):
         if precision is not None:
@@ -134,10 +134,7 @@ def _solve_cg(system, precision, pc, b, x0, tol, maxiter):
             return solve1(bf, x0f)
         return jax.vmap(solve1)(bf, x0f)
 
-    outs = [one_freq(f, b[f], x0[f]) for f in range(nf)]
-    x = jnp.stack([o[0] for o in outs])
-    info = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[o[1] for o in outs])
-    return x, info
+    return jax.vmap(one_freq)(jnp.arange(b.shape[0]), b, x0)
 
 
 def make_preconditioner(system: LinearSystem, kind: str, precision=None, rank: int = 128):
@@ -169,7 +166,7 @@ def resolve_preconditioner(system: LinearSystem, kind: str = "auto") -> str:
 
 
 def _freq_slice(system: LinearSystem, f: int) -> LinearSystem:
-    sl = lambda a: a[f : f + 1]  # noqa: E731
+    sl = lambda a: jax.lax.dynamic_slice_in_dim(a, f, 1, axis=0)  # noqa: E731
     return LinearSystem(
         op=system.op._replace(response=sl(system.op.response)),
         data=sl(system.data),
