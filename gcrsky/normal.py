@@ -41,6 +41,7 @@ __all__ = [
     "nystrom_preconditioner",
     "data_apply",
     "check_float64",
+    "require_x64",
 ]
 
 
@@ -58,6 +59,15 @@ class LinearSystem(NamedTuple):
     data: jax.Array
     inv_noise: jax.Array
     prior: Prior
+
+
+def require_x64(what: str = "gcrsky") -> None:
+    """Raise unless JAX's 64-bit mode is on (the normal equations reach condition ~1e9)."""
+    if not jax.config.jax_enable_x64:
+        raise RuntimeError(
+            f"{what} needs float64: call jax.config.update('jax_enable_x64', True) at start-up "
+            "(before creating any JAX array); float32 loses the posterior's low-l modes"
+        )
 
 
 def check_float64(*arrays) -> None:

@@ -20,7 +20,7 @@ import numpy as np
 from .instrument import HERA_LATITUDE_DEG, Array, antpairs, gaussian_beam, hex_array, make_array
 from .layout import ModeTable, mode_table, n_params
 from .noise import clean_data, draw_noise, inverse_variance, radiometer_sigma
-from .normal import LinearSystem, precision_matrix
+from .normal import LinearSystem, precision_matrix, require_x64
 from .operator import VisOperator, apply
 from .prior import Prior, flat_prior, paper_prior
 from .response import response_matrix
@@ -172,6 +172,7 @@ def build_problem(
     whose sigma comes from the simulated autos (``sigma^2 = V_ii V_jj / (2 dt dnu)``,
     times ``noise_scale``), drawn with ``key``.  The prior defaults to flat.
     """
+    require_x64("build_problem")
     freqs = np.atleast_1d(np.asarray(freqs_hz, np.float64))
     lsts = np.atleast_1d(np.asarray(lsts_rad, np.float64))
     nant = array.positions_enu_m.shape[0]

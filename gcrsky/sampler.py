@@ -51,6 +51,8 @@ __all__ = [
     "GCRState",
     "gcr_init",
     "gcr_step",
+    "make_preconditioner",
+    "resolve_preconditioner",
 ]
 
 DEFAULT_TOL = 1e-6  # posterior-sigma units (P-norm of the error, estimated)
@@ -282,21 +284,25 @@ def gcr_step(
     *,
     tol: float = DEFAULT_TOL,
     maxiter: int = 5000,
-    preconditioner: str = "mblock",
+    preconditioner: str = "nystrom",
     rank: int = 128,
+    pc=None,
 ):
     """One exact conditional draw ``a ~ p(a | d, S, N, a0)`` (pure; jit/scan it yourself).
 
     Solves the full GCR equation by matrix-free preconditioned CG warm-started at
     the previous position (which is typically within a few posterior sigma of the
     new draw).  ``system`` may change between steps (e.g. a Gibbs update of S); the
-    preconditioner (static choice ``"mblock"`` or ``"nystrom"``, which needs a proper
-    prior) is rebuilt each step from it.
+    preconditioner (static choice ``"nystrom"``, which needs ``S^-1 > 0`` in every mode,
+    or ``"mblock"`` for flat priors) is rebuilt each step from it unless a prebuilt
+    ``pc`` is passed.  A stale ``pc`` (built for an earlier S) only costs iterations:
+    the draw stays exact because convergence is checked against the current system.
 
     Returns:
         (GCRState, SolveInfo with (Nf,) fields).
     """
-    pc = make_preconditioner(system, preconditioner, None, rank)
+    if pc is None:
+        pc = make_preconditioner(system, preconditioner, None, rank)
     b = wiener_rhs(system) + fluctuation_rhs(key, system)
     x, info = _solve_cg(system, None, pc, b, state.position, tol, maxiter)
     return GCRState(x), info
