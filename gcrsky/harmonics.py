@@ -49,9 +49,9 @@ def legendre_table(lmax: int, x, sin_theta=None):
     Args:
         lmax: static maximum degree.
         x: (Npix,) cos(theta).
-        sin_theta: optional (Npix,) sin(theta) >= 0.  Pass it when theta is known:
-            ``sqrt(1 - x^2)`` loses all accuracy within ~1e-8 rad of the poles
-            (and its derivative is infinite there).
+        sin_theta: optional (Npix,) sin(theta) (>= 0 for theta in [0, pi]).  Pass it
+            when theta is known: ``sqrt(1 - x^2)`` loses all accuracy within ~1e-8 rad
+            of the poles, and its derivative in theta is NaN on them.
 
     Returns:
         (lmax+1, Npix, lmax+1) array indexed [l, pixel, m]; zero where m > l.
@@ -61,7 +61,7 @@ def legendre_table(lmax: int, x, sin_theta=None):
     if sin_theta is None:
         s = jnp.sqrt(jnp.clip(1.0 - x * x, 0.0, None))
     else:
-        s = jnp.abs(jnp.asarray(sin_theta))
+        s = jnp.asarray(sin_theta)
     mvec = jnp.arange(lmax + 1)
     # sin^m theta, computed by cumulative products to stay exact for integer powers
     spow = jnp.cumprod(jnp.concatenate([jnp.ones_like(s)[:, None], jnp.repeat(s[:, None], lmax, axis=1)], axis=1), axis=1)
