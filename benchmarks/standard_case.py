@@ -19,6 +19,7 @@ project brief) are printed next to the numbers.
 from __future__ import annotations
 
 import argparse
+import os
 import inspect
 import platform
 import resource
@@ -130,6 +131,7 @@ def main(argv=None) -> int:
         f"gcrsky {gcrsky.__version__}, jax {jax.__version__}, device {dev.platform}:{dev.device_kind}, "
         f"{platform.processor() or platform.machine()}, python {platform.python_version()}"
     )
+    print(f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r} (the CLI and tests add --xla_cpu_multi_thread_eigen=false)")
     print(f"standard case: lmax={args.lmax} (n={(args.lmax + 1) ** 2}), nside={args.nside}, ndraws={args.ndraws}")
     table = Table()
 

@@ -244,6 +244,9 @@ class _Stages:
 
 
 def _run(args) -> int:
+    from .runtime import use_safe_cpu_threading
+
+    use_safe_cpu_threading()  # before the first JAX computation (see gcrsky/runtime.py)
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -254,7 +257,7 @@ def _run(args) -> int:
 
     from . import maps as M
     from .api import sample, wiener_filter
-    from .instrument import fwhm_airy_rad
+    from .instrument import beam_fwhm_rad, gaussian_beam
     from .layout import alm_to_map
     from .problem import Config, standard_case
 
@@ -338,7 +341,7 @@ def _run(args) -> int:
     ra_range = (15.0 * cfg.lst_range_hours[0], 15.0 * cfg.lst_range_hours[1])
     per_freq = []
     for f in range(nf):
-        fwhm = float(np.rad2deg(fwhm_airy_rad(cfg.dish_diameter, float(freqs[f]))))
+        fwhm = float(np.rad2deg(beam_fwhm_rad(gaussian_beam(cfg.dish_diameter), float(freqs[f]))))
         m = {"freq_hz": float(freqs[f]), "fwhm_deg": fwhm}
         m.update(M.summary_metrics(mean_maps[f], truth_maps[f], centre_dec, fwhm, ra_range, std_map=std_maps[f]))
         wfm = M.summary_metrics(wf_maps[f], truth_maps[f], centre_dec, fwhm, ra_range)

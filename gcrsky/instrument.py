@@ -31,6 +31,7 @@ __all__ = [
     "beam_amplitude",
     "gaussian_beam",
     "fwhm_airy_rad",
+    "beam_fwhm_rad",
 ]
 
 #: HERA's geodetic latitude (degrees); the paper's site.  Pass it explicitly.
@@ -84,9 +85,34 @@ def gaussian_beam(diameter_m: float):
 
 
 def fwhm_airy_rad(diameter_m: float, freq_hz: float) -> float:
-    """FWHM of the power beam matched by ``GaussianBeam(diameter=D)`` (~1.029 lambda/D), radians."""
+    """Small-angle FWHM of an Airy-disk power pattern, ``1.029 lambda/D``, radians.
+
+    Not the width of ``GaussianBeam(diameter=D)`` (pyuvdata's, ~lambda/D: 12.28 deg at
+    100 MHz for 14 m); use :func:`beam_fwhm_rad` for the beam actually simulated.
+    """
     lam = 299792458.0 / freq_hz
     return 1.02899 * lam / diameter_m
+
+
+def beam_fwhm_rad(beam, freq_hz: float, *, n_grid: int = 20001) -> float:
+    """Full width at half maximum of a beam's power pattern, measured, in radians.
+
+    The power (feed x, as used for Stokes I) is evaluated along zenith angle at
+    azimuths 0 and pi/2 (UVBeam convention); the half-power angle is found by
+    linear interpolation on a ``n_grid`` grid over [0, pi/2] and the two cuts are
+    averaged (FWHM = 2 x mean half-power zenith angle).  Raises ``ValueError`` if the
+    power never falls to half of its zenith value above the horizon.
+    """
+    za = np.linspace(0.0, np.pi / 2, n_grid)
+    half = []
+    for az in (0.0, np.pi / 2):
+        p = beam_amplitude(beam, np.full_like(za, az), za, np.array([float(freq_hz)]))[0] ** 2
+        below = np.flatnonzero(p <= 0.5 * p[0])
+        if below.size == 0:
+            raise ValueError(f"beam power does not fall to half above the horizon at {freq_hz:g} Hz")
+        k = below[0]
+        half.append(np.interp(0.5 * p[0], [p[k], p[k - 1]], [za[k], za[k - 1]]))
+    return float(2 * np.mean(half))
 
 
 def make_array(positions_enu_m, latitude_deg: float, beams) -> Array:

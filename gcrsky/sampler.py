@@ -2,14 +2,17 @@
 
 Two exact samplers share one interface and one :class:`SolveInfo`:
 
-* ``"cg"``: preconditioned conjugate gradients (m-block preconditioner,
-  :func:`gcrsky.normal.m_block_preconditioner`), vmapped over draws, matrix-free or
+* ``"cg"``: preconditioned conjugate gradients, vmapped over draws, matrix-free or
   with a dense P.  Convergence is judged in *posterior-sigma units*: iterate until
-  ``sqrt(r^T M^-1 r)`` -- an estimate of the error's P-norm ``||x - x*||_P``, which
-  bounds every mode's error in units of its posterior std -- falls below ``tol``.
-  jax.scipy.sparse.linalg.cg implements the same recurrence but reports neither
-  iterations nor residual, so it is written out here with ``lax.while_loop``
-  (tests check the two agree).
+  ``sqrt(r^T M^-1 r) <= tol``.  With the default prior-whitened Nystrom
+  preconditioner ``M <= P`` in the Loewner order (a Nystrom sketch never exceeds the
+  matrix it approximates), so ``r^T M^-1 r >= r^T P^-1 r = ||x - x*||_P^2``: a rigorous
+  bound on the error's P-norm, which itself bounds every mode's error in units of
+  its posterior std.  With the m-block preconditioner (flat priors) the same number
+  is only an estimate (measured 100x optimistic on the standard case), so pass a
+  smaller ``tol`` there.  jax.scipy.sparse.linalg.cg implements the same recurrence
+  but reports neither iterations nor residual, so it is written out here with
+  ``lax.while_loop`` (tests check the two agree).
 * ``"cholesky"``: ``P = L L^T``; ``a = a_wf + L^-T z`` with ``z ~ N(0, I)``. The exact
   reference, and the fast path when n^2 fits in memory.
 
@@ -63,8 +66,9 @@ class SolveInfo(NamedTuple):
 
     Attributes:
         iterations: CG iterations taken (0 for Cholesky).
-        err_sigma: ``sqrt(r^T M^-1 r)`` from the *true* final residual ``b - P x``:
-            estimated P-norm of the error, in posterior-sigma units.
+        err_sigma: ``sqrt(r^T M^-1 r)`` from the *true* final residual ``b - P x``, in
+            posterior-sigma units: an upper bound on the error's P-norm with the
+            Nystrom preconditioner, an estimate with m-blocks (see module docstring).
         rel_residual: ``||b - P x|| / ||b||``.
         converged: ``err_sigma <= tol`` and no breakdown (non-positive curvature,
             which signals a singular or indefinite P, e.g. a flat prior).

@@ -18,7 +18,13 @@ import sys
 from pathlib import Path
 from typing import NamedTuple
 
-import jax
+import os
+
+# before JAX starts its backend: avoid XLA CPU's Eigen-pool hang (gcrsky/runtime.py)
+if os.environ.get("GCRSKY_FAST_THREADS") != "1" and "xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false").strip()
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 

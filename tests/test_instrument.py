@@ -208,3 +208,24 @@ def test_make_array_validation():
     for bad_d in (0.0, -14.0):
         with pytest.raises(ValueError):
             gaussian_beam(bad_d)
+
+
+def test_beam_fwhm_measures_the_simulated_gaussian_beam():
+    """The measured FWHM equals the closed form of a Gaussian power pattern whose width is
+    read off the beam itself near zenith (no assumption about pyuvdata's sigma formula),
+    and the paper's 12.3 deg for 14 m at 100 MHz."""
+    from gcrsky.instrument import beam_fwhm_rad, gaussian_beam
+
+    b = gaussian_beam(14.0)
+    fwhm = np.rad2deg(beam_fwhm_rad(b, 100e6))
+    # power P = exp(-za^2 / sigma_p^2 ...): recover sigma from P at a small angle
+    za = 0.01
+    p = np.real(b.power_eval(az_array=np.array([0.0]), za_array=np.array([za]), freq_array=np.array([100e6]))[0, 0, 0, 0])
+    # for P = exp(-a za^2): FWHM = 2 sqrt(ln2 / a)
+    a = -np.log(p) / za**2
+    assert abs(fwhm - np.rad2deg(2 * np.sqrt(np.log(2) / a))) < 1e-3
+    assert abs(fwhm - 12.3) < 0.1  # the paper's FWHM for 14 m at 100 MHz
+    with pytest.raises(ValueError, match="half"):
+        from pyuvdata.analytic_beam import UniformBeam
+
+        beam_fwhm_rad(UniformBeam(), 100e6)
