@@ -423,11 +423,14 @@ def _run(args) -> int:
         "each draw batch also recomputes the Wiener filter (gcrsky.sample is self-contained)"
     )
     summary = {
+        "frac_diff_centre_median": per_freq[0]["frac_diff_centre_median"],
+        "frac_diff_fwhm_median": per_freq[0]["frac_diff_fwhm_median"],
         "metrics": dict(per_freq[0]),
         "metrics_note": (
             "metrics at the first frequency; |mean - truth|/|truth| of the posterior-mean map (sample mean of the "
             "draws) over the beam-centre ring (the HEALPix ring nearest dec = site latitude) and the +-1 FWHM band, "
-            "both within RA = 15 x LST range; per_frequency has every channel"
+            "both within RA = 15 x LST range; FWHM measured from the simulated beam's power pattern; "
+            "per_frequency has every channel; the two top-level frac_diff_* keys repeat the first channel's"
         ),
         "per_frequency": per_freq,
         "region": {"centre_dec_deg": centre_dec, "ra_range_deg": list(ra_range),
