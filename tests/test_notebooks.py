@@ -20,3 +20,20 @@ def test_notebook_runs(path):
 
     assert np.median(ns["frac"][ns["strip"]]) < 0.1
     assert np.median(ns["std_map"][ns["strip"]]) < np.median(ns["std_map"][~ns["strip"]])
+
+
+def test_readme_python_examples_run():
+    """The README's Python blocks run as written (smaller nside/chain for speed)."""
+    import re
+
+    import numpy as np
+
+    readme = (pathlib.Path(__file__).parents[1] / "README.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", readme, re.S)
+    assert len(blocks) >= 2
+    code = "\n".join(blocks).replace("nside=128", "nside=32").replace("split(key, 1000)", "split(key, 20)")
+    ns: dict = {}
+    exec(compile(code, "README.md", "exec"), ns)
+    assert ns["draws"].shape == (2, 200, 441)
+    assert ns["chain"].shape == (20, 2, 441)
+    assert np.all(np.isfinite(np.asarray(ns["chain"])))
