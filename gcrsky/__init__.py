@@ -4,19 +4,30 @@ Gaussian constrained realisations of the sky's spherical-harmonic coefficients
 (Glasscock et al. 2024), as pure JAX functions.  Conventions: README.md.
 """
 
-from .api import sample, wiener_filter
+from .api import prepare, sample, wiener_filter
 from .layout import ModeTable, alm_to_map, mode_table, n_params, realify, unrealify
 from .normal import LinearSystem, precision_apply, precision_matrix
 from .operator import VisOperator, adjoint, apply, dense_matrix
 from .prior import Prior, flat_prior, isotropic_prior, paper_prior
 from .problem import Config, Problem, build_problem, standard_case
 from .rotation import rotate
-from .sampler import GCRState, SolveInfo, gcr_init, gcr_step, sample_system, wiener_filter_system
+from .sampler import (
+    GCRState,
+    PreparedSampler,
+    SolveInfo,
+    draw,
+    gcr_init,
+    gcr_step,
+    prepare_sampler,
+    sample_system,
+    wiener_filter_system,
+)
 
 __all__ = [
     "Config",
     "GCRState",
     "LinearSystem",
+    "PreparedSampler",
     "ModeTable",
     "Prior",
     "Problem",
@@ -27,6 +38,7 @@ __all__ = [
     "apply",
     "build_problem",
     "dense_matrix",
+    "draw",
     "flat_prior",
     "gcr_init",
     "gcr_step",
@@ -35,6 +47,8 @@ __all__ = [
     "n_params",
     "paper_prior",
     "precision_apply",
+    "prepare",
+    "prepare_sampler",
     "precision_matrix",
     "realify",
     "rotate",

@@ -7,9 +7,9 @@ from typing import Literal
 import jax
 
 from .problem import Problem
-from .sampler import DEFAULT_TOL, resolve_preconditioner, sample_system, wiener_filter_system
+from .sampler import DEFAULT_TOL, PreparedSampler, prepare_sampler, resolve_preconditioner, sample_system, wiener_filter_system
 
-__all__ = ["wiener_filter", "sample"]
+__all__ = ["wiener_filter", "sample", "prepare"]
 
 
 def wiener_filter(
@@ -71,6 +71,29 @@ def sample(
     _warn_unconverged(info["wiener"], "Wiener filter")
     _warn_unconverged(info["draws"], "GCR draws")
     return draws, info
+
+
+def prepare(
+    problem: Problem,
+    method: Literal["cg", "cholesky"] = "cg",
+    *,
+    tol: float = DEFAULT_TOL,
+    maxiter: int = 5000,
+    dense: bool = True,
+    preconditioner: str = "auto",
+) -> PreparedSampler:
+    """Set up once for many draws: P, its factor or preconditioner, and the Wiener filter.
+
+    Then ``gcrsky.draw(key, prepared, ndraws)`` as often as needed (each call costs only
+    the draws).  Arguments as for :func:`sample`.
+    """
+    system = problem.system()
+    pc = resolve_preconditioner(system, preconditioner) if method == "cg" else "nystrom"
+    prepared = prepare_sampler(
+        system, method=method, tol=tol, maxiter=maxiter, dense=dense, preconditioner=pc
+    )
+    _warn_unconverged(prepared.wiener, "Wiener filter")
+    return prepared
 
 
 def _warn_unconverged(info, what: str) -> None:

@@ -51,6 +51,9 @@ __all__ = [
     "solve",
     "wiener_filter_system",
     "sample_system",
+    "PreparedSampler",
+    "prepare_sampler",
+    "draw",
     "GCRState",
     "gcr_init",
     "gcr_step",
@@ -206,13 +209,92 @@ def wiener_filter_system(
     return _solve_cg(system, precision, pc, wiener_rhs(system), system.prior.mean, tol, maxiter)
 
 
-def _cholesky(system):
-    P = precision_matrix(system)
-    L = jnp.linalg.cholesky(P)
-    return P, L
+class PreparedSampler(NamedTuple):
+    """Everything the draws share, computed once (set up once, draw many times).
+
+    Attributes:
+        system: the linear system.
+        a_wf: (Nf, n) Wiener filter (posterior mean).
+        wiener: SolveInfo of the Wiener-filter solve, (Nf,) fields.
+        precision: dense P (Nf, n, n), or None (matrix-free CG).
+        chol: lower Cholesky factor of P (Nf, n, n) for the Cholesky sampler, else None.
+        pc: CG preconditioner, or None for the Cholesky sampler.
+    """
+
+    system: LinearSystem
+    a_wf: jax.Array
+    wiener: SolveInfo
+    precision: jax.Array | None
+    chol: jax.Array | None
+    pc: object
 
 
-@partial(jax.jit, static_argnames=("ndraws", "method", "dense", "maxiter", "preconditioner", "rank"))
+@partial(jax.jit, static_argnames=("method", "dense", "maxiter", "preconditioner", "rank"))
+def prepare_sampler(
+    system: LinearSystem,
+    *,
+    method: Literal["cg", "cholesky"] = "cg",
+    tol: float = DEFAULT_TOL,
+    maxiter: int = 5000,
+    dense: bool = True,
+    preconditioner: str = "nystrom",
+    rank: int = 128,
+) -> PreparedSampler:
+    """Factorise / precondition P and solve for the Wiener filter, once.
+
+    ``method="cholesky"`` factorises the dense P; ``"cg"`` builds the preconditioner
+    (and the dense P if ``dense``).  Pass the result to :func:`draw` as often as needed.
+    """
+    check_float64(system.op.response, system.inv_noise)
+    nf = system.prior.mean.shape[0]
+    b = wiener_rhs(system)
+    if method == "cholesky":
+        P = precision_matrix(system)
+        L = jnp.linalg.cholesky(P)
+        cho = jax.vmap(lambda l, v: jax.scipy.linalg.cho_solve((l, True), v))
+        a_wf = cho(L, b)
+        r = b - jnp.einsum("fij,fj->fi", P, a_wf)
+        err = jnp.sqrt(jnp.abs(jnp.einsum("fi,fi->f", r, cho(L, r))))
+        ok = jnp.all(jnp.isfinite(L), axis=(1, 2))
+        winfo = SolveInfo(jnp.zeros(nf, int), err, jnp.linalg.norm(r, axis=1) / jnp.linalg.norm(b, axis=1), ok)
+        return PreparedSampler(system, a_wf, winfo, P, L, None)
+    if method != "cg":
+        raise ValueError(f"method must be 'cg' or 'cholesky', got {method!r}")
+    precision = precision_matrix(system) if dense else None
+    pc = make_preconditioner(system, preconditioner, precision, rank)
+    a_wf, winfo = _solve_cg(system, precision, pc, b, system.prior.mean, tol, maxiter)
+    return PreparedSampler(system, a_wf, winfo, precision, None, pc)
+
+
+@partial(jax.jit, static_argnames=("ndraws", "maxiter"))
+def draw(key: jax.Array, prepared: PreparedSampler, ndraws: int, *, tol: float = DEFAULT_TOL, maxiter: int = 5000):
+    """``ndraws`` exact posterior draws from a :class:`PreparedSampler`.
+
+    Draw ``i`` uses ``jax.random.split(key, ndraws)[i]``.  Cholesky: ``a_wf + L^-T z``;
+    CG: ``a_wf + delta`` with ``P delta`` = the GCR fluctuation right-hand side.
+
+    Returns:
+        draws (Nf, ndraws, n); info dict: ``"wiener"``, ``"draws"`` (SolveInfo over
+        (Nf, ndraws)) and ``"a_wf"``.
+    """
+    system, a_wf = prepared.system, prepared.a_wf
+    nf, n = a_wf.shape
+    keys = jax.random.split(key, ndraws)
+    if prepared.chol is not None:
+        z = jax.vmap(lambda k: jax.random.normal(k, (nf, n), a_wf.dtype))(keys)  # (ndraws, Nf, n)
+        tri = jax.scipy.linalg.solve_triangular
+        delta = jax.vmap(lambda l, zf: tri(l, zf.T, lower=True, trans="T").T, in_axes=(0, 1), out_axes=0)(
+            prepared.chol, z
+        )
+        ok = jnp.broadcast_to(prepared.wiener.converged[:, None], (nf, ndraws))
+        zeros = jnp.zeros((nf, ndraws))
+        dinfo = SolveInfo(jnp.zeros((nf, ndraws), int), zeros, zeros, ok & jnp.all(jnp.isfinite(delta), axis=-1))
+    else:
+        fl = jax.vmap(lambda k: fluctuation_rhs(k, system), out_axes=1)(keys)  # (Nf, ndraws, n)
+        delta, dinfo = _solve_cg(system, prepared.precision, prepared.pc, fl, jnp.zeros_like(fl), tol, maxiter)
+    return a_wf[:, None, :] + delta, {"wiener": prepared.wiener, "draws": dinfo, "a_wf": a_wf}
+
+
 def sample_system(
     key: jax.Array,
     system: LinearSystem,
@@ -225,7 +307,7 @@ def sample_system(
     preconditioner: str = "nystrom",
     rank: int = 128,
 ):
-    """GCR draws from the exact posterior ``N(a_wf, P^-1)``.
+    """GCR draws from the exact posterior ``N(a_wf, P^-1)``: :func:`prepare_sampler` then :func:`draw`.
 
     Both methods return ``a_wf + delta`` with ``Cov(delta) = P^-1``:
 
@@ -235,36 +317,16 @@ def sample_system(
       ``dense=False`` is matrix-free (O(Nt Nbl n) per matvec).
     * cholesky: ``delta = L^-T z``.
 
+    For many batches, call :func:`prepare_sampler` once and :func:`draw` per batch.
+
     Returns:
         draws (Nf, ndraws, n); info dict: ``"wiener"`` (SolveInfo over (Nf,)), ``"draws"``
         (SolveInfo over (Nf, ndraws)), ``"a_wf"`` (Nf, n).
     """
-    check_float64(system.op.response, system.inv_noise)
-    nf, n = system.prior.mean.shape
-    keys = jax.random.split(key, ndraws)
-    if method == "cholesky":
-        P, L = _cholesky(system)
-        b = wiener_rhs(system)
-        a_wf = jax.vmap(lambda l, v: jax.scipy.linalg.cho_solve((l, True), v))(L, b)
-        z = jax.vmap(lambda k: jax.random.normal(k, (nf, n), b.dtype))(keys)  # (ndraws, Nf, n)
-        tri = jax.scipy.linalg.solve_triangular
-        delta = jax.vmap(lambda l, zf: tri(l, zf.T, lower=True, trans="T").T, in_axes=(0, 1), out_axes=0)(L, z)
-        r = b - jnp.einsum("fij,fj->fi", P, a_wf)
-        err = jnp.sqrt(jnp.abs(jnp.einsum("fi,fi->f", r, jax.vmap(lambda l, v: jax.scipy.linalg.cho_solve((l, True), v))(L, r))))
-        ok = jnp.all(jnp.isfinite(L), axis=(1, 2))
-        winfo = SolveInfo(jnp.zeros(nf, int), err, jnp.linalg.norm(r, axis=1) / jnp.linalg.norm(b, axis=1), ok)
-        dinfo = SolveInfo(
-            jnp.zeros((nf, ndraws), int), jnp.zeros((nf, ndraws)), jnp.zeros((nf, ndraws)), jnp.broadcast_to(ok[:, None], (nf, ndraws))
-        )
-        return a_wf[:, None, :] + delta, {"wiener": winfo, "draws": dinfo, "a_wf": a_wf}
-    if method != "cg":
-        raise ValueError(f"method must be 'cg' or 'cholesky', got {method!r}")
-    precision = precision_matrix(system) if dense else None
-    pc = make_preconditioner(system, preconditioner, precision, rank)
-    a_wf, winfo = _solve_cg(system, precision, pc, wiener_rhs(system), system.prior.mean, tol, maxiter)
-    fl = jax.vmap(lambda k: fluctuation_rhs(k, system), out_axes=1)(keys)  # (Nf, ndraws, n)
-    delta, dinfo = _solve_cg(system, precision, pc, fl, jnp.zeros_like(fl), tol, maxiter)
-    return a_wf[:, None, :] + delta, {"wiener": winfo, "draws": dinfo, "a_wf": a_wf}
+    prepared = prepare_sampler(
+        system, method=method, tol=tol, maxiter=maxiter, dense=dense, preconditioner=preconditioner, rank=rank
+    )
+    return draw(key, prepared, ndraws, tol=tol, maxiter=maxiter)
 
 
 # ----------------------------------------------------------- Gibbs-style kernel

@@ -316,3 +316,16 @@ def test_standard_case_wiener_filter_cg_vs_dense():
         ref = np.linalg.solve(P[f], b[f])
         err = np.abs(np.asarray(a)[f] - ref) / np.sqrt(np.diag(Pinv))
         assert err.max() < 1e-3, err.max()
+
+
+@pytest.mark.parametrize("method", ["cg", "cholesky"])
+def test_prepare_once_then_draw_equals_sample(small, method):
+    prob = small["prob"]
+    key = jax.random.PRNGKey(8)
+    d_ref, _ = gcrsky.sample(key, prob, 6, method=method)
+    prepared = gcrsky.prepare(prob, method=method)
+    d1, info = gcrsky.draw(key, prepared, 6)
+    np.testing.assert_allclose(np.asarray(d1), np.asarray(d_ref), rtol=0, atol=1e-9)
+    d2, _ = gcrsky.draw(jax.random.PRNGKey(9), prepared, 6)  # reuse: new key, new draws
+    assert np.abs(np.asarray(d2) - np.asarray(d1)).max() > 1e-3
+    assert bool(np.all(np.asarray(info["draws"].converged)))
