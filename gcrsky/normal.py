@@ -23,9 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .layout import lmax_from_nparams, mode_table
-from .operator import VisOperator, adjoint, apply
+from .operator import VisOperator, adjoint, apply, n_in, response_at
 from .prior import Prior
-from .rotation import rotate
 
 __all__ = [
     "LinearSystem",
@@ -94,18 +93,14 @@ def precision_apply(system: LinearSystem, a: jax.Array) -> jax.Array:
 
 def _time_terms(op: VisOperator, inv_noise: jax.Array):
     """Per-time (X_t, W_t) pairs for a scan: X_t (Nf, Nbl, n) complex."""
-
-    def xt(t):
-        return rotate(op.response.real, -t) + 1j * rotate(op.response.imag, -t)
-
-    return xt, jnp.moveaxis(inv_noise, 1, 0)  # (Nt, Nf, Nbl)
+    return (lambda t: response_at(op, t)), jnp.moveaxis(inv_noise, 1, 0)  # (Nt, Nf, Nbl)
 
 
 @jax.jit
 def precision_matrix(system: LinearSystem) -> jax.Array:
     """Dense P, (Nf, n, n), accumulated over times (memory O(Nf n^2 + Nf Nbl n))."""
     op = system.op
-    nf, _, n = op.response.shape
+    nf, n = op.response.shape[0], n_in(op)
     xt, w_t = _time_terms(op, system.inv_noise)
 
     def body(acc, tw):
@@ -180,7 +175,7 @@ def m_block_preconditioner(system: LinearSystem) -> MBlockPreconditioner:
     solver can run and report non-convergence instead of producing NaN.
     """
     op = system.op
-    nf, _, n = op.response.shape
+    nf, n = op.response.shape[0], n_in(op)
     lmax = lmax_from_nparams(n)
     idx_np, mask_np = m_blocks(lmax)
     idx, mask = jnp.asarray(idx_np), jnp.asarray(mask_np)

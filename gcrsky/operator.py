@@ -6,6 +6,10 @@ never materialised per time; :func:`dense_matrix` builds it for small problems
 and tests.  The adjoint is the realified transpose: for complex ``v``,
 ``X^T v = sum_t rotate(Re(R^H v_t), -angle_t)`` so that
 ``<X a, v> = Re sum conj(v) X a = a . X^T v``.
+
+With an optional fixed ``frame`` map ``M`` (real, (n_resp, n)), the parameters are
+coefficients in another frame (e.g. ICRS, :mod:`gcrsky.frames`) and
+``X a = R rotate(M a)``; the adjoint gains ``M^T``.
 """
 
 from __future__ import annotations
@@ -17,31 +21,48 @@ import jax.numpy as jnp
 
 from .rotation import rotate
 
-__all__ = ["VisOperator", "apply", "adjoint", "dense_matrix"]
+__all__ = ["VisOperator", "apply", "adjoint", "dense_matrix", "response_at", "n_in", "to_response_frame"]
 
 
 class VisOperator(NamedTuple):
     """A linear visibility operator (a PyTree of arrays; pass it through jit/vmap).
 
     Attributes:
-        response: (Nf, Nbl, n) complex response at the reference angle.
+        response: (Nf, Nbl, n_resp) complex response at the reference angle.
         angles: (Nt,) rotation angles ``lst - lst_ref`` in radians.
+        frame: None, or a real (n_resp, n) map from the parameters' frame to the
+            co-rotating frame of the response (applied before the rotation).
     """
 
     response: jax.Array
     angles: jax.Array
+    frame: jax.Array | None = None
+
+
+def n_in(op: VisOperator) -> int:
+    """Length of the parameter vector the operator acts on."""
+    return op.response.shape[2] if op.frame is None else op.frame.shape[1]
 
 
 def _check(op: VisOperator, a: jax.Array) -> None:
-    nf, _, n = op.response.shape
+    nf = op.response.shape[0]
+    n = n_in(op)
     if a.shape[-2:] != (nf, n):
         raise ValueError(f"coefficients have shape {a.shape}, expected (..., {nf}, {n})")
+    if op.frame is not None and op.frame.shape[0] != op.response.shape[2]:
+        raise ValueError(f"frame map has {op.frame.shape[0]} rows, the response {op.response.shape[2]} modes")
+
+
+def to_response_frame(op: VisOperator, a: jax.Array) -> jax.Array:
+    """``M a`` (or ``a`` without a frame map): parameters -> co-rotating coefficients."""
+    return a if op.frame is None else a @ op.frame.T
 
 
 @jax.jit
 def apply(op: VisOperator, a: jax.Array) -> jax.Array:
     """Model visibilities ``X a``: (Nf, n) real -> (Nf, Nt, Nbl) complex."""
     _check(op, a)
+    a = to_response_frame(op, a)
     arot = jax.vmap(lambda t: rotate(a, t), out_axes=1)(op.angles)  # (Nf, Nt, n)
     return jnp.einsum("fbk,ftk->ftb", op.response, arot.astype(op.response.dtype))
 
@@ -53,8 +74,8 @@ def adjoint(op: VisOperator, v: jax.Array) -> jax.Array:
     if v.shape != (nf, op.angles.shape[0], nbl):
         raise ValueError(f"visibilities have shape {v.shape}, expected {(nf, op.angles.shape[0], nbl)}")
     y = jnp.einsum("fbk,ftb->ftk", jnp.conj(op.response), v).real  # (Nf, Nt, n)
-    back = jax.vmap(lambda yt, t: rotate(yt, -t), in_axes=(1, 0), out_axes=1)(y, op.angles)
-    return back.sum(axis=1)
+    back = jax.vmap(lambda yt, t: rotate(yt, -t), in_axes=(1, 0), out_axes=1)(y, op.angles).sum(axis=1)
+    return back if op.frame is None else back @ op.frame
 
 
 @jax.jit
@@ -64,7 +85,10 @@ def dense_matrix(op: VisOperator) -> jax.Array:
     Memory Nf*Nt*Nbl*n complex; for small problems and tests.
     """
     # X_t = R rot_t  ->  rows of R rotated by -t (rot_t^T = rot_{-t})
-    def one(t):
-        return rotate(op.response.real, -t) + 1j * rotate(op.response.imag, -t)
+    return jax.vmap(lambda t: response_at(op, t), out_axes=1)(op.angles)
 
-    return jax.vmap(one, out_axes=1)(op.angles)
+
+def response_at(op: VisOperator, t) -> jax.Array:
+    """``X_t = R rot_t M``: (Nf, Nbl, n) complex response at rotation angle ``t``."""
+    X = rotate(op.response.real, -t) + 1j * rotate(op.response.imag, -t)
+    return X if op.frame is None else X @ op.frame.astype(X.dtype)

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .instrument import HERA_LATITUDE_DEG, Array, antpairs, gaussian_beam, hex_array, make_array
-from .layout import ModeTable, mode_table, n_params
+from .layout import ModeTable, lmax_from_nparams, mode_table, n_params
 from .noise import clean_data, draw_noise, inverse_variance, radiometer_sigma
 from .normal import LinearSystem, precision_matrix, require_x64
 from .operator import VisOperator, apply
@@ -96,7 +96,9 @@ class Problem(eqx.Module):
         response (Nf, Nbl, n) complex at ``lst_ref_rad``; auto_response (Nf, Nant, n);
         data (Nf, Nt, Nbl) complex (K sr); sigma (Nf, Nt, Nbl) per-component noise std;
         weights (Nf, Nt, Nbl) in [0, 1]; prior (mean, inv_var (Nf, n));
-        a_true (Nf, n) or None.
+        a_true (Nf, n) or None; frame: None (parameters are coefficients of the
+        co-rotating frame, the paper's idealised LSTs) or the (n_resp, n) map from the
+        parameters' frame (e.g. ICRS) to it, with the response at ``lmax_response``.
     """
 
     freqs_hz: jax.Array
@@ -109,6 +111,7 @@ class Problem(eqx.Module):
     weights: jax.Array
     prior: Prior
     a_true: Optional[jax.Array]
+    frame: Optional[jax.Array]
     lst_ref_rad: float = eqx.field(static=True)
     lmax: int = eqx.field(static=True)
     nside: int = eqx.field(static=True)
@@ -125,7 +128,7 @@ class Problem(eqx.Module):
 
     def operator(self) -> VisOperator:
         """The visibility operator for this problem's LSTs."""
-        return VisOperator(self.response, self.lsts_rad - self.lst_ref_rad)
+        return VisOperator(self.response, self.lsts_rad - self.lst_ref_rad, self.frame)
 
     def system(self) -> LinearSystem:
         """The linear system (operator, data, inverse noise, prior)."""
@@ -138,7 +141,7 @@ class Problem(eqx.Module):
 
     def auto_visibilities(self, a) -> jax.Array:
         """Real auto-correlations ``V_ii`` (Nf, Nt, Nant) of the sky ``a``."""
-        return apply(VisOperator(self.auto_response, self.lsts_rad - self.lst_ref_rad), jnp.asarray(a)).real
+        return apply(VisOperator(self.auto_response, self.lsts_rad - self.lst_ref_rad, self.frame), jnp.asarray(a)).real
 
     def precision_matrix(self) -> jax.Array:
         """Dense realified posterior precision P, (Nf, n, n)."""
@@ -162,6 +165,7 @@ def build_problem(
     noise_scale: float = 1.0,
     key: jax.Array | None = None,
     lst_ref_rad: float = 0.0,
+    frame=None,
     config: Config | None = None,
     sky_note: str = "",
 ) -> Problem:
@@ -171,6 +175,12 @@ def build_problem(
     give ``a_true`` (Nf, n) to simulate: model visibilities plus radiometer noise
     whose sigma comes from the simulated autos (``sigma^2 = V_ii V_jj / (2 dt dnu)``,
     times ``noise_scale``), drawn with ``key``.  The prior defaults to flat.
+
+    Real observing times (DESIGN section 2, mode b): give ``lsts_rad`` =
+    :func:`gcrsky.frames.local_sidereal_angles` of the times and ``frame`` =
+    :func:`gcrsky.frames.icrs_to_apparent_matrix`; the parameters (and ``a_true``,
+    the prior) are then ICRS coefficients at ``lmax`` and the response is built at
+    the frame's output degree.
     """
     require_x64("build_problem")
     freqs = np.atleast_1d(np.asarray(freqs_hz, np.float64))
@@ -178,8 +188,14 @@ def build_problem(
     nant = array.positions_enu_m.shape[0]
     pairs = antpairs(nant)
     n = n_params(lmax)
-    resp = response_matrix(array, pairs, freqs, lmax, nside, lst_ref_rad=lst_ref_rad)
-    auto = response_matrix(array, np.stack([np.arange(nant)] * 2, 1), freqs, lmax, nside, lst_ref_rad=lst_ref_rad)
+    lmax_resp = lmax
+    if frame is not None:
+        frame = jnp.asarray(frame, jnp.float64)
+        if frame.ndim != 2 or frame.shape[1] != n:
+            raise ValueError(f"frame must be (n_resp, {n}) for lmax={lmax}, got shape {frame.shape}")
+        lmax_resp = lmax_from_nparams(frame.shape[0])
+    resp = response_matrix(array, pairs, freqs, lmax_resp, nside, lst_ref_rad=lst_ref_rad)
+    auto = response_matrix(array, np.stack([np.arange(nant)] * 2, 1), freqs, lmax_resp, nside, lst_ref_rad=lst_ref_rad)
     angles = jnp.asarray(lsts - lst_ref_rad)
     if key is None:
         key = jax.random.PRNGKey(0)
@@ -191,11 +207,11 @@ def build_problem(
     if data is None:
         if a_true is None:
             raise ValueError("give either data (with sigma) or a_true to simulate from")
-        autos = np.asarray(apply(VisOperator(auto, angles), a_true).real)  # (Nf, Nt, Nant)
+        autos = np.asarray(apply(VisOperator(auto, angles, frame), a_true).real)  # (Nf, Nt, Nant)
         if sigma is None:
             sigma = radiometer_sigma(autos[:, :, pairs[:, 0]], autos[:, :, pairs[:, 1]], dt_s, dnu_hz)
         sigma = np.asarray(sigma, np.float64) * np.sqrt(noise_scale)
-        model = apply(VisOperator(resp, angles), a_true)
+        model = apply(VisOperator(resp, angles, frame), a_true)
         data = model + draw_noise(key, jnp.asarray(sigma))
     else:
         if sigma is None:
@@ -224,6 +240,7 @@ def build_problem(
         weights=jnp.asarray(w),
         prior=Prior(jnp.asarray(prior.mean, jnp.float64), jnp.asarray(prior.inv_var, jnp.float64)),
         a_true=a_true,
+        frame=frame,
         lst_ref_rad=float(lst_ref_rad),
         lmax=int(lmax),
         nside=int(nside),
