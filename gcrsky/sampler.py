@@ -305,6 +305,7 @@ def draw(key: jax.Array, prepared: PreparedSampler, ndraws: int, *, tol: float =
     return a_wf[:, None, :] + delta, {"wiener": prepared.wiener, "draws": dinfo, "a_wf": a_wf}
 
 
+@partial(jax.jit, static_argnames=("ndraws", "method", "dense", "maxiter", "preconditioner", "rank"))
 def sample_system(
     key: jax.Array,
     system: LinearSystem,
