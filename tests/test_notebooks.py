@@ -30,10 +30,11 @@ def test_readme_python_examples_run():
 
     readme = (pathlib.Path(__file__).parents[1] / "README.md").read_text()
     blocks = re.findall(r"```python\n(.*?)```", readme, re.S)
-    assert len(blocks) >= 2
+    assert len(blocks) >= 3
     code = "\n".join(blocks).replace("nside=128", "nside=32").replace("split(key, 1000)", "split(key, 20)")
     ns: dict = {}
     exec(compile(code, "README.md", "exec"), ns)
     assert ns["draws"].shape == (2, 200, 441)
     assert ns["chain"].shape == (20, 2, 441)
+    assert ns["real"].response.shape[-1] == (ns["lmax_app"] + 1) ** 2
     assert np.all(np.isfinite(np.asarray(ns["chain"])))
