@@ -7,9 +7,11 @@ and tests.  The adjoint is the realified transpose: for complex ``v``,
 ``X^T v = sum_t rotate(Re(R^H v_t), -angle_t)`` so that
 ``<X a, v> = Re sum conj(v) X a = a . X^T v``.
 
-With an optional fixed ``frame`` map ``M`` (real, (n_resp, n)), the parameters are
-coefficients in another frame (e.g. ICRS, :mod:`gcrsky.frames`) and
-``X a = R rotate(M a)``; the adjoint gains ``M^T``.
+With an optional fixed ``frame`` map ``M`` from the parameters' frame (e.g. ICRS,
+:mod:`gcrsky.frames`) to the co-rotating one, ``X a = R rotate(M a)`` and the
+adjoint gains ``M^T``.  ``M`` is either a dense real (n_resp, n) array or a
+:class:`gcrsky.frames.FrameMap` (Wigner-D rotations and aberration, applied
+matrix-free in O(lmax^3)).
 """
 
 from __future__ import annotations
@@ -19,9 +21,10 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from .frames import FrameMap, apply_frame, frame_lmax, transpose_frame
 from .rotation import rotate
 
-__all__ = ["VisOperator", "apply", "adjoint", "dense_matrix", "response_at", "n_in", "to_response_frame"]
+__all__ = ["VisOperator", "apply", "adjoint", "dense_matrix", "response_at", "n_in", "to_response_frame", "from_response_frame", "frame_shape"]
 
 
 class VisOperator(NamedTuple):
@@ -30,8 +33,9 @@ class VisOperator(NamedTuple):
     Attributes:
         response: (Nf, Nbl, n_resp) complex response at the reference angle.
         angles: (Nt,) rotation angles ``lst - lst_ref`` in radians.
-        frame: None, or a real (n_resp, n) map from the parameters' frame to the
-            co-rotating frame of the response (applied before the rotation).
+        frame: None, a real (n_resp, n) array or a :class:`gcrsky.frames.FrameMap`:
+            the map from the parameters' frame to the co-rotating frame of the
+            response (applied before the rotation).
     """
 
     response: jax.Array
@@ -39,9 +43,19 @@ class VisOperator(NamedTuple):
     frame: jax.Array | None = None
 
 
+def frame_shape(frame) -> tuple[int, int]:
+    """``(n_resp, n_in)`` of a frame map (dense array or :class:`FrameMap`)."""
+    if isinstance(frame, FrameMap):
+        lin, lout = frame_lmax(frame)
+        return (lout + 1) ** 2, (lin + 1) ** 2
+    if frame.ndim != 2:
+        raise ValueError(f"a dense frame map must be 2-d (n_resp, n), got shape {frame.shape}")
+    return frame.shape
+
+
 def n_in(op: VisOperator) -> int:
     """Length of the parameter vector the operator acts on."""
-    return op.response.shape[2] if op.frame is None else op.frame.shape[1]
+    return op.response.shape[2] if op.frame is None else frame_shape(op.frame)[1]
 
 
 def _check(op: VisOperator, a: jax.Array) -> None:
@@ -49,13 +63,22 @@ def _check(op: VisOperator, a: jax.Array) -> None:
     n = n_in(op)
     if a.shape[-2:] != (nf, n):
         raise ValueError(f"coefficients have shape {a.shape}, expected (..., {nf}, {n})")
-    if op.frame is not None and op.frame.shape[0] != op.response.shape[2]:
-        raise ValueError(f"frame map has {op.frame.shape[0]} rows, the response {op.response.shape[2]} modes")
+    if op.frame is not None and frame_shape(op.frame)[0] != op.response.shape[2]:
+        raise ValueError(f"frame map has {frame_shape(op.frame)[0]} outputs, the response {op.response.shape[2]} modes")
 
 
 def to_response_frame(op: VisOperator, a: jax.Array) -> jax.Array:
     """``M a`` (or ``a`` without a frame map): parameters -> co-rotating coefficients."""
-    return a if op.frame is None else a @ op.frame.T
+    if op.frame is None:
+        return a
+    return apply_frame(op.frame, a) if isinstance(op.frame, FrameMap) else a @ op.frame.T
+
+
+def from_response_frame(op: VisOperator, b: jax.Array) -> jax.Array:
+    """``M^T b`` (or ``b``): transpose of :func:`to_response_frame`, real (..., n_resp) -> (..., n)."""
+    if op.frame is None:
+        return b
+    return transpose_frame(op.frame, b) if isinstance(op.frame, FrameMap) else b @ op.frame
 
 
 @jax.jit
@@ -75,7 +98,7 @@ def adjoint(op: VisOperator, v: jax.Array) -> jax.Array:
         raise ValueError(f"visibilities have shape {v.shape}, expected {(nf, op.angles.shape[0], nbl)}")
     y = jnp.einsum("fbk,ftb->ftk", jnp.conj(op.response), v).real  # (Nf, Nt, n)
     back = jax.vmap(lambda yt, t: rotate(yt, -t), in_axes=(1, 0), out_axes=1)(y, op.angles).sum(axis=1)
-    return back if op.frame is None else back @ op.frame
+    return from_response_frame(op, back)
 
 
 @jax.jit
@@ -91,4 +114,6 @@ def dense_matrix(op: VisOperator) -> jax.Array:
 def response_at(op: VisOperator, t) -> jax.Array:
     """``X_t = R rot_t M``: (Nf, Nbl, n) complex response at rotation angle ``t``."""
     X = rotate(op.response.real, -t) + 1j * rotate(op.response.imag, -t)
-    return X if op.frame is None else X @ op.frame.astype(X.dtype)
+    if op.frame is None:
+        return X
+    return from_response_frame(op, X.real) + 1j * from_response_frame(op, X.imag)

@@ -21,7 +21,8 @@ from .instrument import HERA_LATITUDE_DEG, Array, antpairs, gaussian_beam, hex_a
 from .layout import ModeTable, lmax_from_nparams, mode_table, n_params
 from .noise import clean_data, draw_noise, inverse_variance, radiometer_sigma
 from .normal import LinearSystem, precision_matrix, require_x64
-from .operator import VisOperator, apply
+from .frames import FrameMap, observing_geometry
+from .operator import VisOperator, apply, frame_shape
 from .prior import Prior, flat_prior, paper_prior
 from .response import response_matrix
 
@@ -97,8 +98,9 @@ class Problem(eqx.Module):
         data (Nf, Nt, Nbl) complex (K sr); sigma (Nf, Nt, Nbl) per-component noise std;
         weights (Nf, Nt, Nbl) in [0, 1]; prior (mean, inv_var (Nf, n));
         a_true (Nf, n) or None; frame: None (parameters are coefficients of the
-        co-rotating frame, the paper's idealised LSTs) or the (n_resp, n) map from the
-        parameters' frame (e.g. ICRS) to it, with the response at ``lmax_response``.
+        co-rotating frame, the paper's idealised LSTs) or the map from the
+        parameters' frame (e.g. ICRS) to it (dense (n_resp, n) or a
+        :class:`gcrsky.frames.FrameMap`), with the response at the map's output degree.
     """
 
     freqs_hz: jax.Array
@@ -111,7 +113,7 @@ class Problem(eqx.Module):
     weights: jax.Array
     prior: Prior
     a_true: Optional[jax.Array]
-    frame: Optional[jax.Array]
+    frame: Optional[object]
     lst_ref_rad: float = eqx.field(static=True)
     lmax: int = eqx.field(static=True)
     nside: int = eqx.field(static=True)
@@ -166,6 +168,9 @@ def build_problem(
     key: jax.Array | None = None,
     lst_ref_rad: float = 0.0,
     frame=None,
+    times=None,
+    location=None,
+    frame_pad: int = 4,
     config: Config | None = None,
     sky_note: str = "",
 ) -> Problem:
@@ -176,24 +181,51 @@ def build_problem(
     whose sigma comes from the simulated autos (``sigma^2 = V_ii V_jj / (2 dt dnu)``,
     times ``noise_scale``), drawn with ``key``.  The prior defaults to flat.
 
-    Real observing times (DESIGN section 2, mode b): give ``lsts_rad`` =
-    :func:`gcrsky.frames.local_sidereal_angles` of the times and ``frame`` =
-    :func:`gcrsky.frames.icrs_to_apparent_matrix`; the parameters (and ``a_true``,
-    the prior) are then ICRS coefficients at ``lmax`` and the response is built at
-    the frame's output degree.
+    Two frame modes (DESIGN section 2):
+
+    * idealised (the paper's): ``lsts_rad`` (Nt,) radians; the parameters are
+      coefficients of the co-rotating frame.
+    * real observing times: ``lsts_rad=None``, ``times`` (astropy ``Time`` (Nt,))
+      and ``location`` (astropy ``EarthLocation``, whose latitude must be the
+      array's).  The parameters (and ``a_true``, the prior) are then ICRS
+      coefficients at ``lmax``; :func:`gcrsky.frames.observing_geometry` supplies
+      the local Earth rotation angles and the fixed ICRS -> CIRS-of-date
+      :class:`gcrsky.frames.FrameMap`, and the response is built at
+      ``lmax + frame_pad``.
+
+    An explicit ``frame`` (dense (n_resp, n) array or ``FrameMap``) with
+    ``lsts_rad`` is also accepted.
     """
     require_x64("build_problem")
     freqs = np.atleast_1d(np.asarray(freqs_hz, np.float64))
+    if times is not None:
+        if lsts_rad is not None or frame is not None:
+            raise ValueError("give either times (with location) or lsts_rad (with an optional frame), not both")
+        if location is None:
+            raise ValueError("real observing times need the site: pass location (astropy EarthLocation)")
+        geom = observing_geometry(times, location, lmax, pad=frame_pad)
+        if abs(geom.latitude_deg - float(np.rad2deg(array.latitude_rad))) > 1e-6:
+            raise ValueError(
+                f"the array is at latitude {float(np.rad2deg(array.latitude_rad))} deg but location is at "
+                f"{geom.latitude_deg} deg; build the array with make_array(..., location latitude, ...)"
+            )
+        lsts_rad, frame = geom.lsts_rad, geom.frame
+    elif location is not None:
+        raise ValueError("location is only used with times")
+    if lsts_rad is None:
+        raise ValueError("give lsts_rad (idealised frame) or times and location (real observing times)")
     lsts = np.atleast_1d(np.asarray(lsts_rad, np.float64))
     nant = array.positions_enu_m.shape[0]
     pairs = antpairs(nant)
     n = n_params(lmax)
     lmax_resp = lmax
     if frame is not None:
-        frame = jnp.asarray(frame, jnp.float64)
-        if frame.ndim != 2 or frame.shape[1] != n:
-            raise ValueError(f"frame must be (n_resp, {n}) for lmax={lmax}, got shape {frame.shape}")
-        lmax_resp = lmax_from_nparams(frame.shape[0])
+        if not isinstance(frame, FrameMap):
+            frame = jnp.asarray(frame, jnp.float64)
+        n_resp, n_frame = frame_shape(frame)
+        if n_frame != n:
+            raise ValueError(f"frame map takes {n_frame} coefficients, lmax={lmax} has {n}")
+        lmax_resp = lmax_from_nparams(n_resp)
     resp = response_matrix(array, pairs, freqs, lmax_resp, nside, lst_ref_rad=lst_ref_rad)
     auto = response_matrix(array, np.stack([np.arange(nant)] * 2, 1), freqs, lmax_resp, nside, lst_ref_rad=lst_ref_rad)
     angles = jnp.asarray(lsts - lst_ref_rad)

@@ -37,7 +37,7 @@ from unittest import mock
 import healpy as hp
 import numpy as np
 
-from .layout import n_params, realify
+from .layout import n_params, realify, unrealify
 
 __all__ = ["SkyTruth", "sky_truth", "gsm2016_available"]
 
@@ -141,19 +141,19 @@ def _map_to_alm(m: np.ndarray, lmax: int) -> np.ndarray:
 
 
 def _galactic_maps_to_equatorial_alm(maps: np.ndarray, lmax: int) -> np.ndarray:
-    """Galactic RING maps ``(nfreq, npix)`` -> equatorial complex alm ``(nfreq, nalm)``.
+    """Galactic RING maps ``(nfreq, npix)`` -> ICRS complex alm ``(nfreq, nalm)``.
 
-    The rotation is applied to the coefficients (``Rotator.rotate_alm``, exact
-    per l through Wigner D matrices), avoiding any pixel interpolation.
-    healpy's ``"C"`` frame is the J2000 equatorial frame, which differs from
-    ICRS by ~20 mas: irrelevant here.
+    The rotation is applied to the coefficients (one Wigner-D rotation with the
+    Euler angles of astropy's Galactic -> ICRS matrix, :mod:`gcrsky.frames`),
+    exact to rounding and free of pixel interpolation.
     """
-    rot = hp.Rotator(coord=["G", "C"])
-    out = []
-    for m in np.atleast_2d(maps):
-        alm_g = _map_to_alm(m, lmax)
-        out.append(rot.rotate_alm(alm_g, lmax=lmax))
-    return np.asarray(out, dtype=np.complex128)
+    from astropy.coordinates import ICRS, Galactic
+
+    from .frames import rotate_between_frames
+
+    alm_g = np.stack([_map_to_alm(m, lmax) for m in np.atleast_2d(maps)])
+    a_icrs = rotate_between_frames(realify(alm_g, lmax), Galactic(), ICRS())
+    return np.asarray(unrealify(np.asarray(a_icrs), lmax), dtype=np.complex128)
 
 
 def _realify_stack(alm: np.ndarray, lmax: int) -> np.ndarray:

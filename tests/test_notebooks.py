@@ -36,5 +36,6 @@ def test_readme_python_examples_run():
     exec(compile(code, "README.md", "exec"), ns)
     assert ns["draws"].shape == (2, 200, 441)
     assert ns["chain"].shape == (20, 2, 441)
-    assert ns["real"].response.shape[-1] == (ns["lmax_app"] + 1) ** 2
+    assert ns["real"].response.shape[-1] == (20 + 4 + 1) ** 2  # ICRS lmax 20 -> CIRS lmax 24
+    assert ns["real"].data.shape == (2, 10, 45)
     assert np.all(np.isfinite(np.asarray(ns["chain"])))
