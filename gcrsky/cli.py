@@ -482,7 +482,7 @@ def _print_summary(s: dict, out: Path) -> None:
         f"sigma; all converged: {sv['all_converged']}",
         f"  time: build {t['build']:.1f} s, wiener {t['wiener']:.1f} s, draws {t['draws']:.1f} s (compile included), "
         f"maps {t['maps']:.1f} s" + (f", plots {t['plots']:.1f} s" if "plots" in t else ""),
-        f"  wrote results.h5, summary.json" + (", " + ", ".join(s["figures"].values()) if s["figures"] else ""),
+        "  wrote results.h5, summary.json" + (", " + ", ".join(s["figures"].values()) if s["figures"] else ""),
     ]
     print("\n".join(lines))
 

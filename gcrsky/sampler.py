@@ -48,7 +48,6 @@ from .normal import (
 __all__ = [
     "SolveInfo",
     "pcg",
-    "solve",
     "wiener_filter_system",
     "sample_system",
     "PreparedSampler",

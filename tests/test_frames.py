@@ -14,14 +14,12 @@ from astropy.utils import iers
 
 import gcrsky
 from gcrsky.frames import (
-    FrameMap,
     alm_frame_matrix,
     apply_frame,
     frame_matrix,
     frame_rotation_matrix,
     icrs_to_apparent_matrix,
     icrs_to_cirs_map,
-    local_sidereal_angles,
     observing_geometry,
     rotate_between_frames,
     transpose_frame,
@@ -31,7 +29,7 @@ from gcrsky.layout import alm_to_map, mode_table, n_params, realify, unrealify
 from gcrsky.operator import VisOperator, apply
 from gcrsky.response import kelvin_sr_to_jy, response_matrix
 
-from test_matvis import CROSS, FREQS_HZ, HERA_LON_DEG, NANT, PAIRS, _site  # noqa: E402
+from test_matvis import CROSS, FREQS_HZ, NANT, PAIRS, _site  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
