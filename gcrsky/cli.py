@@ -133,6 +133,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="no prior (S^-1 = 0; the posterior may be improper)")
     r.add_argument("--zero-prior-mean", action="store_true", default=d.zero_prior_mean,
                    help="prior mean a0 = 0 instead of a draw around the truth")
+    r.add_argument("--date", default=d.obs_date, metavar="YYYY-MM-DD",
+                   help="observe on this UTC date at the real times whose local Earth rotation angle is each "
+                   "LST (sky in ICRS, exact ICRS -> CIRS-of-date frame map); default: the paper's idealised LSTs")
     r.add_argument("--method", choices=("cg", "cholesky"), default="cg", help="GCR solver")
     r.add_argument("--batch", type=_int_at_least(1, "batch"), default=DEFAULT_BATCH,
                    help="draws per batch (part of the draws' seed: see the module doc)")
@@ -275,6 +278,7 @@ def _run(args) -> int:
         flat_prior=args.flat_prior,
         zero_prior_mean=args.zero_prior_mean,
         seed=args.data_seed,
+        obs_date=args.date,
     )
     # tqdm's disable=None: bars only on a terminal; --no-progress: never
     disable_bars = True if args.no_progress else None
@@ -508,7 +512,7 @@ def main(argv=None) -> int:
 
         try:
             Config(lmax=args.lmax, nside=args.nside, n_lst=args.n_lst,
-                   lst_range_hours=(args.lst_start, args.lst_stop)).validate()
+                   lst_range_hours=(args.lst_start, args.lst_stop), obs_date=args.date).validate()
         except ValueError as e:
             parser.error(str(e))
         from tqdm.contrib.logging import logging_redirect_tqdm

@@ -48,6 +48,7 @@ __all__ = [
     "icrs_to_cirs_map",
     "frame_rotation_matrix",
     "rotate_between_frames",
+    "times_for_lsts",
 ]
 
 
@@ -353,3 +354,42 @@ def rotate_between_frames(a, source_frame, target_frame, *, blocks: WignerBlocks
         blocks = wigner_blocks(lmax)
     r = frame_rotation_matrix(source_frame, target_frame)
     return rotate_euler(a, *euler_zyz(r), blocks)
+
+
+#: Earth rotation angle rate, revolutions per UT1 day (IAU 2000 ERA definition).
+_ERA_RATE = 1.00273781191135448
+
+
+def times_for_lsts(date, lsts_rad, longitude_deg: float):
+    """UTC times on or after ``date`` at which the local Earth rotation angle equals ``lsts_rad``.
+
+    The first LST is reached at the first such instant after ``date``; the others
+    follow at the sidereal rate, so LSTs beyond 2 pi continue into the next day
+    (increasing ``lsts_rad`` give increasing times).
+
+    Args:
+        date: anything astropy ``Time`` accepts (e.g. ``"2026-03-21"``), UTC.
+        lsts_rad: (Nt,) non-decreasing local Earth rotation angles, radians.
+        longitude_deg: east longitude of the site, degrees.
+
+    Returns:
+        astropy ``Time`` (Nt,) with ``local_sidereal_angles(times, lon) == lsts mod 2 pi``
+        to ~1e-9 rad.
+    """
+    import astropy.units as u
+    from astropy.time import Time
+
+    lsts = np.atleast_1d(np.asarray(lsts_rad, np.float64))
+    if lsts.size > 1 and np.any(np.diff(lsts) < 0):
+        raise ValueError("lsts_rad must be non-decreasing")
+    t0 = Time(date, scale="utc")
+    era0 = float(local_sidereal_angles(t0, longitude_deg))
+    offset_days = (np.mod(lsts[0] - era0, 2 * np.pi) + (lsts - lsts[0])) / (2 * np.pi * _ERA_RATE)
+    times = t0 + offset_days * u.day
+    for _ in range(2):  # UT1 - UTC drifts by < 1 ms/day: polish
+        err = np.angle(np.exp(1j * (lsts - local_sidereal_angles(times, longitude_deg))))
+        times = times + err / (2 * np.pi * _ERA_RATE) * u.day
+    err = np.angle(np.exp(1j * (lsts - local_sidereal_angles(times, longitude_deg))))
+    if np.abs(err).max() > 1e-8:
+        raise RuntimeError(f"could not match the LSTs to 1e-8 rad (residual {np.abs(err).max():.1e})")
+    return times

@@ -36,6 +36,9 @@ __all__ = [
 
 #: HERA's geodetic latitude (degrees); the paper's site.  Pass it explicitly.
 HERA_LATITUDE_DEG = -30.7215
+#: HERA's east longitude (degrees) and height (m), for real observing times.
+HERA_LONGITUDE_DEG = 21.4283
+HERA_HEIGHT_M = 1073.0
 
 
 class Array(NamedTuple):

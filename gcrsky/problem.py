@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .instrument import HERA_LATITUDE_DEG, Array, antpairs, gaussian_beam, hex_array, make_array
+from .instrument import HERA_HEIGHT_M, HERA_LATITUDE_DEG, HERA_LONGITUDE_DEG, Array, antpairs, gaussian_beam, hex_array, make_array
 from .layout import ModeTable, lmax_from_nparams, mode_table, n_params
 from .noise import clean_data, draw_noise, inverse_variance, radiometer_sigma
 from .normal import LinearSystem, precision_matrix, require_x64
@@ -42,7 +42,11 @@ class Config:
 
     Units: frequencies Hz, LSTs sidereal hours, lengths metres, latitude degrees,
     dt seconds, dnu Hz.  ``noise_scale`` multiplies the noise *variance* N,
-    ``prior_scale`` the prior variance S (paper cases B2-B8).
+    ``prior_scale`` the prior variance S (paper cases B2-B8).  ``obs_date`` None
+    is the paper's idealised mode (sky coefficients in the co-rotating frame);
+    a date (e.g. ``"2026-03-21"``) observes at the real UTC times of that date
+    whose local Earth rotation angles are the LSTs, with the sky in ICRS
+    (DESIGN section 2, mode b; the site is longitude/latitude/height).
     """
 
     lmax: int = 20
@@ -54,6 +58,9 @@ class Config:
     antenna_spacing: float = 14.6
     rows: tuple = (3, 4, 3)
     latitude_deg: float = HERA_LATITUDE_DEG
+    longitude_deg: float = HERA_LONGITUDE_DEG
+    height_m: float = HERA_HEIGHT_M
+    obs_date: Optional[str] = None
     dt_s: float = 60.0
     dnu_hz: float = 1e6
     noise_scale: float = 1.0
@@ -76,6 +83,13 @@ class Config:
         for name in ("dish_diameter", "antenna_spacing", "dt_s", "dnu_hz", "noise_scale", "prior_scale", "prior_frac"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.obs_date is not None:
+            from astropy.time import Time
+
+            try:
+                Time(self.obs_date, scale="utc")
+            except ValueError as e:
+                raise ValueError(f"obs_date {self.obs_date!r} is not a date astropy understands: {e}") from None
         if 3 * self.nside - 1 < self.lmax:
             raise ValueError(f"nside={self.nside} cannot resolve lmax={self.lmax} (need 3*nside-1 >= lmax)")
         return self
@@ -327,12 +341,23 @@ def problem_from_config(cfg: Config) -> Problem:
             prior_scale=cfg.prior_scale,
             zero_mean=cfg.zero_prior_mean,
         )
+    if cfg.obs_date is None:
+        when = dict(lsts_rad=hours_to_rad(cfg.lsts_hours))
+    else:
+        import astropy.units as u
+        from astropy.coordinates import EarthLocation
+
+        from .frames import times_for_lsts
+
+        site = EarthLocation.from_geodetic(cfg.longitude_deg * u.deg, cfg.latitude_deg * u.deg, cfg.height_m * u.m)
+        times = times_for_lsts(cfg.obs_date, hours_to_rad(cfg.lsts_hours), cfg.longitude_deg)
+        when = dict(lsts_rad=None, times=times, location=site)
     return build_problem(
         array,
         freqs,
-        hours_to_rad(cfg.lsts_hours),
-        cfg.lmax,
-        cfg.nside,
+        lmax=cfg.lmax,
+        nside=cfg.nside,
+        **when,
         a_true=a_true,
         prior=prior,
         dt_s=cfg.dt_s,

@@ -153,3 +153,19 @@ def test_nan_draws_exit_nonzero(monkeypatch, tmp_path, capsys):
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["draws_finite"] is False and s["exit_status"] == 1
     assert (tmp_path / "results.h5").is_file()
+
+
+def test_run_with_real_date(tmp_path):
+    """--date: real UTC times of that date, sky in ICRS; the headline still holds."""
+    rc = cli.main(["run", "--out", str(tmp_path), "--nsamples", "8", "--no-plots", "--date", "2026-03-21", *SMALL])
+    assert rc == 0
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["config"]["obs_date"] == "2026-03-21"
+    assert s["frac_diff_centre_median"] < 0.05
+
+
+def test_bad_date_is_a_usage_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(["run", "--out", str(tmp_path), "--date", "someday", *SMALL])
+    assert e.value.code == 2
+    assert "obs_date" in capsys.readouterr().err

@@ -14,12 +14,14 @@ from astropy.utils import iers
 
 import gcrsky
 from gcrsky.frames import (
+    FrameMap,
     alm_frame_matrix,
     apply_frame,
     frame_matrix,
     frame_rotation_matrix,
     icrs_to_apparent_matrix,
     icrs_to_cirs_map,
+    local_sidereal_angles,
     observing_geometry,
     rotate_between_frames,
     transpose_frame,
@@ -252,3 +254,31 @@ def u_hour():
     import astropy.units as u
 
     return u.hour
+
+
+def test_times_for_lsts_hit_the_lsts():
+    from gcrsky.frames import times_for_lsts
+
+    lsts = np.linspace(0.0, 8.0, 9) * np.pi / 12
+    times = times_for_lsts("2026-03-21", lsts, 21.4283)
+    got = local_sidereal_angles(times, 21.4283)
+    assert np.abs(np.angle(np.exp(1j * (got - lsts)))).max() < 1e-8
+    assert np.all(np.diff(times.jd) > 0) and times[0] >= Time("2026-03-21")
+    # one sidereal hour is 0.99727 solar hours
+    assert abs((times[1] - times[0]).to_value("s") - 3600 / 1.00273781191135448) < 1e-3
+    with pytest.raises(ValueError, match="non-decreasing"):
+        times_for_lsts("2026-03-21", lsts[::-1], 21.4283)
+
+
+def test_config_with_date_builds_an_icrs_problem():
+    prob = gcrsky.standard_case(lmax=6, nside=32, n_lst=4, obs_date="2026-03-21")
+    assert isinstance(prob.frame, FrameMap)
+    assert prob.response.shape[-1] == n_params(10)
+    ideal = gcrsky.standard_case(lmax=6, nside=32, n_lst=4)
+    # same LSTs, same truth; the frames differ by precession-nutation (~0.36 deg)
+    dl = np.angle(np.exp(1j * (np.asarray(prob.lsts_rad) - np.asarray(ideal.lsts_rad))))
+    assert np.abs(dl).max() < 1e-8
+    rel = np.abs(prob.visibilities(prob.a_true) - ideal.visibilities(ideal.a_true)).max() / np.abs(ideal.visibilities(ideal.a_true)).max()
+    assert 1e-4 < rel < 0.2, rel
+    with pytest.raises(ValueError, match="obs_date"):
+        gcrsky.standard_case(lmax=6, nside=32, obs_date="not a date")
