@@ -6,11 +6,13 @@ Gaussian constrained realisations of the sky's spherical-harmonic coefficients
 
 from .api import prepare, sample, wiener_filter
 from .layout import ModeTable, alm_to_map, mode_table, n_params, realify, unrealify
+from .frames import FrameMap, observing_geometry
+from .noise import weights_from_flags
 from .normal import LinearSystem, precision_apply, precision_matrix
 from .operator import VisOperator, adjoint, apply, dense_matrix
 from .prior import Prior, flat_prior, isotropic_prior, paper_prior
 from .problem import Config, Problem, build_problem, standard_case
-from .rotation import rotate
+from .rotation import rotate, rotate_euler, wigner_blocks
 from .sampler import (
     GCRState,
     PreparedSampler,
@@ -25,6 +27,7 @@ from .sampler import (
 
 __all__ = [
     "Config",
+    "FrameMap",
     "GCRState",
     "LinearSystem",
     "PreparedSampler",
@@ -45,6 +48,7 @@ __all__ = [
     "isotropic_prior",
     "mode_table",
     "n_params",
+    "observing_geometry",
     "paper_prior",
     "precision_apply",
     "prepare",
@@ -52,12 +56,15 @@ __all__ = [
     "precision_matrix",
     "realify",
     "rotate",
+    "rotate_euler",
     "sample",
     "sample_system",
     "standard_case",
     "unrealify",
+    "weights_from_flags",
     "wiener_filter",
     "wiener_filter_system",
+    "wigner_blocks",
 ]
 
 __version__ = "0.1.0"

@@ -6,8 +6,13 @@ independent, so ``E|n|^2 = 2 sigma^2``.  Everywhere in gcrsky ``sigma`` means th
 ``E|n|^2 = V_ii V_jj / (dt dnu)``, hence ``sigma^2 = V_ii V_jj / (2 dt dnu)``.
 
 Weights ``w`` (0 = flagged, 1 = kept, fractional allowed) multiply the inverse
-noise variance: ``W = w / sigma^2`` per component.  Flagged samples contribute
-nothing; NaN data are allowed only where ``w == 0``.
+noise variance: ``W = w / sigma^2`` per component (so a fractional weight means a
+noise variance ``sigma^2 / w``).  Boolean flags (True = bad, the pyuvdata
+convention) become weights with :func:`weights_from_flags`.  Flagged samples
+contribute nothing: :func:`clean_data` sets their data to exactly 0 whatever they
+held (NaN, +-Inf, 1e300, ...), so the posterior cannot depend on them, not even
+through ``0 * inf = NaN``.  Non-finite data are allowed only where ``w == 0``;
+anywhere else they are an error naming the sample.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ __all__ = [
     "inverse_variance",
     "draw_noise",
     "clean_data",
+    "weights_from_flags",
 ]
 
 
@@ -69,18 +75,108 @@ def inverse_variance(sigma, weights=None) -> np.ndarray:
     return w / sigma**2
 
 
-def clean_data(data, inv_var) -> np.ndarray:
-    """Replace NaN/inf in flagged samples by 0; error on any non-finite unflagged sample."""
+def weights_from_flags(flags, weights=None, shape=None) -> np.ndarray:
+    """Weights from boolean flags: 0 where flagged, ``weights`` (default 1) elsewhere.
+
+    Args:
+        flags: boolean array, True = flagged (bad), e.g. pyuvdata's ``flag_array``
+            reshaped to (Nf, Nt, Nbl); any shape broadcastable to ``shape`` (e.g.
+            (1, Nt, 1) to flag whole times at every frequency and baseline).
+        weights: optional prior weights in [0, 1] (e.g. nsample fractions),
+            broadcastable together with ``flags``.  Values under a flag are ignored
+            (they may be NaN); unflagged ones must be finite and within [0, 1].
+        shape: optional target shape, e.g. (Nf, Nt, Nbl); the result is broadcast
+            to it and a mismatch is an error.  Default: the broadcast shape of
+            ``flags`` and ``weights``.
+
+    Returns:
+        float64 weights of the broadcast shape, exactly 0.0 where flagged.
+
+    Raises:
+        TypeError: ``flags`` is not boolean (integers are refused rather than guessed:
+            pass ``flags != 0`` or ``flags.astype(bool)`` explicitly).
+        ValueError: shapes do not broadcast, or unflagged weights are outside [0, 1].
+    """
+    f = np.asarray(flags)
+    if f.dtype != np.bool_:
+        raise TypeError(
+            f"flags must be a boolean array (True = flagged), got dtype {f.dtype}; "
+            "convert explicitly, e.g. flags.astype(bool) or (flags != 0)"
+        )
+    w = np.ones((), np.float64) if weights is None else np.asarray(weights, np.float64)
+    try:
+        out_shape = np.broadcast_shapes(f.shape, w.shape) if shape is None else tuple(int(k) for k in shape)
+        f = np.broadcast_to(f, out_shape)
+        w = np.broadcast_to(w, out_shape)
+    except ValueError:
+        what = f"flags {f.shape}" + ("" if weights is None else f" and weights {w.shape}")
+        target = "each other" if shape is None else f"the data shape {tuple(shape)} (Nf, Nt, Nbl)"
+        raise ValueError(f"{what} do not broadcast to {target}") from None
+    kept = w[~f]
+    if not np.all(np.isfinite(kept)) or np.any(kept < 0) or np.any(kept > 1):
+        raise ValueError("unflagged weights must be finite and within [0, 1]")
+    return np.where(f, 0.0, w)
+
+
+def _describe(value) -> str:
+    """'NaN', '+Inf' or '-Inf' for a non-finite (real or complex) value."""
+    parts = (value.real, value.imag) if np.iscomplexobj(value) else (value,)
+    if any(np.isnan(p) for p in parts):
+        return "NaN"
+    return "+Inf" if any(p == np.inf for p in parts) else "-Inf"
+
+
+def clean_data(data, inv_var, antpairs=None) -> np.ndarray:
+    """Zero every flagged sample; error on any non-finite unflagged sample.
+
+    Args:
+        data: (Nf, Nt, Nbl) complex visibilities (any leading batch axes allowed).
+        inv_var: per-component inverse variance ``w / sigma^2``, broadcastable to
+            ``data``; 0 marks a flagged sample.
+        antpairs: optional (Nbl, 2) antenna indices of the baselines, only used to
+            name the antennas of a bad sample in the error message.
+
+    Returns:
+        a copy of ``data`` with flagged samples set to exactly 0 (whatever they held:
+        NaN, +-Inf or finite garbage), so nothing downstream can depend on them.
+
+    Raises:
+        ValueError: some unflagged sample is NaN, +Inf or -Inf.  The message counts
+            each kind and names the first few as (freq, time, baseline) indices, with
+            the antenna pair when ``antpairs`` is given.
+    """
     d = np.asarray(data)
     iv = np.asarray(inv_var)
-    bad = ~np.isfinite(d)
-    if np.any(bad & (iv > 0)):
-        idx = np.argwhere(bad & (iv > 0))[0]
+    try:
+        iv = np.broadcast_to(iv, d.shape)
+    except ValueError:
+        raise ValueError(f"inverse variance of shape {iv.shape} does not broadcast to the data's {d.shape}") from None
+    flagged = ~(iv > 0)
+    bad = ~np.isfinite(d) & ~flagged
+    if np.any(bad):
+        locs = np.argwhere(bad)
+        kinds = [_describe(d[tuple(i)]) for i in locs]
+        counts = ", ".join(f"{kinds.count(k)} {k}" for k in ("NaN", "+Inf", "-Inf") if k in kinds)
+        shown = []
+        for i, kind in zip(locs[:5], kinds[:5]):
+            where = tuple(int(j) for j in i)
+            v = d[tuple(i)]
+            v = complex(v) if np.iscomplexobj(v) else float(v)
+            text = f"{kind} (value {v}) at (freq, time, baseline) = {where[-3:] if len(where) >= 3 else where}"
+            if len(where) > 3:
+                text += f" of batch {where[:-3]}"
+            if antpairs is not None and len(where) >= 1:
+                ap = np.asarray(antpairs)[where[-1]]
+                text += f" (antennas {int(ap[0])}-{int(ap[1])})"
+            shown.append(text)
+        more = f"; and {len(locs) - 5} more" if len(locs) > 5 else ""
         raise ValueError(
-            f"data contain {int(np.sum(bad & (iv > 0)))} non-finite unflagged samples "
-            f"(first at (freq, time, baseline) = {tuple(int(i) for i in idx)}); flag them with weight 0"
+            f"data contain {len(locs)} non-finite unflagged samples ({counts}): "
+            + "; ".join(shown)
+            + more
+            + ". Flag them (weight 0) or fix the data."
         )
-    return np.where(bad, 0.0, d)
+    return np.where(flagged, np.zeros((), d.dtype), d)
 
 
 def draw_noise(key: jax.Array, sigma) -> jax.Array:

@@ -19,7 +19,7 @@ import numpy as np
 
 from .instrument import HERA_HEIGHT_M, HERA_LATITUDE_DEG, HERA_LONGITUDE_DEG, Array, antpairs, gaussian_beam, hex_array, make_array
 from .layout import ModeTable, lmax_from_nparams, mode_table, n_params
-from .noise import clean_data, draw_noise, inverse_variance, radiometer_sigma
+from .noise import clean_data, draw_noise, inverse_variance, radiometer_sigma, weights_from_flags
 from .normal import LinearSystem, precision_matrix, require_x64
 from .frames import FrameMap, observing_geometry
 from .operator import VisOperator, apply, frame_shape
@@ -175,6 +175,7 @@ def build_problem(
     data=None,
     sigma=None,
     weights=None,
+    flags=None,
     prior: Prior | None = None,
     dt_s: float = 60.0,
     dnu_hz: float = 1e6,
@@ -189,6 +190,11 @@ def build_problem(
     sky_note: str = "",
 ) -> Problem:
     """Assemble a :class:`Problem`.
+
+    Flags: ``flags`` (bool, True = bad, broadcastable to (Nf, Nt, Nbl)) and/or
+    ``weights`` (in [0, 1]) set the per-sample weights (0 under a flag); flagged data
+    may hold anything, NaN and Inf included, and are stored as 0; an unflagged
+    non-finite sample is an error naming its (freq, time, baseline) and antennas.
 
     Either give ``data`` (Nf, Nt, Nbl) complex with ``sigma`` (per-component std), or
     give ``a_true`` (Nf, n) to simulate: model visibilities plus radiometer noise
@@ -268,9 +274,14 @@ def build_problem(
     if data.shape != shape:
         raise ValueError(f"data have shape {data.shape}, expected (Nf, Nt, Nbl) = {shape}")
     sigma = np.broadcast_to(sigma, shape)
-    w = np.ones(shape) if weights is None else np.broadcast_to(np.asarray(weights, np.float64), shape)
+    if flags is not None:
+        w = weights_from_flags(flags, weights, shape=shape)
+    elif weights is None:
+        w = np.ones(shape)
+    else:
+        w = weights_from_flags(np.zeros((), bool), weights, shape=shape)
     iv = inverse_variance(sigma, w)
-    data = clean_data(data, iv)
+    data = clean_data(data, iv, antpairs=pairs)
     if prior is None:
         prior = flat_prior(freqs.size, n)
     if prior.mean.shape != (freqs.size, n) or prior.inv_var.shape != (freqs.size, n):
