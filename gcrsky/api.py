@@ -7,7 +7,7 @@ from typing import Literal
 import jax
 
 from .problem import Problem
-from .sampler import DEFAULT_TOL, PreparedSampler, prepare_sampler, resolve_preconditioner, sample_system, wiener_filter_system
+from .sampler import DEFAULT_TOL, EIGH_RCOND, PreparedSampler, prepare_sampler, resolve_preconditioner, sample_system, wiener_filter_system
 
 __all__ = ["wiener_filter", "sample", "prepare"]
 
@@ -37,7 +37,7 @@ def sample(
     key: jax.Array,
     problem: Problem,
     ndraws: int,
-    method: Literal["cg", "cholesky"] = "cg",
+    method: Literal["cg", "cholesky", "eigh"] = "cg",
     *,
     tol: float = DEFAULT_TOL,
     maxiter: int = 5000,
@@ -50,8 +50,11 @@ def sample(
         key: JAX PRNG key; a fixed key reproduces the draws.
         problem: the :class:`~gcrsky.problem.Problem`.
         ndraws: number of draws (static).
-        method: ``"cg"`` (preconditioned CG, vmapped) or ``"cholesky"`` (exact
-            factorisation of the dense P).
+        method: ``"cg"`` (preconditioned CG, vmapped), ``"cholesky"`` (exact
+            factorisation of the dense P) or ``"eigh"`` (eigen-decomposition of the
+            dense P; exact too, and the only one that handles a singular P, e.g. a
+            flat prior, by sampling the directions the data constrain and pinning the
+            others at 0: see :func:`gcrsky.sampler.prepare_sampler`).
         tol: CG tolerance in posterior-sigma units (P-norm of the error).
         dense: CG with a dense P (fast for n up to a few thousand) or matrix-free.
         preconditioner: ``"auto"`` (Nystrom for a proper prior, m-blocks otherwise),
@@ -75,22 +78,24 @@ def sample(
 
 def prepare(
     problem: Problem,
-    method: Literal["cg", "cholesky"] = "cg",
+    method: Literal["cg", "cholesky", "eigh"] = "cg",
     *,
     tol: float = DEFAULT_TOL,
     maxiter: int = 5000,
     dense: bool = True,
     preconditioner: str = "auto",
+    rcond: float = EIGH_RCOND,
 ) -> PreparedSampler:
     """Set up once for many draws: P, its factor or preconditioner, and the Wiener filter.
 
     Then ``gcrsky.draw(key, prepared, ndraws)`` as often as needed (each call costs only
-    the draws).  Arguments as for :func:`sample`.
+    the draws).  Arguments as for :func:`sample`; ``rcond``: the eigen sampler's
+    cut, eigenvalues below ``rcond * max`` are treated as zero.
     """
     system = problem.system()
     pc = resolve_preconditioner(system, preconditioner) if method == "cg" else "nystrom"
     prepared = prepare_sampler(
-        system, method=method, tol=tol, maxiter=maxiter, dense=dense, preconditioner=pc
+        system, method=method, tol=tol, maxiter=maxiter, dense=dense, preconditioner=pc, rcond=rcond
     )
     _warn_unconverged(prepared.wiener, "Wiener filter")
     return prepared

@@ -227,7 +227,11 @@ class PreparedSampler(NamedTuple):
         wiener: SolveInfo of the Wiener-filter solve, (Nf,) fields.
         precision: dense P (Nf, n, n), or None (matrix-free CG).
         chol: lower Cholesky factor of P (Nf, n, n) for the Cholesky sampler, else None.
-        pc: CG preconditioner, or None for the Cholesky sampler.
+        pc: CG preconditioner, or None for the dense samplers.
+        sqrt_cov: (Nf, n, n) ``T`` with ``T T^T = P^+`` for the eigen sampler
+            (``delta = T z``), else None.
+        rank: (Nf,) number of directions sampled (n unless the eigen sampler found
+            P singular), or None.
     """
 
     system: LinearSystem
@@ -236,27 +240,63 @@ class PreparedSampler(NamedTuple):
     precision: jax.Array | None
     chol: jax.Array | None
     pc: object
+    sqrt_cov: jax.Array | None = None
+    rank: jax.Array | None = None
+
+
+#: Eigen sampler: eigenvalues below ``EIGH_RCOND * max eigenvalue`` count as zero.  Just
+#: above the eigensolver's rounding floor (~n * 1e-16 relative for n ~ 500): every
+#: direction the data inform, however weakly, is sampled.
+EIGH_RCOND = 1e-12
+
+
+def _prepare_eigh(system: LinearSystem, b: jax.Array, rcond: float) -> PreparedSampler:
+    """Eigen-decomposition sampler; for singular P the posterior restricted to range(P)."""
+    P = precision_matrix(system)
+    lam, V = jnp.linalg.eigh(P)  # ascending, (Nf, n), (Nf, n, n)
+    keep = lam > rcond * lam[:, -1:]
+    safe = jnp.where(keep, lam, 1.0)
+    inv = jnp.where(keep, 1.0 / safe, 0.0)
+    coef = jnp.einsum("fji,fj->fi", V, b)  # V^T b
+    a_wf = jnp.einsum("fij,fj->fi", V, inv * coef)
+    sqrt_cov = V * jnp.where(keep, 1.0 / jnp.sqrt(safe), 0.0)[:, None, :]
+    # residual within the sampled subspace, in posterior-sigma units (P^+ norm)
+    r_coef = jnp.where(keep, coef - jnp.einsum("fji,fjk,fk->fi", V, P, a_wf), 0.0)
+    err = jnp.sqrt(jnp.sum(inv * r_coef**2, axis=1))
+    ok = jnp.all(jnp.isfinite(V), axis=(1, 2)) & jnp.isfinite(err)
+    nf = b.shape[0]
+    winfo = SolveInfo(jnp.zeros(nf, int), err, jnp.linalg.norm(r_coef, axis=1) / jnp.linalg.norm(b, axis=1), ok)
+    return PreparedSampler(system, a_wf, winfo, P, None, None, sqrt_cov, jnp.sum(keep, axis=1))
 
 
 @partial(jax.jit, static_argnames=("method", "dense", "maxiter", "preconditioner", "rank"))
 def prepare_sampler(
     system: LinearSystem,
     *,
-    method: Literal["cg", "cholesky"] = "cg",
+    method: Literal["cg", "cholesky", "eigh"] = "cg",
     tol: float = DEFAULT_TOL,
     maxiter: int = 5000,
     dense: bool = True,
     preconditioner: str = "nystrom",
     rank: int = 128,
+    rcond: float = EIGH_RCOND,
 ) -> PreparedSampler:
     """Factorise / precondition P and solve for the Wiener filter, once.
 
     ``method="cholesky"`` factorises the dense P; ``"cg"`` builds the preconditioner
-    (and the dense P if ``dense``).  Pass the result to :func:`draw` as often as needed.
+    (and the dense P if ``dense``); ``"eigh"`` eigen-decomposes the dense P and, if
+    P is singular (a flat prior, ``S^-1 = 0``, leaves directions the data do not
+    see), samples the posterior restricted to the directions with eigenvalue
+    ``> rcond * max``: the others have no information, so they are pinned at 0
+    (the minimum-norm solution) and ``PreparedSampler.rank`` says how many were
+    kept.  With a proper prior (rank n) it is exact like Cholesky.  Pass the result
+    to :func:`draw` as often as needed.
     """
     check_float64(system.op.response, system.inv_noise)
     nf = system.prior.mean.shape[0]
     b = wiener_rhs(system)
+    if method == "eigh":
+        return _prepare_eigh(system, b, rcond)
     if method == "cholesky":
         P = precision_matrix(system)
         L = jnp.linalg.cholesky(P)
@@ -268,7 +308,7 @@ def prepare_sampler(
         winfo = SolveInfo(jnp.zeros(nf, int), err, jnp.linalg.norm(r, axis=1) / jnp.linalg.norm(b, axis=1), ok)
         return PreparedSampler(system, a_wf, winfo, P, L, None)
     if method != "cg":
-        raise ValueError(f"method must be 'cg' or 'cholesky', got {method!r}")
+        raise ValueError(f"method must be 'cg', 'cholesky' or 'eigh', got {method!r}")
     precision = precision_matrix(system) if dense else None
     pc = make_preconditioner(system, preconditioner, precision, rank)
     a_wf, winfo = _solve_cg(system, precision, pc, b, system.prior.mean, tol, maxiter)
@@ -279,8 +319,9 @@ def prepare_sampler(
 def draw(key: jax.Array, prepared: PreparedSampler, ndraws: int, *, tol: float = DEFAULT_TOL, maxiter: int = 5000):
     """``ndraws`` exact posterior draws from a :class:`PreparedSampler`.
 
-    Draw ``i`` uses ``jax.random.split(key, ndraws)[i]``.  Cholesky: ``a_wf + L^-T z``;
-    CG: ``a_wf + delta`` with ``P delta`` = the GCR fluctuation right-hand side.
+    Draw ``i`` uses ``jax.random.split(key, ndraws)[i]`` (CG, Cholesky).  Cholesky:
+    ``a_wf + L^-T z``; eigen: ``a_wf + V_r L_r^-1/2 z``; CG: ``a_wf + delta`` with
+    ``P delta`` = the GCR fluctuation right-hand side.
 
     Returns:
         draws (Nf, ndraws, n); info dict: ``"wiener"``, ``"draws"`` (SolveInfo over
@@ -289,7 +330,13 @@ def draw(key: jax.Array, prepared: PreparedSampler, ndraws: int, *, tol: float =
     system, a_wf = prepared.system, prepared.a_wf
     nf, n = a_wf.shape
     keys = jax.random.split(key, ndraws)
-    if prepared.chol is not None:
+    if prepared.sqrt_cov is not None:
+        z = jax.random.normal(key, (nf, n, ndraws), a_wf.dtype)
+        delta = jnp.einsum("fij,fjd->fdi", prepared.sqrt_cov, z)  # (Nf, ndraws, n)
+        ok = jnp.broadcast_to(prepared.wiener.converged[:, None], (nf, ndraws))
+        zeros = jnp.zeros((nf, ndraws))
+        dinfo = SolveInfo(jnp.zeros((nf, ndraws), int), zeros, zeros, ok & jnp.all(jnp.isfinite(delta), axis=-1))
+    elif prepared.chol is not None:
         z = jax.vmap(lambda k: jax.random.normal(k, (nf, n), a_wf.dtype))(keys)  # (ndraws, Nf, n)
         tri = jax.scipy.linalg.solve_triangular
         delta = jax.vmap(lambda l, zf: tri(l, zf.T, lower=True, trans="T").T, in_axes=(0, 1), out_axes=0)(
@@ -310,12 +357,13 @@ def sample_system(
     system: LinearSystem,
     ndraws: int,
     *,
-    method: Literal["cg", "cholesky"] = "cg",
+    method: Literal["cg", "cholesky", "eigh"] = "cg",
     tol: float = DEFAULT_TOL,
     maxiter: int = 5000,
     dense: bool = True,
     preconditioner: str = "nystrom",
     rank: int = 128,
+    rcond: float = EIGH_RCOND,
 ):
     """GCR draws from the exact posterior ``N(a_wf, P^-1)``: :func:`prepare_sampler` then :func:`draw`.
 
@@ -326,6 +374,7 @@ def sample_system(
       ``a_wf`` by CG too.  ``dense=True`` forms P once (O(n^2) per matvec);
       ``dense=False`` is matrix-free (O(Nt Nbl n) per matvec).
     * cholesky: ``delta = L^-T z``.
+    * eigh: ``delta = V_r Lambda_r^-1/2 z``; for singular P see :func:`prepare_sampler`.
 
     For many batches, call :func:`prepare_sampler` once and :func:`draw` per batch.
 
@@ -334,7 +383,8 @@ def sample_system(
         (SolveInfo over (Nf, ndraws)), ``"a_wf"`` (Nf, n).
     """
     prepared = prepare_sampler(
-        system, method=method, tol=tol, maxiter=maxiter, dense=dense, preconditioner=preconditioner, rank=rank
+        system, method=method, tol=tol, maxiter=maxiter, dense=dense, preconditioner=preconditioner, rank=rank,
+        rcond=rcond,
     )
     return draw(key, prepared, ndraws, tol=tol, maxiter=maxiter)
 

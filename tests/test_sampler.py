@@ -115,7 +115,7 @@ def test_problem_has_data_dominated_directions(small):
     assert np.sum(small["evals"] < 0.1) >= 8
 
 
-@pytest.mark.parametrize("method", ["cg", "cholesky"])
+@pytest.mark.parametrize("method", ["cg", "cholesky", "eigh"])
 def test_draws_exact_mean_and_covariance(small, method):
     N = 4000
     draws, info = gcrsky.sample(jax.random.PRNGKey(11), small["prob"], N, method=method)
@@ -221,6 +221,48 @@ def test_flat_prior_singular_is_reported():
         gcrsky.wiener_filter(prob, preconditioner="nystrom")
     a, info = gcrsky.wiener_filter(prob, return_info=True, maxiter=300)
     assert not bool(np.any(np.asarray(info.converged)))
+
+
+def test_eigh_sampler_on_a_singular_flat_prior_problem():
+    """S^-1 = 0 and only 20 real data (one time, 10 baselines) for 49 parameters: P has
+    an exact null space (eigenvalues <= 1.4e-16 of the largest, then a gap to 2.3e-13).
+    The eigen sampler samples exactly the directions the data constrain (checked
+    against numpy's eigendecomposition) and pins the rest at 0; Cholesky cannot."""
+    lmax = 6
+    n = (lmax + 1) ** 2
+    w = np.zeros((1, 6, 45))
+    w[0, 0, :10] = 1.0
+    prob = _small_problem(lmax=lmax, prior=Prior(jnp.zeros((1, n)), jnp.zeros((1, n))), weights=w)
+    P = np.asarray(prob.precision_matrix())[0]
+    lam, V = np.linalg.eigh(P)
+    rcond = 1e-14  # inside the gap
+    keep = lam > rcond * lam[-1]
+    assert 0 < keep.sum() <= 20 and lam[~keep].max() < 1e-15 * lam[-1]  # the construction holds
+    prepared = gcrsky.prepare(prob, method="eigh", rcond=rcond)
+    assert int(np.asarray(prepared.rank)[0]) == keep.sum()
+    b = np.asarray(wiener_rhs(prob.system()))[0]
+    ref = V[:, keep] @ ((V[:, keep].T @ b) / lam[keep])
+    a_wf = np.asarray(prepared.a_wf)[0]
+    # Strict checks in the well-determined directions (eigenvalue > 1e-8 of the largest:
+    # rounding moves those eigenvectors by < 1e-8).  The weakest kept directions
+    # (down to 2.3e-13) are only defined to an angle ~1e-16 / 2.3e-13 = 4e-4 by any
+    # eigensolver, which bounds how well two solvers can agree there.
+    strong = lam > 1e-8 * lam[-1]
+    Vs, sig = V[:, strong], 1 / np.sqrt(lam[strong])
+    assert strong.sum() >= 8
+    assert np.max(np.abs(Vs.T @ (a_wf - ref)) / sig) < 1e-6
+    assert np.abs(V[:, ~keep].T @ a_wf).max() < 1e-2 * np.abs(a_wf).max()  # pinned (measured 3.5e-4)
+    draws, info = gcrsky.draw(jax.random.PRNGKey(3), prepared, 4000)
+    d = np.asarray(draws)[0] - a_wf
+    assert np.abs(d @ V[:, ~keep]).max() < 1e-2 * np.abs(d).max()  # no motion in the null space
+    y = (d @ Vs) / sig  # whitened: exactly N(0, I) in the strong directions
+    N, k = y.shape
+    assert _chi2_upper_p(N * np.sum(y.mean(0) ** 2), k) > ALPHA
+    chi2 = np.sum(y**2)  # ~ chi2(N k)
+    assert stats.chi2.sf(chi2, N * k) > ALPHA / 2 and stats.chi2.cdf(chi2, N * k) > ALPHA / 2
+    assert bool(np.all(np.asarray(info["draws"].converged)))
+    chol = gcrsky.prepare(prob, method="cholesky")
+    assert not bool(np.all(np.asarray(chol.wiener.converged)))
 
 
 def test_flags_nan_in_flagged_data_is_harmless_and_unflagged_is_error(small):
