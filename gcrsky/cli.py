@@ -1,8 +1,16 @@
 """The ``gcrsky`` command line (also ``python -m gcrsky``).
 
-``gcrsky run`` reproduces the paper's standard case (or a variant of it, through
-options mirroring :class:`gcrsky.Config`): simulate, Wiener-filter, draw GCR
-samples, and write ``results.h5``, ``summary.json`` and the Fig. 3/4/5 PNGs.
+``gcrsky run`` reproduces the paper's standard case (or a scenario of its Table 1,
+``--scenario NAME``, or a variant through options mirroring :class:`gcrsky.Config`):
+simulate, Wiener-filter, draw GCR samples, and write ``results.h5``,
+``summary.json`` and the paper's per-run figures (Figs. 3-7: mode z-scores, sky
+maps, beam region, beam-centre slice, correlation matrix and corner plot).
+
+``gcrsky scenarios [NAME ...]`` runs the whole suite (or a subset) into
+``--out/NAME/``, reusing the response between scenarios with the same
+instrument, and writes ``results.md`` / ``results.csv`` (one row per scenario),
+``claims.md`` (the paper's qualitative claims, checked with these numbers),
+``suite.json`` and the overlaid slice figures (Figs. 6 and 8).
 
 Reproducibility: the simulated data and the prior mean depend on ``--data-seed``
 (``Config.seed``); the draws on ``--seed`` and ``--batch``.  Draws are made in
@@ -36,6 +44,7 @@ __all__ = ["main", "build_parser"]
 log = logging.getLogger("gcrsky.cli")
 
 DEFAULT_OUT = os.path.join("runs", "standard")
+DEFAULT_SUITE_OUT = os.path.join("runs", "paper")
 DEFAULT_NSAMPLES = 200
 DEFAULT_BATCH = 50
 
@@ -108,9 +117,12 @@ def build_parser() -> argparse.ArgumentParser:
         "Wiener filter, draw GCR samples and write results.h5, summary.json and figures to --out.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
+    r.add_argument("--scenario", default=None, metavar="NAME",
+                   help="start from a scenario of the paper's Table 1 (standard, A1, B1-B8, C1-C5, D1; see "
+                   "'gcrsky scenarios --list'); other options change it further, unless they contradict it")
     r.add_argument("--out", default=DEFAULT_OUT, help="output directory (created if needed)")
-    r.add_argument("--nsamples", type=_int_at_least(1, "nsamples"), default=DEFAULT_NSAMPLES,
-                   help="number of posterior draws")
+    r.add_argument("--nsamples", type=_int_at_least(1, "nsamples"), default=None,
+                   help=f"number of posterior draws (default {DEFAULT_NSAMPLES}, or the scenario's)")
     r.add_argument("--seed", type=_int_at_least(0, "seed"), default=0,
                    help="seed of the posterior draws (see --batch)")
     r.add_argument("--data-seed", type=_int_at_least(0, "data-seed"), default=d.seed,
@@ -136,12 +148,35 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--date", default=d.obs_date, metavar="YYYY-MM-DD",
                    help="observe on this UTC date at the real times whose local Earth rotation angle is each "
                    "LST (sky in ICRS, exact ICRS -> CIRS-of-date frame map); default: the paper's idealised LSTs")
-    r.add_argument("--method", choices=("cg", "cholesky"), default="cg", help="GCR solver")
+    r.add_argument("--method", choices=("cg", "cholesky", "eigh"), default=None,
+                   help="GCR solver (default cg, or the scenario's: eigh where S^-1 = 0 makes P singular)")
+    r.add_argument("--tol", type=_positive_float("tol"), default=None,
+                   help="CG tolerance in posterior-sigma units (default 1e-6, or the scenario's)")
     r.add_argument("--batch", type=_int_at_least(1, "batch"), default=DEFAULT_BATCH,
                    help="draws per batch (part of the draws' seed: see the module doc)")
     r.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     r.add_argument("--no-progress", action="store_true", help="no progress bars")
     r.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)")
+
+    sc = sub.add_parser(
+        "scenarios",
+        help="run the paper's scenario suite (Table 1) and write the results table and figures",
+        description="Run the named scenarios (default: all 16 of the paper's Table 1) into --out/NAME/, "
+        "reusing the response wherever the instrument is shared, then write results.md, results.csv, "
+        "claims.md and the cross-run figures (Figs. 6-8) to --out.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    sc.add_argument("names", nargs="*", metavar="NAME", help="scenarios to run (default: all)")
+    sc.add_argument("--list", action="store_true", help="list the scenarios and exit")
+    sc.add_argument("--out", default=DEFAULT_SUITE_OUT, help="output directory")
+    sc.add_argument("--nsamples", type=_int_at_least(1, "nsamples"), default=None,
+                    help="draws per scenario (default: 200, 5000 for A1)")
+    sc.add_argument("--nside", type=_nside, default=d.nside, help="HEALPix nside (quick runs: 32)")
+    sc.add_argument("--seed", type=_int_at_least(0, "seed"), default=0, help="seed of the posterior draws")
+    sc.add_argument("--batch", type=_int_at_least(1, "batch"), default=DEFAULT_BATCH, help="draws per batch")
+    sc.add_argument("--no-plots", action="store_true", help="skip all PNG figures")
+    sc.add_argument("--no-progress", action="store_true", help="no progress bars")
+    sc.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)")
     return p
 
 
@@ -157,6 +192,7 @@ def _stats(info) -> dict:
     return {
         "n_solves": int(conv.size),
         "iterations_mean": float(it.mean()) if it.size else 0.0,
+        "iterations_median": float(np.median(it)) if it.size else 0.0,
         "iterations_max": int(it.max()) if it.size else 0,
         "err_sigma_max": float(np.nanmax(err)) if err.size and np.isfinite(err).any() else float("nan"),
         "n_not_converged": int((~conv).sum()),
@@ -246,7 +282,7 @@ class _Stages:
 # ---------------------------------------------------------------- the run command
 
 
-def _run(args) -> int:
+def _setup_jax():
     from .runtime import use_safe_cpu_threading
 
     use_safe_cpu_threading()  # before the first JAX computation (see gcrsky/runtime.py)
@@ -254,42 +290,95 @@ def _run(args) -> int:
 
     jax.config.update("jax_enable_x64", True)
 
-    import h5py
+
+#: ``gcrsky run`` options that map to :class:`gcrsky.Config` fields.
+_PHYSICS = ("lmax", "nside", "n_lst", "lst_range_hours", "dish_diameter", "noise_scale", "prior_scale",
+            "flat_prior", "zero_prior_mean", "seed", "obs_date")
+
+
+def _run_settings(args):
+    """(Config fields, nsamples, method, scenario name or None, tol) from ``gcrsky run`` arguments.
+
+    With ``--scenario``, options left at the standard case's value keep the scenario's
+    setting; an option that changes a field the scenario also sets, to another value,
+    is an error.
+    """
+    from .problem import Config
+    from .scenarios import scenario
+
+    fields = dict(
+        lmax=args.lmax, nside=args.nside, n_lst=args.n_lst, lst_range_hours=(args.lst_start, args.lst_stop),
+        dish_diameter=args.dish_diameter, noise_scale=args.noise_scale, prior_scale=args.prior_scale,
+        flat_prior=args.flat_prior, zero_prior_mean=args.zero_prior_mean, seed=args.data_seed, obs_date=args.date,
+    )
+    if args.scenario is None:
+        return fields, args.nsamples or DEFAULT_NSAMPLES, args.method or "cg", None, args.tol or 1e-6
+    sc = scenario(args.scenario)
+    d = Config()
+    user = {k: v for k, v in fields.items() if v != getattr(d, k)}
+    mine = dict(sc.overrides)
+    clash = sorted(k for k in user if k in mine and user[k] != mine[k])
+    if clash:
+        raise ValueError(
+            f"scenario {sc.name} sets {', '.join(f'{k}={mine[k]!r}' for k in clash)}; the options ask for "
+            f"{', '.join(f'{k}={user[k]!r}' for k in clash)} (drop --scenario to customise freely)"
+        )
+    return {**mine, **user}, args.nsamples or sc.nsamples, args.method or sc.method, sc.name, args.tol or sc.tol
+
+
+def _run(args) -> int:
+    _setup_jax()
+    from .problem import Config, problem_from_config
+
+    fields, nsamples, method, scen, tol = _run_settings(args)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    disable_bars = True if args.no_progress else None  # tqdm's None: bars only on a terminal
+    t0 = time.perf_counter()
+    prob = problem_from_config(Config(**fields).validate())
+    build_s = time.perf_counter() - t0
+    summary, _ = _execute(
+        prob, out, nsamples=nsamples, seed=args.seed, batch=args.batch, method=method, plots=not args.no_plots,
+        disable_bars=disable_bars, build_s=build_s, argv=getattr(args, "_argv", None), scenario_name=scen, tol=tol,
+    )
+    _print_summary(summary, out)
+    for w in summary["warnings"]:
+        print(w, file=sys.stderr)
+    if not summary["draws_finite"]:
+        print("gcrsky: the draws contain NaN/inf; exiting with status 1 (results written for diagnosis).",
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+class RunProducts(dict):
+    """In-memory products of one run that the suite reuses (first frequency): the
+    truth / mean / std maps, per-mode z-scores, the draws and the mode table."""
+
+
+def _execute(prob, out: Path, *, nsamples: int, seed: int, batch: int, method: str, plots: bool,
+             disable_bars, build_s: float, argv=None, scenario_name=None, tol: float = 1e-6):
+    """Sample ``prob`` and write results.h5, summary.json and figures to ``out``.
+
+    Returns (summary dict, :class:`RunProducts`).
+    """
+    import jax
     import numpy as np
     from tqdm.auto import tqdm
 
+    import h5py
+
     from . import maps as M
     from .api import prepare
-    from .sampler import draw
-    from .instrument import beam_fwhm_rad, gaussian_beam
+    from .instrument import beam_fwhm_rad
     from .layout import alm_to_map
-    from .problem import Config, standard_case
+    from .problem import Config, beam_for_config
+    from .sampler import draw
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    overrides = dict(
-        lmax=args.lmax,
-        nside=args.nside,
-        n_lst=args.n_lst,
-        lst_range_hours=(args.lst_start, args.lst_stop),
-        dish_diameter=args.dish_diameter,
-        noise_scale=args.noise_scale,
-        prior_scale=args.prior_scale,
-        flat_prior=args.flat_prior,
-        zero_prior_mean=args.zero_prior_mean,
-        seed=args.data_seed,
-        obs_date=args.date,
-    )
-    # tqdm's disable=None: bars only on a terminal; --no-progress: never
-    disable_bars = True if args.no_progress else None
-    stage_names = ["build", "wiener", "draws", "maps"] + ([] if args.no_plots else ["plots"]) + ["write"]
+    stage_names = ["wiener", "draws", "maps"] + (["plots"] if plots else []) + ["write"]
     st = _Stages(stage_names, disable_bars)
+    st.times["build"] = build_s
     warnings: list[str] = []
-
-    # ---- build
-    st.start("build")
-    prob = standard_case(**overrides)
-    st.stop()
     cfg: Config = prob.config
     lmax, nside = prob.lmax, prob.nside
     freqs = np.asarray(prob.freqs_hz)
@@ -297,20 +386,20 @@ def _run(args) -> int:
 
     # ---- Wiener filter (compile included)
     st.start("wiener")
-    prepared = prepare(prob, method=args.method)  # P, factor/preconditioner, Wiener filter: once
+    prepared = prepare(prob, method=method, tol=tol)  # P, factor/preconditioner, Wiener filter: once
     a_wf, winfo = np.asarray(jax.block_until_ready(prepared.a_wf)), prepared.wiener
     st.stop()
 
     # ---- draws, in full batches keyed by fold_in(seed key, batch index)
     st.start("draws")
-    key = jax.random.PRNGKey(args.seed)
-    nbatch = -(-args.nsamples // args.batch)
+    key = jax.random.PRNGKey(seed)
+    nbatch = -(-nsamples // batch)
     chunks, dinfos, batch_times = [], [], []
     for b in tqdm(range(nbatch), desc="draw batches", unit="batch", disable=disable_bars, leave=False, position=1):
         tb = time.perf_counter()
-        d, info = draw(jax.random.fold_in(key, b), prepared, args.batch)
+        d, info = draw(jax.random.fold_in(key, b), prepared, batch, tol=tol)
         d = np.asarray(jax.block_until_ready(d))
-        take = min(args.batch, args.nsamples - b * args.batch)
+        take = min(batch, nsamples - b * batch)
         chunks.append(d[:, :take])
         dinfos.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[:, :take], info["draws"]))
         batch_times.append(time.perf_counter() - tb)
@@ -319,7 +408,15 @@ def _run(args) -> int:
     st.stop()
 
     finite = bool(np.isfinite(draws).all())
-    solver = {"method": args.method, "wiener": _stats(winfo), "draws": _stats(dinfo)}
+    solver = {"method": method, "tol_sigma": tol, "wiener": _stats(winfo), "draws": _stats(dinfo)}
+    if prepared.rank is not None:
+        rank = [int(r) for r in np.asarray(prepared.rank)]
+        solver["rank"] = rank
+        if min(rank) < n:
+            warnings.append(
+                f"NOTE: P is singular (improper posterior, e.g. S^-1 = 0): {n - min(rank)} of {n} directions carry "
+                f"no information and are pinned at 0; draws and the mean cover the {min(rank)} the data inform."
+            )
     solver["all_converged"] = solver["wiener"]["all_converged"] and solver["draws"]["all_converged"]
     if not solver["all_converged"]:
         msg = (
@@ -346,7 +443,7 @@ def _run(args) -> int:
     ra_range = (15.0 * cfg.lst_range_hours[0], 15.0 * cfg.lst_range_hours[1])
     per_freq = []
     for f in range(nf):
-        fwhm = float(np.rad2deg(beam_fwhm_rad(gaussian_beam(cfg.dish_diameter), float(freqs[f]))))
+        fwhm = float(np.rad2deg(beam_fwhm_rad(beam_for_config(cfg), float(freqs[f]))))
         m = {"freq_hz": float(freqs[f]), "fwhm_deg": fwhm}
         m.update(M.summary_metrics(mean_maps[f], truth_maps[f], centre_dec, fwhm, ra_range, std_map=std_maps[f]))
         wfm = M.summary_metrics(wf_maps[f], truth_maps[f], centre_dec, fwhm, ra_range)
@@ -358,14 +455,14 @@ def _run(args) -> int:
 
     # ---- plots (first frequency, as in the paper)
     fig_paths = {}
-    if not args.no_plots:
+    if plots:
         st.start("plots")
         if finite:
             from . import plots as P
 
             modes = prob.modes
             f0 = per_freq[0]
-            lab = f"{freqs[0] / 1e6:g} MHz, {args.nsamples} draws"
+            lab = (f"{scenario_name}: " if scenario_name else "") + f"{freqs[0] / 1e6:g} MHz, {nsamples} draws"
             fig_paths["fig3"] = P.plot_alm_residuals(
                 z[0], modes.ell, modes.m, modes.is_imag, out / "fig3_alm_residuals.png",
                 title=f"(posterior mean $-$ truth) / posterior std per mode, {lab}",
@@ -382,6 +479,21 @@ def _run(args) -> int:
                 f"{f0['frac_diff_centre_median']:.2%} on the centre ring, {f0['frac_diff_fwhm_median']:.2%} within "
                 f"$\\pm$1 FWHM (observed RA range)",
             )
+            absfrac = np.abs(M.frac_diff_map(mean_maps[0], truth_maps[0]))
+            ra_ring, vals = M.ring_slice(absfrac, nside, centre_dec)
+            fig_paths["fig6"] = P.plot_frac_slices(
+                [(scenario_name or "this run", ra_ring, vals)], out / "fig6_slice.png", fwhm_deg=f0["fwhm_deg"],
+                ra_range_deg=ra_range, dec_deg=centre_dec, title=f"|mean $-$ truth| / truth along the beam centre, {lab}",
+            )
+            if nsamples >= 2:
+                fig_paths["fig7_correlation"] = P.plot_correlation_matrix(
+                    draws[0], modes.ell, modes.m, modes.is_imag, out / "fig7_correlation.png",
+                    title=f"posterior correlation (real parts), {lab}",
+                )
+                fig_paths["fig7_corner"] = P.plot_corner(
+                    draws[0], truth[0], modes.ell, modes.m, modes.is_imag, out / "fig7_corner.png", m_value=2,
+                    title=f"marginal posteriors / truth at m = 2, {lab}",
+                )
             fig_paths = {k: os.path.basename(v) for k, v in fig_paths.items()}
         st.stop()
 
@@ -392,9 +504,10 @@ def _run(args) -> int:
         h.attrs["config_json"] = cfg_json
         h.attrs["sky_note"] = prob.sky_note
         h.attrs["gcrsky_version"] = _versions()["gcrsky"]
-        h.attrs["seed"] = args.seed
-        h.attrs["batch"] = args.batch
-        h.attrs["method"] = args.method
+        h.attrs["seed"] = seed
+        h.attrs["batch"] = batch
+        h.attrs["method"] = method
+        h.attrs["scenario"] = scenario_name or ""
         h.attrs["key_scheme"] = "batch b: jax.random.fold_in(jax.random.PRNGKey(seed), b); full batches, last truncated"
         h.attrs["units"] = "coefficients and maps in K; data in K sr; freqs Hz; lsts rad"
         h.attrs["layout"] = "realified: [Re a_lm (l, m>=0) healpy order] ++ [Im a_lm (m>=1) healpy order]"
@@ -422,6 +535,7 @@ def _run(args) -> int:
     st.close()
 
     timings = dict(st.times)
+    timings["total"] = float(sum(v for v in st.times.values()))
     timings["draw_batches_s"] = batch_times
     timings["note"] = (
         "wall-clock seconds; 'wiener' and the first draw batch include JIT compilation; "
@@ -444,8 +558,8 @@ def _run(args) -> int:
         "draws_finite": finite,
         "warnings": warnings,
         "timings_s": timings,
-        "run": {"nsamples": args.nsamples, "seed": args.seed, "batch": args.batch, "method": args.method,
-                "argv": getattr(args, "_argv", None)},
+        "run": {"nsamples": nsamples, "seed": seed, "batch": batch, "method": method, "scenario": scenario_name,
+                "argv": argv},
         "figures": fig_paths,
         "config": cfg.to_dict(),
         "sky_note": prob.sky_note,
@@ -454,15 +568,141 @@ def _run(args) -> int:
     }
     with open(out / "summary.json", "w") as fh:
         json.dump(_clean_json(summary), fh, indent=2, default=_json_default)
+    products = RunProducts(
+        truth_map=truth_maps[0], mean_map=mean_maps[0], std_map=std_maps[0], z=z[0], draws=draws[0],
+        truth=truth[0], modes=prob.modes, fwhm_deg=per_freq[0]["fwhm_deg"], centre_dec_deg=centre_dec,
+        ra_range_deg=ra_range,
+    )
+    return summary, products
 
-    _print_summary(summary, out)
-    for w in warnings:
-        print(w, file=sys.stderr)
-    if not finite:
-        print("gcrsky: the draws contain NaN/inf; exiting with status 1 (results written for diagnosis).",
-              file=sys.stderr)
-        return 1
+
+#: Groups of runs overlaid in the slice figures (the paper's Figs. 6 and 8).
+_SLICE_GROUPS = (
+    ("A", "fig6_slices_A1.png", ("standard", "A1")),
+    ("B", "fig6_slices_B.png", ("standard", "B1", "B2", "B3", "B4", "B5", "B6", "B7", "B8")),
+    ("C", "fig8_slices_C.png", ("standard", "C1", "C2", "C3", "C4", "C5")),
+    ("D", "fig8_slices_D1.png", ("standard", "D1")),
+)
+
+
+def _scenarios(args) -> int:
+    from .scenarios import (
+        SCENARIOS,
+        claims_markdown,
+        evaluate_claims,
+        result_row,
+        results_csv,
+        results_markdown,
+        scenario,
+        scenario_config,
+    )
+
+    if args.list:
+        for sc in SCENARIOS.values():
+            extra = ", ".join(f"{k}={v}" for k, v in sc.overrides) or "-"
+            print(f"{sc.name:9s} {sc.varies:28s} draws {sc.nsamples:5d}  method {sc.method:5s}  Config: {extra}")
+        return 0
+    names = _suite_names(args)
+    _setup_jax()
+    from tqdm.auto import tqdm
+
+    from . import maps as M
+    from .problem import problem_from_config
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    disable_bars = True if args.no_progress else None
+    cache: dict = {}
+    rows, prods = {}, {}
+    t_suite = time.perf_counter()
+    bar = tqdm(names, desc="scenarios", unit="run", disable=disable_bars, leave=False)
+    for name in bar:
+        bar.set_description(f"scenario {name}")
+        sc = scenario(name)
+        t0 = time.perf_counter()
+        prob = problem_from_config(scenario_config(name, nside=args.nside), response_cache=cache)
+        build_s = time.perf_counter() - t0
+        nsamples = args.nsamples or sc.nsamples
+        summary, prod = _execute(
+            prob, out / name, nsamples=nsamples, seed=args.seed, batch=args.batch, method=sc.method,
+            plots=not args.no_plots, disable_bars=True, build_s=build_s, argv=getattr(args, "_argv", None),
+            scenario_name=name, tol=sc.tol,
+        )
+        row = result_row(name, summary, prod["z"])
+        reg = M.summary_metrics(prod["mean_map"], prod["truth_map"], prod["centre_dec_deg"], prod["fwhm_deg"],
+                                (0.0, 120.0))
+        row["fwhm_median_0_8h"] = reg["frac_diff_fwhm_median"]
+        rows[name] = row
+        prod.pop("draws")  # keep the suite's memory small
+        prods[name] = prod
+        tqdm.write(
+            f"{name:9s} centre {100 * row['centre_median']:7.2f}%  +-1 FWHM {100 * row['fwhm_median']:7.2f}%  "
+            f"sky<10% {100 * row['sky_within_10pct']:5.1f}%  |z|>15: {row['z_beyond_15']:3d}  "
+            f"{row['wall_s']:6.1f} s" + ("" if summary["solver"]["all_converged"] else "  (NOT CONVERGED)")
+        )
+    bar.close()
+    total = time.perf_counter() - t_suite
+    table = [rows[n] for n in names]
+    claims = evaluate_claims(rows)
+    head = (
+        f"# gcrsky scenario suite\n\n{len(names)} scenarios, nside {args.nside}, seed {args.seed}; "
+        f"wall time {total:.0f} s in all (one process, JIT compilation included).  Metrics at the first "
+        "frequency (100 MHz): |posterior mean - truth| / |truth| of the maps along the beam-centre ring and "
+        "in the +-1 FWHM band over the observed RA range, the fraction of the whole sky within 10%, and "
+        "per-mode z = (mean - truth) / std of the draws.  CG iterations are per draw (0: dense sampler).\n\n"
+    )
+    (out / "results.md").write_text(head + results_markdown(table))
+    (out / "results.csv").write_text(results_csv(table))
+    (out / "claims.md").write_text("# The paper's claims, checked by this suite\n\n" + claims_markdown(claims))
+    figures = []
+    if not args.no_plots:
+        figures = _slice_figures(prods, out)
+    with open(out / "suite.json", "w") as fh:
+        json.dump(_clean_json({"scenarios": names, "rows": table, "claims": [c._asdict() for c in claims],
+                               "wall_s": total, "nside": args.nside, "seed": args.seed, "figures": figures,
+                               "versions": _versions()}), fh, indent=2, default=_json_default)
+    print(head + results_markdown(table))
+    print(claims_markdown(claims))
+    print(f"wrote {out}/results.md, results.csv, claims.md, suite.json" + (", " + ", ".join(figures) if figures else ""))
     return 0
+
+
+def _suite_names(args) -> list[str]:
+    """The scenarios to run, canonical names; ValueError for unknown or repeated ones."""
+    from .scenarios import SCENARIOS, scenario
+
+    names = [scenario(n).name for n in args.names] or list(SCENARIOS)
+    if len(set(names)) != len(names):
+        raise ValueError(f"scenario names repeat: {names}")
+    return names
+
+
+def _slice_figures(prods: dict, out: Path) -> list[str]:
+    """The slice figures of every group with at least two runs present."""
+    import numpy as np
+
+    from . import maps as M
+    from . import plots as P
+
+    written = []
+    for _, fname, members in _SLICE_GROUPS:
+        have = [n for n in members if n in prods]
+        if len(have) < 2 and not (len(have) == 1 and len(members) == 1):
+            continue
+        ref = prods["standard"] if "standard" in prods else prods[have[0]]
+        curves = []
+        for n in have:
+            p = prods[n]
+            nside = int(np.sqrt(p["mean_map"].size / 12))
+            absfrac = np.abs(M.frac_diff_map(p["mean_map"], p["truth_map"]))
+            ra, vals = M.ring_slice(absfrac, nside, p["centre_dec_deg"])
+            same = tuple(p["ra_range_deg"]) == tuple(ref["ra_range_deg"])
+            curves.append((n, ra, vals) if same else (n, ra, vals, p["ra_range_deg"]))
+        P.plot_frac_slices(curves, out / fname, fwhm_deg=ref["fwhm_deg"], ra_range_deg=ref["ra_range_deg"],
+                           dec_deg=ref["centre_dec_deg"],
+                           title="|posterior mean - truth| / truth along the beam-centre declination")
+        written.append(fname)
+    return written
 
 
 def _print_summary(s: dict, out: Path) -> None:
@@ -502,6 +742,15 @@ def main(argv=None) -> int:
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     logging.getLogger("gcrsky").setLevel(level)
+    if args.command == "scenarios":
+        from tqdm.contrib.logging import logging_redirect_tqdm
+
+        try:
+            _suite_names(args)
+        except ValueError as e:
+            parser.error(str(e))
+        with logging_redirect_tqdm():
+            return _scenarios(args)
     if args.command == "run":
         if args.lst_stop < args.lst_start:
             parser.error(
@@ -513,6 +762,8 @@ def main(argv=None) -> int:
         try:
             Config(lmax=args.lmax, nside=args.nside, n_lst=args.n_lst,
                    lst_range_hours=(args.lst_start, args.lst_stop), obs_date=args.date).validate()
+            fields = _run_settings(args)[0]
+            Config(**fields).validate()
         except ValueError as e:
             parser.error(str(e))
         from tqdm.contrib.logging import logging_redirect_tqdm

@@ -46,6 +46,8 @@ __all__ = [
     "pixel_radec_deg",
     "ra_in_range",
     "nearest_ring",
+    "ring_slice",
+    "moving_average",
     "BeamRegion",
     "beam_region_masks",
     "summary_metrics",
@@ -145,6 +147,80 @@ def nearest_ring(nside: int, dec_deg: float):
     k = int(np.argmin(np.abs(ring_dec - float(dec_deg))))  # first (northern) on ties
     pix = np.arange(start[k], start[k] + npix_ring[k], dtype=np.int64)
     return int(rings[k]), float(ring_dec[k]), pix
+
+
+def ring_slice(map_, nside: int, dec_deg: float):
+    """Values of a map along the HEALPix iso-latitude ring nearest to a declination.
+
+    The paper's "slice through the centre of the primary beam region" (Figs. 6, 8):
+    the ring is chosen by :func:`nearest_ring` (its exact declination is the second
+    item that function returns).
+
+    Args:
+        map_: RING-ordered map ``(12 nside^2,)`` (any units; returned unchanged).
+        nside: HEALPix resolution of ``map_``.
+        dec_deg: declination in degrees.
+
+    Returns:
+        ``(ra_deg, values)``, each ``(npix_ring,)`` (``4 nside`` pixels in the
+        equatorial belt ``|dec| <= 41.8 deg``, fewer in the polar caps): the pixels'
+        right ascensions in [0, 360) degrees, sorted increasingly, and the map's
+        values there.
+    """
+    map_ = np.asarray(map_)
+    if map_.ndim != 1 or map_.size != hp.nside2npix(nside):
+        raise ValueError(f"map_ must be a RING map of {hp.nside2npix(nside)} pixels for nside {nside}, got shape {map_.shape}")
+    _, _, pix = nearest_ring(nside, dec_deg)
+    _, phi = hp.pix2ang(nside, pix)
+    ra = np.rad2deg(phi) % 360.0
+    order = np.argsort(ra, kind="stable")
+    return ra[order], map_[pix[order]]
+
+
+def moving_average(y, window: int, passes: int = 2, *, circular: bool = True):
+    """``passes`` successive centred box-car (moving-average) filters of ``window`` samples.
+
+    The paper smooths its declination slices with "a pair of moving average
+    filters": the default ``passes = 2`` is that pair (two box cars in a row are a
+    triangular kernel of ``2 window - 1`` samples).  Each pass replaces ``y[i]`` by
+    the mean of ``y[i - h] .. y[i + h]`` with ``h = (window - 1) // 2``.
+
+    Edges: with ``circular=True`` (the default, right for a full HEALPix ring, whose
+    last pixel neighbours its first) indices wrap around modulo ``len(y)``; with
+    ``circular=False`` the window is truncated at the ends (mean of the samples that
+    exist).  NaNs propagate into every window that contains them.
+
+    Args:
+        y: ``(..., N)`` samples, filtered along the last axis (any units; kept).
+        window: odd positive number of samples per box car (1 = no smoothing).
+        passes: number of box cars applied (0 returns a copy of ``y``).
+
+    Returns:
+        ``(..., N)`` float64 array.
+    """
+    y = np.array(y, dtype=np.float64)  # copy
+    window, passes = int(window), int(passes)
+    if window < 1 or window % 2 == 0:
+        raise ValueError(f"window must be an odd positive integer (a centred box car), got {window}")
+    if passes < 0:
+        raise ValueError(f"passes must be >= 0, got {passes}")
+    n = y.shape[-1]
+    if n == 0 or window == 1 or passes == 0:
+        return y
+    h = window // 2
+    offs = np.arange(-h, h + 1)
+    idx = np.arange(n)[:, None] + offs[None, :]  # (N, window)
+    if circular:
+        idx %= n
+        for _ in range(passes):
+            y = y[..., idx].mean(axis=-1)
+        return y
+    valid = (idx >= 0) & (idx < n)
+    idx = np.clip(idx, 0, n - 1)
+    count = valid.sum(axis=1)
+    for _ in range(passes):
+        y = np.where(valid, y[..., idx], 0.0).sum(axis=-1) / count
+    return y
 
 
 class BeamRegion(NamedTuple):

@@ -42,7 +42,12 @@ class Config:
 
     Units: frequencies Hz, LSTs sidereal hours, lengths metres, latitude degrees,
     dt seconds, dnu Hz.  ``noise_scale`` multiplies the noise *variance* N,
-    ``prior_scale`` the prior variance S (paper cases B2-B8).  ``obs_date`` None
+    ``prior_scale`` the prior variance S (paper cases B2-B8).  The dishes are
+    pyuvdata's ``GaussianBeam(diameter=dish_diameter)`` (FWHM ~ lambda/D, 12.28 deg
+    at 100 MHz for 14 m) unless ``beam_fwhm_deg`` is set: then a Gaussian power beam
+    of exactly that FWHM at the first frequency, scaling as 1/frequency (the paper's
+    D1 quotes FWHM = lambda/D = 57.3 deg for 3 m dishes, which the Airy-matched
+    ``GaussianBeam(diameter=3)``, 63.4 deg, does not reproduce).  ``obs_date`` None
     is the paper's idealised mode (sky coefficients in the co-rotating frame);
     a date (e.g. ``"2026-03-21"``) observes at the real UTC times of that date
     whose local Earth rotation angles are the LSTs, with the sky in ICRS
@@ -55,6 +60,7 @@ class Config:
     n_lst: int = 10
     lst_range_hours: tuple = (0.0, 8.0)
     dish_diameter: float = 14.0
+    beam_fwhm_deg: Optional[float] = None
     antenna_spacing: float = 14.6
     rows: tuple = (3, 4, 3)
     latitude_deg: float = HERA_LATITUDE_DEG
@@ -80,6 +86,8 @@ class Config:
             raise ValueError(f"n_lst must be >= 1, got {self.n_lst}")
         if len(self.lst_range_hours) != 2:
             raise ValueError("lst_range_hours must be (start, stop) in hours")
+        if self.beam_fwhm_deg is not None and not 0 < self.beam_fwhm_deg < 180:
+            raise ValueError(f"beam_fwhm_deg must be in (0, 180), got {self.beam_fwhm_deg}")
         for name in ("dish_diameter", "antenna_spacing", "dt_s", "dnu_hz", "noise_scale", "prior_scale", "prior_frac"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
@@ -186,6 +194,7 @@ def build_problem(
     times=None,
     location=None,
     frame_pad: int = 4,
+    responses: tuple | None = None,
     config: Config | None = None,
     sky_note: str = "",
 ) -> Problem:
@@ -214,7 +223,10 @@ def build_problem(
       ``lmax + frame_pad``.
 
     An explicit ``frame`` (dense (n_resp, n) array or ``FrameMap``) with
-    ``lsts_rad`` is also accepted.
+    ``lsts_rad`` is also accepted.  ``responses``: optional precomputed
+    ``(cross, auto)`` responses for exactly this array, frequencies, degree, nside
+    and ``lst_ref_rad`` (reused across problems that differ only in LSTs, noise or
+    prior; shapes are checked, the contents cannot be).
     """
     require_x64("build_problem")
     freqs = np.atleast_1d(np.asarray(freqs_hz, np.float64))
@@ -246,8 +258,16 @@ def build_problem(
         if n_frame != n:
             raise ValueError(f"frame map takes {n_frame} coefficients, lmax={lmax} has {n}")
         lmax_resp = lmax_from_nparams(n_resp)
-    resp = response_matrix(array, pairs, freqs, lmax_resp, nside, lst_ref_rad=lst_ref_rad)
-    auto = response_matrix(array, np.stack([np.arange(nant)] * 2, 1), freqs, lmax_resp, nside, lst_ref_rad=lst_ref_rad)
+    if responses is None:
+        resp = response_matrix(array, pairs, freqs, lmax_resp, nside, lst_ref_rad=lst_ref_rad)
+        auto = response_matrix(
+            array, np.stack([np.arange(nant)] * 2, 1), freqs, lmax_resp, nside, lst_ref_rad=lst_ref_rad
+        )
+    else:  # precomputed for this array, frequencies, degree, nside and lst_ref_rad
+        resp, auto = responses
+        want = ((freqs.size, pairs.shape[0], n_params(lmax_resp)), (freqs.size, nant, n_params(lmax_resp)))
+        if (tuple(resp.shape), tuple(auto.shape)) != want:
+            raise ValueError(f"precomputed responses have shapes {resp.shape}, {auto.shape}; expected {want}")
     angles = jnp.asarray(lsts - lst_ref_rad)
     if key is None:
         key = jax.random.PRNGKey(0)
@@ -331,14 +351,37 @@ def standard_case(**overrides) -> Problem:
     return problem_from_config(cfg)
 
 
-def problem_from_config(cfg: Config) -> Problem:
-    """Build the simulated problem a :class:`Config` describes."""
+def beam_for_config(cfg: Config):
+    """The (pyuvdata) dish beam a :class:`Config` describes (see ``beam_fwhm_deg``)."""
+    if cfg.beam_fwhm_deg is None:
+        return gaussian_beam(cfg.dish_diameter)
+    from pyuvdata.analytic_beam import GaussianBeam
+
+    # power P = E^2 = exp(-za^2 / (2 sigma_P^2)) with FWHM = 2 sqrt(2 ln 2) sigma_P, so the
+    # E-field sigma is sqrt(2) sigma_P.  (pyuvdata 3's sigma_type="power" gives a power beam
+    # sqrt(2) wider than asked, measured, so the E-field form is used.)
+    sigma_p = np.deg2rad(cfg.beam_fwhm_deg) / (2 * np.sqrt(2 * np.log(2)))
+    return GaussianBeam(
+        sigma=float(np.sqrt(2) * sigma_p), sigma_type="efield", spectral_index=-1.0,
+        reference_frequency=float(cfg.freqs_hz[0]),
+    )
+
+
+def problem_from_config(cfg: Config, *, response_cache: dict | None = None) -> Problem:
+    """Build the simulated problem a :class:`Config` describes.
+
+    Args:
+        cfg: the configuration.
+        response_cache: optional dict shared between calls: the response (which does
+            not depend on LSTs, noise or prior) is reused for configurations with the
+            same :func:`gcrsky.scenarios.instrument_key`.
+    """
     from .sky import sky_truth
 
     freqs = np.asarray(cfg.freqs_hz, np.float64)
     truth = sky_truth(freqs, cfg.lmax, source=cfg.sky_source, extend_seed=cfg.extend_seed)
     log.info("sky truth: %s", truth.note)
-    array = make_array(hex_array(cfg.rows, cfg.antenna_spacing), cfg.latitude_deg, gaussian_beam(cfg.dish_diameter))
+    array = make_array(hex_array(cfg.rows, cfg.antenna_spacing), cfg.latitude_deg, beam_for_config(cfg))
     k_noise, k_prior = jax.random.split(jax.random.PRNGKey(cfg.seed))
     a_true = jnp.asarray(truth.alm)
     if cfg.flat_prior:
@@ -363,7 +406,15 @@ def problem_from_config(cfg: Config) -> Problem:
         site = EarthLocation.from_geodetic(cfg.longitude_deg * u.deg, cfg.latitude_deg * u.deg, cfg.height_m * u.m)
         times = times_for_lsts(cfg.obs_date, hours_to_rad(cfg.lsts_hours), cfg.longitude_deg)
         when = dict(lsts_rad=None, times=times, location=site)
-    return build_problem(
+    key = None
+    if response_cache is not None:
+        from .scenarios import instrument_key
+
+        key = instrument_key(cfg)
+        if key in response_cache:
+            when["responses"] = response_cache[key]
+            log.info("reusing the response for %s", key)
+    prob = build_problem(
         array,
         freqs,
         lmax=cfg.lmax,
@@ -378,3 +429,6 @@ def problem_from_config(cfg: Config) -> Problem:
         config=cfg,
         sky_note=truth.note,
     )
+    if key is not None:
+        response_cache[key] = (prob.response, prob.auto_response)
+    return prob
