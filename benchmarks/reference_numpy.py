@@ -493,7 +493,6 @@ def main(argv=None) -> None:
 
 def report(a, g, r, t_g, t_r, t_all) -> None:
     pf = r["per_freq"]
-    nf = len(pf)
 
     def fj(vals, fmt):
         return " / ".join(fmt.format(v) for v in vals)
