@@ -23,67 +23,25 @@ asymptotic rank-histogram chi-square p-value.  See :mod:`gcrsky.calibration`.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
-
-if "xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false").strip()
-
-import jax
-
-jax.config.update("jax_enable_x64", True)
 
 try:
     import gcrsky  # noqa: F401
 except ImportError:  # running from a checkout without an install
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import jax.numpy as jnp
-import numpy as np
+from gcrsky.runtime import use_safe_cpu_threading  # noqa: E402
 
-from gcrsky.calibration import GCRSampler, default_functionals, run_sbc
-from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
-from gcrsky.noise import weights_from_flags
-from gcrsky.normal import fluctuation_rhs, precision_matrix, wiener_rhs
-from gcrsky.prior import isotropic_prior
-from gcrsky.problem import build_problem, hours_to_rad
+use_safe_cpu_threading()  # before JAX's first computation (gcrsky/runtime.py)
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
 
 
-def flagged_problem(lmax=4, nside=16, nt=6, seed=0):
-    """Same as ``tests/test_calibration.py::flagged_problem``."""
-    arr = make_array(hex_array(), HERA_LATITUDE_DEG, gaussian_beam(14.0))
-    n = (lmax + 1) ** 2
-    prior = isotropic_prior((200.0 / (1.0 + np.arange(lmax + 1)) ** 2)[None], n)
-    rng = np.random.default_rng(seed)
-    sigma = rng.uniform(1.5e-4, 3e-4, (1, nt, 45))
-    flags = rng.random((1, nt, 45)) < 0.2
-    flags[:, 2, :] = True
-    flags[:, :, 7] = True
-    data = np.where(flags, np.nan + 0j, 0.0)
-    prob = build_problem(
-        arr,
-        [100e6],
-        hours_to_rad(np.linspace(0, 6, nt)),
-        lmax,
-        nside,
-        data=data,
-        sigma=sigma,
-        weights=weights_from_flags(flags),
-        prior=prior,
-    )
-    return prob, flags
-
-
-def fluctuation_bug_sampler(key, system, ndraws):
-    """The reference code's GCR (data fluctuation x 1/sqrt 2), solved exactly by Cholesky."""
-    C = jnp.linalg.cholesky(precision_matrix(system))
-    half = system._replace(inv_noise=system.inv_noise / 2.0)
-    fl = jax.vmap(lambda k: fluctuation_rhs(k, half), out_axes=1)(jax.random.split(key, ndraws))
-    rhs = wiener_rhs(system)[:, None, :] + fl
-    x = jax.vmap(lambda c, r: jax.scipy.linalg.cho_solve((c, True), r.T).T)(C, rhs)
-    return x, jnp.all(jnp.isfinite(x))
+from gcrsky.calibration import GCRSampler, default_functionals, flagged_example_problem, reference_bug_sampler, run_sbc
 
 
 def main(argv=None):
@@ -92,7 +50,7 @@ def main(argv=None):
     ap.add_argument("--draws", type=int, default=31)
     args = ap.parse_args(argv)
 
-    prob, flags = flagged_problem()
+    prob, flags = flagged_example_problem()
     system = prob.system()
     G, names, _ = default_functionals(system, coefficients=(0, 5, 17))
     doubled = system._replace(inv_noise=system.inv_noise / 2.0)
@@ -100,7 +58,7 @@ def main(argv=None):
     runs = [
         ("cg", 100, system, GCRSampler("cg", dense=True, preconditioner="nystrom", rank=8), None, None),
         ("cholesky", 101, system, chol, None, 50),
-        ("bug 1/sqrt2", 102, system, fluctuation_bug_sampler, None, 50),
+        ("bug 1/sqrt2", 102, system, reference_bug_sampler, None, 50),
         ("post 2sig2", 103, system, chol, doubled, 50),
         ("data 2sig2", 104, doubled, chol, system, 50),
     ]

@@ -37,18 +37,18 @@ import time
 import warnings
 from pathlib import Path
 
-# before JAX starts its backend: avoid XLA CPU's Eigen-pool hang (gcrsky/runtime.py)
-if os.environ.get("GCRSKY_FAST_THREADS") != "1" and "xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false").strip()
-
-import jax
-
-jax.config.update("jax_enable_x64", True)
-
 try:
     import gcrsky  # noqa: F401
 except ImportError:  # running from a checkout without an install
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from gcrsky.runtime import use_safe_cpu_threading  # noqa: E402
+
+use_safe_cpu_threading()  # before JAX's first computation (gcrsky/runtime.py)
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
 
 import numpy as np
 from astropy.utils import iers

@@ -47,8 +47,10 @@ import numpy as np
 from scipy import stats
 
 from .layout import lmax_from_nparams, mode_table
-from .noise import clean_data, draw_noise
-from .normal import LinearSystem, precision_matrix
+from .instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
+from .noise import clean_data, draw_noise, weights_from_flags
+from .normal import LinearSystem, fluctuation_rhs, precision_matrix, wiener_rhs
+from .prior import isotropic_prior
 from .operator import apply
 from .sampler import DEFAULT_TOL, sample_system
 
@@ -60,6 +62,8 @@ __all__ = [
     "rank_pvalues",
     "run_sbc",
     "simulate_replicates",
+    "flagged_example_problem",
+    "reference_bug_sampler",
 ]
 
 log = logging.getLogger(__name__)
@@ -357,3 +361,54 @@ def run_sbc(
         int((~ok).sum()),
     )
     return SBCResult(names=names, ranks=ranks, n_draws=int(n_draws), converged=ok, **st)
+
+
+# ---------------------------------------------------------------- examples and negative controls
+
+
+def flagged_example_problem(lmax: int = 4, nside: int = 16, nt: int = 6, seed: int = 0):
+    """A small flagged problem for calibration studies, and its flags (1, nt, 45).
+
+    The 10-antenna hexagon (14 m Gaussian dishes, HERA latitude), one channel at
+    100 MHz, ``nt`` LSTs over 0-6 h, heterogeneous per-component noise sigma in
+    [1.5, 3] x 1e-4, an isotropic prior C_l = 200 / (1 + l)^2, and flags: 20% of
+    samples at random plus the whole time index 2 and the whole baseline index 7,
+    with NaN in the flagged data (cleaned like real data).  Only the flags, sigma
+    and prior matter for SBC: the data are re-simulated per replicate.
+    """
+    from .problem import build_problem, hours_to_rad  # problem.py does not import this module
+
+    arr = make_array(hex_array(), HERA_LATITUDE_DEG, gaussian_beam(14.0))
+    n = (lmax + 1) ** 2
+    prior = isotropic_prior((200.0 / (1.0 + np.arange(lmax + 1)) ** 2)[None], n)
+    rng = np.random.default_rng(seed)
+    sigma = rng.uniform(1.5e-4, 3e-4, (1, nt, 45))
+    flags = rng.random((1, nt, 45)) < 0.2
+    flags[:, 2, :] = True  # one whole time
+    flags[:, :, 7] = True  # one whole baseline
+    data = np.where(flags, np.nan + 0j, 0.0)  # only the flags and sigma matter for SBC
+    prob = build_problem(
+        arr,
+        [100e6],
+        hours_to_rad(np.linspace(0, 6, nt)),
+        lmax,
+        nside,
+        data=data,
+        sigma=sigma,
+        weights=weights_from_flags(flags),
+        prior=prior,
+    )
+    return prob, flags
+
+
+def reference_bug_sampler(key, system, ndraws):
+    """A deliberately *wrong* sampler, for power checks: the reference code's GCR: data-space fluctuation ``(randn + i randn) / sqrt 2`` with
+    per-component inverse variances, i.e. the data term of the fluctuation rhs scaled by
+    1/sqrt 2 (``fluctuation_rhs`` of a system with W/2).  Solved exactly (dense Cholesky)."""
+    P = precision_matrix(system)
+    C = jnp.linalg.cholesky(P)
+    half = system._replace(inv_noise=system.inv_noise / 2.0)
+    fl = jax.vmap(lambda k: fluctuation_rhs(k, half), out_axes=1)(jax.random.split(key, ndraws))  # (Nf, L, n)
+    rhs = wiener_rhs(system)[:, None, :] + fl
+    x = jax.vmap(lambda c, r: jax.scipy.linalg.cho_solve((c, True), r.T).T)(C, rhs)
+    return x, jnp.all(jnp.isfinite(x))

@@ -42,17 +42,18 @@ benchmark measures family p 0.11 (cg), 0.87 (cholesky), 3.9e-135, 5.1e-148, 2.7e
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy import stats
 
-from gcrsky.calibration import GCRSampler, default_functionals, rank_pvalues, run_sbc
-from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
-from gcrsky.noise import weights_from_flags
-from gcrsky.normal import fluctuation_rhs, precision_matrix, wiener_rhs
-from gcrsky.prior import isotropic_prior
-from gcrsky.problem import build_problem, hours_to_rad
+from gcrsky.calibration import (
+    GCRSampler,
+    default_functionals,
+    flagged_example_problem,
+    rank_pvalues,
+    reference_bug_sampler,
+    run_sbc,
+)
 
 jax.config.update("jax_enable_x64", True)
 
@@ -61,34 +62,9 @@ POWER_P = 1e-6  # the negative controls must be rejected at this level
 M, L = 1000, 15  # replicates, posterior draws per replicate
 
 
-def flagged_problem(lmax=4, nside=16, nt=6, seed=0):
-    """The module's flagged problem (see the module docstring) and its flags (1, nt, 45)."""
-    arr = make_array(hex_array(), HERA_LATITUDE_DEG, gaussian_beam(14.0))
-    n = (lmax + 1) ** 2
-    prior = isotropic_prior((200.0 / (1.0 + np.arange(lmax + 1)) ** 2)[None], n)
-    rng = np.random.default_rng(seed)
-    sigma = rng.uniform(1.5e-4, 3e-4, (1, nt, 45))
-    flags = rng.random((1, nt, 45)) < 0.2
-    flags[:, 2, :] = True  # one whole time
-    flags[:, :, 7] = True  # one whole baseline
-    data = np.where(flags, np.nan + 0j, 0.0)  # only the flags and sigma matter for SBC
-    prob = build_problem(
-        arr,
-        [100e6],
-        hours_to_rad(np.linspace(0, 6, nt)),
-        lmax,
-        nside,
-        data=data,
-        sigma=sigma,
-        weights=weights_from_flags(flags),
-        prior=prior,
-    )
-    return prob, flags
-
-
 @pytest.fixture(scope="module")
 def setup():
-    prob, flags = flagged_problem()
+    prob, flags = flagged_example_problem()
     system = prob.system()
     G, names, lam = default_functionals(system, coefficients=(0, 5, 17))
     return dict(prob=prob, flags=flags, system=system, G=G, names=names, lam=lam)
@@ -148,21 +124,8 @@ def test_sbc_calibrated_with_flags(setup, sampler, seed, batch_size):
     assert res.p_family > ALPHA, _report(res)
 
 
-def _fluctuation_bug_sampler(key, system, ndraws):
-    """The reference code's GCR: data-space fluctuation ``(randn + i randn) / sqrt 2`` with
-    per-component inverse variances, i.e. the data term of the fluctuation rhs scaled by
-    1/sqrt 2 (``fluctuation_rhs`` of a system with W/2).  Solved exactly (dense Cholesky)."""
-    P = precision_matrix(system)
-    C = jnp.linalg.cholesky(P)
-    half = system._replace(inv_noise=system.inv_noise / 2.0)
-    fl = jax.vmap(lambda k: fluctuation_rhs(k, half), out_axes=1)(jax.random.split(key, ndraws))  # (Nf, L, n)
-    rhs = wiener_rhs(system)[:, None, :] + fl
-    x = jax.vmap(lambda c, r: jax.scipy.linalg.cho_solve((c, True), r.T).T)(C, rhs)
-    return x, jnp.all(jnp.isfinite(x))
-
-
 def test_sbc_detects_reference_fluctuation_bug(setup):
-    res = _sbc(setup, _fluctuation_bug_sampler, 102)
+    res = _sbc(setup, reference_bug_sampler, 102)
     assert res.p_family < POWER_P, _report(res)
     # it is the data-dominated directions that expose it (under-dispersed: z^2 > 1)
     k = int(np.argmin(res.p_functional))
