@@ -1,0 +1,363 @@
+"""Scaling benchmark (issue 5 item 4): response build, set-up and draw cost of each sampler path.
+
+Usage::
+
+    python benchmarks/scale.py              # default grid (~15 min on 2 cores)
+    python benchmarks/scale.py --quick      # tiny grid (< 2 min)
+    python benchmarks/scale.py --only l100-a37-t240-24h-f2
+    python benchmarks/scale.py --one CONFIG --json   # one configuration (used internally)
+
+Every configuration runs in its own subprocess so ``ru_maxrss`` is that configuration's
+peak resident memory.  A configuration is named ``l{lmax}-a{nants}-t{nlst}-{hours}h-f{nfreq}``:
+hexagonal array of 10 / 37 / 91 antennas (rows 3-4-3, 4..7..4, 6..11..6; 14.6 m), a
+Gaussian 14 m dish beam, ``nlst`` equally spaced LSTs over ``hours`` (24 h: full day,
+endpoint excluded, so the m-mode path applies when Nt > 2 lmax), ``nfreq`` channels
+from 100 MHz in 2 MHz steps.  The truth is a draw from an isotropic prior
+``C_l = 100 K^2 / (1 + l)^2`` (also the prior used for inference), the noise a fixed
+per-component sigma, 10% of the rms model visibility (constant in time and baseline,
+so the noise is time-stationary): nothing depends on a sky model.
+
+Response: direct quadrature (``gcrsky.response.response_matrix``) for lmax <= 20, the
+SHT route (``gcrsky.response_sht.response_matrix_sht``, same numbers) above; nside 64
+for lmax <= 50, 128 for lmax 100.  The response column includes the autos' response.
+
+Sampler paths (``gcrsky.prepare`` + ``gcrsky.draw`` unless noted):
+
+* ``chol``:  dense P + Cholesky;
+* ``cgD-ny`` / ``cgD-mb``: CG on the dense P, Nystrom / m-block preconditioner;
+* ``cgMF-ny``: matrix-free CG, Nystrom preconditioner;
+* ``mmode``: ``gcrsky.mmode.prepare_mmode`` / ``draw_mmode`` (exact; needs uniform
+  full-day coverage with Nt > 2 lmax and time-stationary noise, else 'n/a' with the
+  reason ``mmode_check`` gives).
+
+For each: compile time (``jit(...).lower(...).compile()``, AOT, so it never runs the
+computation twice), set-up run time, time per draw (``ndraws`` draws in one call /
+``ndraws``), and for CG the iterations of the Wiener solve (mean over channels) and the
+mean iterations per draw.  ``it_noPC`` is plain CG (identity preconditioner,
+``gcrsky.sampler.pcg`` on the dense P of channel 0, started at 0 like the Wiener solve)
+run until its residual ``||b - P x||`` reaches the relative residual the m-block CG
+Wiener solve achieved (the same tolerance in residual terms), capped at 20000
+('capped').  ``P_MB`` is the size of one dense P (all channels) where formed.
+A path is skipped ('skip') when its estimated cost exceeds the per-configuration
+budget (dense P: 8 Nf Nt Nbl n^2 flops > 4e11, or P > 3 GB; matrix-free CG: the
+matvecs for set-up + draws > ~6e11 flops); the reason is printed.
+
+Measured (2026-11-22, this repository's machine: 2 shared x86 cores, 24 GB, CPU JAX float64,
+gcrsky safe threading), default grid, total 424 s wall.  Path cell: setup compile s +
+setup run s / time per draw [CG iterations: Wiener, mean per draw]; resp_s includes the
+autos; prob_s = simulate data + assemble the problem; skips are explained in the run output
+(dense P or matrix-free CG over budget; mmode n/a when coverage is not a uniform full day
+with Nt > 2 lmax).  it_noPC on the 24 h rows targets the m-block solve's ~1e-16 relative
+residual (m-blocks are exact there), i.e. machine precision: not meaningful.
+
+::
+
+    config               n      Nbl  resp_s  prob_s  P_MB    peak_MB  it_noPC   chol                          cgD-ny                        cgD-mb                        cgMF-ny                       mmode
+    l20-a10-t10-8h-f1    441    45      1.4     0.9  1.6     749      897       0.8+0.0/0.263ms               1.7+0.1/1.23ms [1,1]          1.2+0.1/4.8ms [181,195]       1.7+0.0/2.48ms [1,1]          skip
+    l20-a10-t240-24h-f1  441    45      1.2     0.8  1.6     1119     2194      0.8+0.6/0.0888ms              1.6+0.7/4.65ms [8,8]          1.3+1.0/4.73ms [2,1]          1.8+0.8/36.6ms [8,8]          0.7+0.0/0.0694ms
+    l20-a37-t10-8h-f1    441    666     1.9     0.8  1.6     815      1693      0.8+0.3/0.0805ms              1.5+0.3/1.85ms [2,2]          1.2+0.4/9.91ms [366,387]      2.3+0.3/7.9ms [2,2]           skip
+    l20-a37-t240-24h-f1  441    666     2.2     0.9  1.6     850      4787      0.8+6.8/0.111ms               1.9+7.4/23.7ms [26,23]        1.4+13.1/21.3ms [2,2]         skip                          0.9+0.1/0.122ms
+    l20-a91-t10-8h-f1    441    4095    7.0     1.0  1.6     1103     2991      1.0+2.0/0.414ms               1.9+2.1/7.08ms [2,2]          1.6+3.2/27.7ms [696,708]      3.0+1.9/66.8ms [2,2]          skip
+    l20-a91-t240-24h-f1  441    4095    7.9     1.3  1.6     928      n/a (no dense P) skip                          skip                          skip                          skip                          1.0+0.4/0.0968ms
+    l50-a10-t10-8h-f1    2601   45      0.6     1.3  54.1    860      3090      1.6+2.1/3.11ms                2.5+1.2/21.7ms [34,33]        2.2+2.4/360ms [399,440]       3.2+0.4/40.5ms [34,33]        skip
+    l50-a10-t60-8h-f1    2601   45      0.4     1.4  54.1    1327     6627      1.4+7.2/2.14ms                2.9+6.7/36.1ms [90,84]        1.4+6.8/469ms [648,740]       2.1+1.6/363ms [91,83]         skip
+    l50-a10-t240-24h-f1  2601   45      0.4     1.1  54.1    571      n/a (no dense P) skip                          skip                          skip                          skip                          0.9+0.1/0.257ms
+    l50-a37-t10-8h-f1    2601   666     3.4     1.0  54.1    1109     8150      1.0+9.0/1.82ms                2.0+8.4/41.6ms [111,105]      1.3+11.4/763ms [1244,1334]    1.9+2.0/605ms [110,104]       skip
+    l50-a37-t240-24h-f1  2601   666     3.4     0.9  54.1    998      n/a (no dense P) skip                          skip                          skip                          skip                          0.8+0.4/0.403ms
+    l100-a37-t240-24h-f2 10201  666    13.7     1.6  1665.0  3060     n/a (no dense P) skip                          skip                          skip                          skip                          0.8+4.7/1.34ms
+
+Headline (l100-a37-t240-24h-f2, SHT response, m-mode path): response 13.7 s, 200 draws
+0.27 s (+0.8 s compile; set-up 4.7 s), peak 3.1 GB.  Partial coverage at lmax 50 (8 h):
+no-preconditioner / m-block Wiener iterations = 3090/399 (7.7x, 10 LSTs, 10 ants),
+6627/648 (10.2x, 60 LSTs, 10 ants), 8150/1244 (6.6x, 10 LSTs, 37 ants); Nystrom needs 34-111.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+
+ROWS = {10: (3, 4, 3), 37: (4, 5, 6, 7, 6, 5, 4), 91: (6, 7, 8, 9, 10, 11, 10, 9, 8, 7, 6)}
+
+# (lmax, nants, nlst, hours, nfreq, ndraws)
+DEFAULT_GRID = [
+    (20, 10, 10, 8, 1, 20),
+    (20, 10, 240, 24, 1, 20),
+    (20, 37, 10, 8, 1, 20),
+    (20, 37, 240, 24, 1, 20),
+    (20, 91, 10, 8, 1, 20),
+    (20, 91, 240, 24, 1, 20),
+    (50, 10, 10, 8, 1, 20),
+    (50, 10, 60, 8, 1, 20),  # target (b): partial coverage at lmax 50
+    (50, 10, 240, 24, 1, 20),
+    (50, 37, 10, 8, 1, 20),
+    (50, 37, 240, 24, 1, 20),
+    (100, 37, 240, 24, 2, 200),  # the issue's headline
+]
+QUICK_GRID = [(20, 10, 10, 8, 1, 5), (20, 10, 48, 24, 1, 5)]
+
+DENSE_FLOP_MAX = 4e11
+DENSE_BYTES_MAX = 3e9
+MF_FLOP_MAX = 6e11
+NOPC_CAP = 20000
+
+
+def name_of(c) -> str:
+    lmax, na, nt, h, nf, nd = c
+    return f"l{lmax}-a{na}-t{nt}-{h}h-f{nf}"
+
+
+def parse_name(s: str, grid):
+    for c in grid + DEFAULT_GRID + QUICK_GRID:
+        if name_of(c) == s:
+            return c
+    lm, a, t, h, f = s.split("-")
+    lmax = int(lm[1:])
+    return (lmax, int(a[1:]), int(t[1:]), int(h[:-1]), int(f[1:]), 200 if lmax >= 100 else 20)
+
+
+def peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KB
+
+
+# ---------------------------------------------------------------- one configuration
+
+
+def run_one(c) -> dict:
+    from gcrsky.runtime import use_safe_cpu_threading
+
+    use_safe_cpu_threading()
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import numpy as np
+
+    import gcrsky
+    from gcrsky.instrument import HERA_LATITUDE_DEG, antpairs, gaussian_beam, hex_array, make_array
+    from gcrsky.layout import n_params
+    from gcrsky.mmode import draw_mmode, mmode_check, _prepare as _prep_mm
+    from gcrsky.prior import isotropic_prior
+    from gcrsky.problem import build_problem
+    from gcrsky.response import response_matrix
+    from gcrsky.response_sht import response_matrix_sht
+    from gcrsky.sampler import pcg, prepare_sampler, draw
+
+    lmax, nants, nt, hours, nf, ndraws = c
+    out = {"name": name_of(c), "lmax": lmax, "nants": nants, "nlst": nt, "hours": hours, "nfreq": nf,
+           "ndraws": ndraws, "paths": {}, "notes": []}
+    nside = 64 if lmax <= 50 else 128
+    n = n_params(lmax)
+    nbl = nants * (nants - 1) // 2
+    out.update(n=n, nbl=nbl, nside=nside)
+    freqs = 100e6 + 2e6 * np.arange(nf)
+    arr = make_array(hex_array(ROWS[nants], 14.6), HERA_LATITUDE_DEG, gaussian_beam(14.0))
+    pairs = antpairs(nants)
+    autop = np.stack([np.arange(nants)] * 2, 1)
+
+    t0 = time.perf_counter()
+    if lmax <= 20:
+        out["response"] = "direct"
+        resp = response_matrix(arr, pairs, freqs, lmax, nside).block_until_ready()
+        auto = response_matrix(arr, autop, freqs, lmax, nside).block_until_ready()
+    else:
+        out["response"] = "sht"
+        resp = response_matrix_sht(arr, pairs, freqs, lmax, nside).block_until_ready()
+        auto = response_matrix_sht(arr, autop, freqs, lmax, nside).block_until_ready()
+    out["t_response"] = time.perf_counter() - t0
+
+    # synthetic truth, prior, fixed sigma
+    t0 = time.perf_counter()
+    ell = np.arange(lmax + 1)
+    cl = np.tile(100.0 / (1.0 + ell) ** 2, (nf, 1))
+    prior = isotropic_prior(cl, n)
+    std = 1.0 / np.sqrt(np.asarray(prior.inv_var))
+    a_true = std * np.random.default_rng(1).standard_normal((nf, n))
+    R = np.asarray(resp)
+    vrms = np.sqrt(np.mean(np.einsum("fbk,fk->fb", np.abs(R) ** 2, std**2)))  # rms |V| under the prior
+    sigma = 0.1 * vrms / np.sqrt(2.0)
+    del R
+    if hours >= 24:
+        lsts = np.arange(nt) * (2 * np.pi / nt)
+    else:
+        lsts = np.linspace(0.0, hours * 2 * np.pi / 24.0, nt)
+    prob = build_problem(arr, freqs, lsts, lmax, nside, a_true=a_true, sigma=sigma, prior=prior,
+                         responses=(resp, auto), key=jax.random.PRNGKey(3))
+    system = prob.system()
+    jax.block_until_ready(system.data)
+    out["t_problem"] = time.perf_counter() - t0
+    key = jax.random.PRNGKey(7)
+
+    def timed(jitted, args, static, dyn_kw=None):
+        """AOT compile (timed), then one timed run."""
+        dyn_kw = dyn_kw or {}
+        t0 = time.perf_counter()
+        comp = jitted.lower(*args, **static, **dyn_kw).compile()
+        tc = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        res = jax.block_until_ready(comp(*args, **dyn_kw))
+        return res, tc, time.perf_counter() - t0
+
+    dense_flops = 8.0 * nf * nt * nbl * n * n
+    dense_bytes = 8.0 * nf * n * n
+    mv_flops = 16.0 * nf * nt * nbl * n
+    dense_ok = dense_flops <= DENSE_FLOP_MAX and dense_bytes <= DENSE_BYTES_MAX
+    dense_why = (f"dense P ~{dense_flops:.1e} flop, {dense_bytes / 1e9:.2f} GB "
+                 f"(limits {DENSE_FLOP_MAX:.0e} flop, {DENSE_BYTES_MAX / 1e9:.0f} GB)")
+    out["P_MB"] = dense_bytes / 1e6
+
+    paths = [("chol", dict(method="cholesky")),
+             ("cgD-ny", dict(method="cg", dense=True, preconditioner="nystrom")),
+             ("cgD-mb", dict(method="cg", dense=True, preconditioner="mblock")),
+             ("cgMF-ny", dict(method="cg", dense=False, preconditioner="nystrom"))]
+    rel_mb = None
+    for pname, static in paths:
+        rec = {}
+        if static.get("method") == "cholesky" or static.get("dense"):
+            if not dense_ok:
+                out["paths"][pname] = {"skip": dense_why}
+                continue
+        else:
+            est = mv_flops * (128 + 2 * 40 + ndraws * 2 * 40)
+            if est > MF_FLOP_MAX:
+                out["paths"][pname] = {"skip": f"matrix-free CG ~{est:.1e} flop (~{mv_flops:.1e}/matvec) > {MF_FLOP_MAX:.0e}"}
+                continue
+        prep, tc, tr = timed(prepare_sampler, (system,), static)
+        rec.update(setup_compile=tc, setup=tr)
+        (dr, info), tc2, tr2 = timed(draw, (key, prep), dict(ndraws=ndraws))
+        rec.update(draw_compile=tc2, draw_total=tr2, per_draw=tr2 / ndraws)
+        rec["ok"] = bool(np.all(np.asarray(info["draws"].converged)) and np.all(np.asarray(prep.wiener.converged)))
+        if static["method"] == "cg":
+            rec["it_wiener"] = float(np.mean(np.asarray(prep.wiener.iterations)))
+            rec["it_draw"] = float(np.mean(np.asarray(info["draws"].iterations)))
+            if pname == "cgD-mb":
+                rel_mb = float(np.asarray(prep.wiener.rel_residual)[0])
+                P0 = prep.precision[0]
+                b0 = gcrsky.normal.wiener_rhs(system)[0]
+                tol = rel_mb * float(jnp.linalg.norm(b0))
+                f = jax.jit(lambda P, b, tol: pcg(lambda x: P @ x, lambda r: r, b, jnp.zeros_like(b), tol=tol,
+                                                  maxiter=NOPC_CAP)[1])
+                t0 = time.perf_counter()
+                inf0 = jax.block_until_ready(f(P0, b0, tol))
+                k = int(inf0.iterations)
+                conv = bool(inf0.converged)
+                out["it_noPC"] = "capped" if (k >= NOPC_CAP and not conv) else (k if conv else f"{k}(nc)")
+                out["it_noPC_s"] = time.perf_counter() - t0
+                out["rel_target"] = rel_mb
+        out["paths"][pname] = rec
+        del prep, dr, info
+    if "it_noPC" not in out:
+        out["it_noPC"] = "n/a (no dense P)"
+
+    chk = mmode_check(system)
+    if not chk.ok:
+        out["paths"]["mmode"] = {"skip": "n/a: " + chk.reason}
+    else:
+        prep, tc, tr = timed(_prep_mm, (system,), {})
+        rec = dict(setup_compile=tc, setup=tr)
+        (dr, info), tc2, tr2 = timed(draw_mmode, (key, prep), dict(ndraws=ndraws))
+        rec.update(draw_compile=tc2, draw_total=tr2, per_draw=tr2 / ndraws)
+        rec["ok"] = bool(np.all(np.asarray(info["draws"].converged)))
+        rec["wiener_rel_resid"] = float(np.max(np.asarray(prep.wiener.rel_residual)))
+        out["paths"]["mmode"] = rec
+        del prep, dr, info
+    out["peak_MB"] = peak_mb()
+    return out
+
+
+# ---------------------------------------------------------------- driver and table
+
+
+def fmt_path(r) -> str:
+    if r is None:
+        return "-"
+    if "skip" in r:
+        return "skip"
+    s = f"{r['setup_compile']:.1f}+{r['setup']:.1f}/{r['per_draw'] * 1e3:.3g}ms"
+    if "it_wiener" in r:
+        s += f" [{r['it_wiener']:.0f},{r['it_draw']:.0f}]"
+    if not r.get("ok", True):
+        s += "!"
+    return s
+
+
+PATHS = ["chol", "cgD-ny", "cgD-mb", "cgMF-ny", "mmode"]
+
+
+def print_table(results) -> None:
+    print()
+    print("config               n      Nbl  resp_s  prob_s  P_MB    peak_MB  it_noPC   "
+          + "  ".join(f"{p:<28}" for p in PATHS))
+    for r in results:
+        if "error" in r:
+            print(f"{r['name']:<20} FAILED: {r['error']}")
+            continue
+        cols = "  ".join(f"{fmt_path(r['paths'].get(p)):<28}" for p in PATHS)
+        print(f"{r['name']:<20} {r['n']:<6} {r['nbl']:<4} {r['t_response']:>6.1f}  {r['t_problem']:>6.1f}  "
+              f"{r['P_MB']:<7.1f} {r['peak_MB']:<8.0f} {str(r['it_noPC']):<9} {cols}")
+    print("\npath cell: setup compile s + setup run s / time per draw (ms) [CG iters: Wiener, per draw]; "
+          "'!' = a solve did not converge")
+    notes = []
+    for r in results:
+        for p, v in r.get("paths", {}).items():
+            if v and "skip" in v:
+                notes.append(f"  {r['name']} {p}: skipped ({v['skip']})")
+        if "rel_target" in r:
+            notes.append(f"  {r['name']}: no-PC CG target rel. residual {r['rel_target']:.2e} "
+                         f"(m-block Wiener solve), {r['it_noPC_s']:.1f} s")
+        if "mmode" in r.get("paths", {}) and "skip" not in r["paths"]["mmode"]:
+            m = r["paths"]["mmode"]
+            notes.append(f"  {r['name']} mmode: {r['ndraws']} draws in {m['draw_total']:.2f} s "
+                         f"(+{m['draw_compile']:.1f} s compile), Wiener rel. residual {m['wiener_rel_resid']:.1e}")
+    print("\n".join(notes))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="tiny grid (< 2 min)")
+    ap.add_argument("--only", nargs="+", help="configuration names (see --list)")
+    ap.add_argument("--list", action="store_true")
+    ap.add_argument("--one", help="run one configuration in this process")
+    ap.add_argument("--json", action="store_true", help="with --one: print the result as JSON")
+    ap.add_argument("--timeout", type=float, default=300.0, help="seconds per configuration")
+    a = ap.parse_args(argv)
+    grid = QUICK_GRID if a.quick else DEFAULT_GRID
+    if a.list:
+        print("\n".join(name_of(c) for c in grid))
+        return 0
+    if a.one:
+        res = run_one(parse_name(a.one, grid))
+        print("JSON:" + json.dumps(res) if a.json else res)
+        return 0
+    if a.only:
+        grid = [parse_name(s, grid) for s in a.only]
+    results = []
+    t_all = time.perf_counter()
+    for c in grid:
+        nm = name_of(c)
+        t0 = time.perf_counter()
+        try:
+            p = subprocess.run([sys.executable, os.path.abspath(__file__), "--one", nm, "--json"],
+                               capture_output=True, text=True, timeout=a.timeout)
+            line = [s for s in p.stdout.splitlines() if s.startswith("JSON:")]
+            if p.returncode != 0 or not line:
+                res = {"name": nm, "error": (p.stderr.strip().splitlines() or ["?"])[-1]}
+            else:
+                res = json.loads(line[-1][5:])
+        except subprocess.TimeoutExpired:
+            res = {"name": nm, "error": f"skipped (exceeded {a.timeout:.0f} s)"}
+        res["wall"] = time.perf_counter() - t0
+        print(f"{nm}: {res['wall']:.1f} s wall" + (f"  ({res['error']})" if "error" in res else ""), flush=True)
+        results.append(res)
+    print_table(results)
+    print(f"\ntotal {time.perf_counter() - t_all:.1f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
