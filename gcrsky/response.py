@@ -30,7 +30,7 @@ from .harmonics import real_basis
 from .instrument import Array, beam_amplitude, baseline_vectors
 from .layout import n_params
 
-__all__ = ["SkyGrid", "sky_grid", "response_matrix", "kelvin_sr_to_jy", "SPEED_OF_LIGHT"]
+__all__ = ["SkyGrid", "sky_grid", "response_matrix", "unique_beams", "kelvin_sr_to_jy", "SPEED_OF_LIGHT"]
 
 SPEED_OF_LIGHT = 299792458.0  # m/s
 BOLTZMANN = 1.380649e-23  # J/K
@@ -132,6 +132,21 @@ def _quadrature(lmax, chunk, theta, phi, enu, weight, amp, pair_a, pair_b, bvec_
     return rr + 1j * ri
 
 
+def unique_beams(beams) -> tuple[list, np.ndarray]:
+    """Distinct beam objects (by identity) and, per antenna, the index of its beam."""
+    uniq: list = []
+    idx = np.empty(len(beams), np.int64)
+    for i, b in enumerate(beams):
+        for j, u in enumerate(uniq):
+            if u is b:
+                idx[i] = j
+                break
+        else:
+            uniq.append(b)
+            idx[i] = len(uniq) - 1
+    return uniq, idx
+
+
 def response_matrix(
     array: Array,
     pairs: np.ndarray,
@@ -165,17 +180,7 @@ def response_matrix(
         raise ValueError(f"pairs must be (Nbl, 2) antenna indices in [0, {nant}), got shape {pairs.shape}")
     grid = sky_grid(nside, array.latitude_rad, lst_ref_rad)
 
-    # unique beam objects -> amplitude maps
-    uniq: list = []
-    beam_idx = np.empty(nant, np.int64)
-    for i, b in enumerate(array.beams):
-        for j, u in enumerate(uniq):
-            if u is b:
-                beam_idx[i] = j
-                break
-        else:
-            uniq.append(b)
-            beam_idx[i] = len(uniq) - 1
+    uniq, beam_idx = unique_beams(array.beams)  # amplitude maps once per distinct beam
     amp = np.stack([beam_amplitude(b, grid.az_uvbeam, grid.za, freqs) for b in uniq], axis=1)  # (Nf, Nb, Np)
 
     npix = grid.theta.size

@@ -53,7 +53,7 @@ import numpy as np
 
 from .instrument import Array, baseline_vectors, beam_amplitude
 from .layout import mode_table, n_params, realify
-from .response import SPEED_OF_LIGHT, sky_grid
+from .response import SPEED_OF_LIGHT, sky_grid, unique_beams
 
 __all__ = ["realified_projection", "response_matrix_sht"]
 
@@ -70,21 +70,6 @@ def realified_projection(alm: np.ndarray, lmax: int) -> np.ndarray:
     """
     factor = np.where(mode_table(lmax).m == 0, 1.0, 2.0)
     return realify(np.asarray(alm), lmax) * factor
-
-
-def _unique_beams(beams) -> tuple[list, np.ndarray]:
-    """Distinct beam objects (by identity, as in response_matrix) and each antenna's index."""
-    uniq: list = []
-    idx = np.empty(len(beams), np.int64)
-    for i, b in enumerate(beams):
-        for j, u in enumerate(uniq):
-            if u is b:
-                idx[i] = j
-                break
-        else:
-            uniq.append(b)
-            idx[i] = len(uniq) - 1
-    return uniq, idx
 
 
 def response_matrix_sht(
@@ -143,7 +128,7 @@ def response_matrix_sht(
     if not np.isclose(grid.weight_sr, 4 * np.pi / npix_full):  # healpy's implicit weight
         raise AssertionError("sky_grid weight is not 4 pi / Npix; the SHT scaling would be wrong")
 
-    uniq, beam_idx = _unique_beams(array.beams)
+    uniq, beam_idx = unique_beams(array.beams)
     amp = np.stack([beam_amplitude(b, grid.az_uvbeam, grid.za, freqs) for b in uniq], axis=1)  # (Nf, Nb, Np)
     ia, ib = beam_idx[pairs[:, 0]], beam_idx[pairs[:, 1]]
     bvec = baseline_vectors(np.asarray(array.positions_enu_m, np.float64), pairs)  # (Nbl, 3) m
