@@ -148,8 +148,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--date", default=d.obs_date, metavar="YYYY-MM-DD",
                    help="observe on this UTC date at the real times whose local Earth rotation angle is each "
                    "LST (sky in ICRS, exact ICRS -> CIRS-of-date frame map); default: the paper's idealised LSTs")
-    r.add_argument("--method", choices=("cg", "cholesky", "eigh"), default=None,
-                   help="GCR solver (default cg, or the scenario's: eigh where S^-1 = 0 makes P singular)")
+    r.add_argument("--method", choices=("auto", "cg", "cholesky", "eigh", "mmode"), default=None,
+                   help="GCR solver (default auto: m-mode for uniform full-day coverage, else dense Cholesky "
+                   "where P fits, else matrix-free CG; or the scenario's: eigh where S^-1 = 0 makes P singular)")
     r.add_argument("--tol", type=_positive_float("tol"), default=None,
                    help="CG tolerance in posterior-sigma units (default 1e-6, or the scenario's)")
     r.add_argument("--batch", type=_int_at_least(1, "batch"), default=DEFAULT_BATCH,
@@ -312,7 +313,7 @@ def _run_settings(args):
         flat_prior=args.flat_prior, zero_prior_mean=args.zero_prior_mean, seed=args.data_seed, obs_date=args.date,
     )
     if args.scenario is None:
-        return fields, args.nsamples or DEFAULT_NSAMPLES, args.method or "cg", None, args.tol or 1e-6
+        return fields, args.nsamples or DEFAULT_NSAMPLES, args.method or "auto", None, args.tol or 1e-6
     sc = scenario(args.scenario)
     d = Config()
     user = {k: v for k, v in fields.items() if v != getattr(d, k)}
@@ -386,7 +387,8 @@ def _execute(prob, out: Path, *, nsamples: int, seed: int, batch: int, method: s
 
     # ---- Wiener filter (compile included)
     st.start("wiener")
-    prepared = prepare(prob, method=method, tol=tol)  # P, factor/preconditioner, Wiener filter: once
+    prepared = prepare(prob, method=method, tol=tol, ndraws=batch)  # P, factor/preconditioner, Wiener filter: once
+    method = prepared.method  # what "auto" chose
     a_wf, winfo = np.asarray(jax.block_until_ready(prepared.a_wf)), prepared.wiener
     st.stop()
 

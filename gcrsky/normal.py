@@ -204,7 +204,18 @@ def apply_preconditioner(pc, r: jax.Array) -> jax.Array:
 
 
 def precondition_one(pc, f, r: jax.Array) -> jax.Array:
-    """``M_f^-1 r`` for one frequency ``f`` (traced index) and r (n,)."""
+    """``M_f^-1 r`` for one frequency ``f`` (traced index) and r (n,).
+
+    Computed in the preconditioner's own precision (float32 if it was stored so) and
+    returned in ``r``'s.
+    """
+    dt = (pc.chol if isinstance(pc, MBlockPreconditioner) else getattr(pc, "U", r)).dtype
+    if dt != r.dtype:
+        return _precondition(pc, f, r.astype(dt)).astype(r.dtype)
+    return _precondition(pc, f, r)
+
+
+def _precondition(pc, f, r: jax.Array) -> jax.Array:
     if isinstance(pc, MBlockPreconditioner):
         g = r[pc.idx] * pc.mask  # (M, B)
         y = _chol_solve(pc.chol[f], g)

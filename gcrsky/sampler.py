@@ -155,13 +155,25 @@ def _solve_cg(system, precision, pc, b, x0, tol, maxiter):
     return jax.vmap(one_freq)(jnp.arange(b.shape[0]), b, x0)
 
 
-def make_preconditioner(system: LinearSystem, kind: str, precision=None, rank: int = 128):
-    """Build the named preconditioner: ``"nystrom"`` (proper prior needed) or ``"mblock"``."""
+def make_preconditioner(system: LinearSystem, kind: str, precision=None, rank: int = 128, pc_dtype: str = "float64"):
+    """Build the named preconditioner: ``"nystrom"`` (proper prior needed) or ``"mblock"``.
+
+    ``pc_dtype="float32"`` stores and applies it in single precision (built in float64,
+    then rounded).  That is safe: CG's iterates, products and the convergence test stay
+    float64, so the answer is as exact as with a float64 preconditioner; only the
+    iteration count can change (measured in ``benchmarks/float32.py``).
+    """
     if kind == "nystrom":
-        return nystrom_preconditioner(system, rank=rank, precision=precision)
-    if kind == "mblock":
-        return m_block_preconditioner(system)
-    raise ValueError(f"preconditioner must be 'nystrom' or 'mblock', got {kind!r}")
+        pc = nystrom_preconditioner(system, rank=rank, precision=precision)
+    elif kind == "mblock":
+        pc = m_block_preconditioner(system)
+    else:
+        raise ValueError(f"preconditioner must be 'nystrom' or 'mblock', got {kind!r}")
+    if pc_dtype not in ("float64", "float32"):
+        raise ValueError(f"pc_dtype must be 'float64' or 'float32', got {pc_dtype!r}")
+    if pc_dtype == "float32":
+        pc = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32) if jnp.issubdtype(x.dtype, jnp.floating) else x, pc)
+    return pc
 
 
 def resolve_preconditioner(system: LinearSystem, kind: str = "auto") -> str:
@@ -193,7 +205,7 @@ def _freq_slice(system: LinearSystem, f: int) -> LinearSystem:
     )
 
 
-@partial(jax.jit, static_argnames=("dense", "maxiter", "preconditioner", "rank"))
+@partial(jax.jit, static_argnames=("dense", "maxiter", "preconditioner", "rank", "pc_dtype"))
 def wiener_filter_system(
     system: LinearSystem,
     *,
@@ -202,6 +214,7 @@ def wiener_filter_system(
     dense: bool = True,
     preconditioner: str = "nystrom",
     rank: int = 128,
+    pc_dtype: str = "float64",
 ):
     """Wiener filter (posterior mean) by preconditioned CG, started at the prior mean.
 
@@ -214,7 +227,7 @@ def wiener_filter_system(
     """
     check_float64(system.op.response, system.inv_noise)
     precision = precision_matrix(system) if dense else None
-    pc = make_preconditioner(system, preconditioner, precision, rank)
+    pc = make_preconditioner(system, preconditioner, precision, rank, pc_dtype)
     return _solve_cg(system, precision, pc, wiener_rhs(system), system.prior.mean, tol, maxiter)
 
 
@@ -232,6 +245,8 @@ class PreparedSampler(NamedTuple):
             (``delta = T z``), else None.
         rank: (Nf,) number of directions sampled (n unless the eigen sampler found
             P singular), or None.
+        mblocks: (Nf, lmax+1, B, B) Cholesky factors of the m-blocks for the m-mode
+            sampler (``method="mmode"``, :mod:`gcrsky.mmode`), else None.
     """
 
     system: LinearSystem
@@ -242,6 +257,16 @@ class PreparedSampler(NamedTuple):
     pc: object
     sqrt_cov: jax.Array | None = None
     rank: jax.Array | None = None
+    mblocks: jax.Array | None = None
+
+    @property
+    def method(self) -> str:
+        """Which exact sampler this is: ``"mmode"``, ``"eigh"``, ``"cholesky"`` or ``"cg"``."""
+        if self.mblocks is not None:
+            return "mmode"
+        if self.sqrt_cov is not None:
+            return "eigh"
+        return "cholesky" if self.chol is not None else "cg"
 
 
 #: Eigen sampler: eigenvalues below ``EIGH_RCOND * max eigenvalue`` count as zero.  Just
@@ -269,17 +294,18 @@ def _prepare_eigh(system: LinearSystem, b: jax.Array, rcond: float) -> PreparedS
     return PreparedSampler(system, a_wf, winfo, P, None, None, sqrt_cov, jnp.sum(keep, axis=1))
 
 
-@partial(jax.jit, static_argnames=("method", "dense", "maxiter", "preconditioner", "rank"))
+@partial(jax.jit, static_argnames=("method", "dense", "maxiter", "preconditioner", "rank", "pc_dtype"))
 def prepare_sampler(
     system: LinearSystem,
     *,
-    method: Literal["cg", "cholesky", "eigh"] = "cg",
+    method: Literal["cg", "cholesky", "eigh", "mmode"] = "cg",
     tol: float = DEFAULT_TOL,
     maxiter: int = 5000,
     dense: bool = True,
     preconditioner: str = "nystrom",
     rank: int = 128,
     rcond: float = EIGH_RCOND,
+    pc_dtype: str = "float64",
 ) -> PreparedSampler:
     """Factorise / precondition P and solve for the Wiener filter, once.
 
@@ -289,14 +315,22 @@ def prepare_sampler(
     see), samples the posterior restricted to the directions with eigenvalue
     ``> rcond * max``: the others have no information, so they are pinned at 0
     (the minimum-norm solution) and ``PreparedSampler.rank`` says how many were
-    kept.  With a proper prior (rank n) it is exact like Cholesky.  Pass the result
-    to :func:`draw` as often as needed.
+    kept.  With a proper prior (rank n) it is exact like Cholesky.  ``"mmode"``
+    factorises the m-blocks (:mod:`gcrsky.mmode`); it is exact only when
+    :func:`gcrsky.mmode.mmode_check` passes, which needs concrete arrays, so check
+    before calling (``gcrsky.prepare`` does).  Pass the result to :func:`draw` as
+    often as needed.
     """
     check_float64(system.op.response, system.inv_noise)
     nf = system.prior.mean.shape[0]
     b = wiener_rhs(system)
     if method == "eigh":
         return _prepare_eigh(system, b, rcond)
+    if method == "mmode":
+        from .mmode import _prepare as _prepare_mmode
+
+        pm = _prepare_mmode(system)
+        return PreparedSampler(system, pm.a_wf, pm.wiener, None, None, None, mblocks=pm.chol)
     if method == "cholesky":
         P = precision_matrix(system)
         L = jnp.linalg.cholesky(P)
@@ -308,9 +342,9 @@ def prepare_sampler(
         winfo = SolveInfo(jnp.zeros(nf, int), err, jnp.linalg.norm(r, axis=1) / jnp.linalg.norm(b, axis=1), ok)
         return PreparedSampler(system, a_wf, winfo, P, L, None)
     if method != "cg":
-        raise ValueError(f"method must be 'cg', 'cholesky' or 'eigh', got {method!r}")
+        raise ValueError(f"method must be 'cg', 'cholesky', 'eigh' or 'mmode', got {method!r}")
     precision = precision_matrix(system) if dense else None
-    pc = make_preconditioner(system, preconditioner, precision, rank)
+    pc = make_preconditioner(system, preconditioner, precision, rank, pc_dtype)
     a_wf, winfo = _solve_cg(system, precision, pc, b, system.prior.mean, tol, maxiter)
     return PreparedSampler(system, a_wf, winfo, precision, None, pc)
 
@@ -319,7 +353,8 @@ def prepare_sampler(
 def draw(key: jax.Array, prepared: PreparedSampler, ndraws: int, *, tol: float = DEFAULT_TOL, maxiter: int = 5000):
     """``ndraws`` exact posterior draws from a :class:`PreparedSampler`.
 
-    Draw ``i`` uses ``jax.random.split(key, ndraws)[i]`` (CG, Cholesky).  Cholesky:
+    Draw ``i`` uses ``jax.random.split(key, ndraws)[i]`` (CG, Cholesky).  m-mode:
+    ``a_wf + L_m^-T z`` block by block (:func:`gcrsky.mmode.draw_mmode`).  Cholesky:
     ``a_wf + L^-T z``; eigen: ``a_wf + V_r L_r^-1/2 z``; CG: ``a_wf + delta`` with
     ``P delta`` = the GCR fluctuation right-hand side.
 
@@ -330,6 +365,10 @@ def draw(key: jax.Array, prepared: PreparedSampler, ndraws: int, *, tol: float =
     system, a_wf = prepared.system, prepared.a_wf
     nf, n = a_wf.shape
     keys = jax.random.split(key, ndraws)
+    if prepared.mblocks is not None:
+        from .mmode import PreparedMMode, draw_mmode
+
+        return draw_mmode(key, PreparedMMode(system, a_wf, prepared.wiener, prepared.mblocks), ndraws)
     if prepared.sqrt_cov is not None:
         z = jax.random.normal(key, (nf, n, ndraws), a_wf.dtype)
         delta = jnp.einsum("fij,fjd->fdi", prepared.sqrt_cov, z)  # (Nf, ndraws, n)
@@ -351,7 +390,7 @@ def draw(key: jax.Array, prepared: PreparedSampler, ndraws: int, *, tol: float =
     return a_wf[:, None, :] + delta, {"wiener": prepared.wiener, "draws": dinfo, "a_wf": a_wf}
 
 
-@partial(jax.jit, static_argnames=("ndraws", "method", "dense", "maxiter", "preconditioner", "rank"))
+@partial(jax.jit, static_argnames=("ndraws", "method", "dense", "maxiter", "preconditioner", "rank", "pc_dtype"))
 def sample_system(
     key: jax.Array,
     system: LinearSystem,
@@ -364,6 +403,7 @@ def sample_system(
     preconditioner: str = "nystrom",
     rank: int = 128,
     rcond: float = EIGH_RCOND,
+    pc_dtype: str = "float64",
 ):
     """GCR draws from the exact posterior ``N(a_wf, P^-1)``: :func:`prepare_sampler` then :func:`draw`.
 
@@ -384,7 +424,7 @@ def sample_system(
     """
     prepared = prepare_sampler(
         system, method=method, tol=tol, maxiter=maxiter, dense=dense, preconditioner=preconditioner, rank=rank,
-        rcond=rcond,
+        rcond=rcond, pc_dtype=pc_dtype,
     )
     return draw(key, prepared, ndraws, tol=tol, maxiter=maxiter)
 

@@ -7,13 +7,15 @@
 * Flagging equals removing: a problem with a whole time and a whole baseline
   flagged agrees with one built without them (operator shrunk), and a problem
   with scattered flags agrees with the dense posterior computed in numpy from the
-  unflagged rows of X only.  Tolerance 1e-10 relative (and 1e-9 posterior sigma),
+  unflagged rows of X only.  Tolerance 1e-9 relative (and 1e-8 posterior sigma),
   why: the two routes sum the same terms in a different order (plus exact zeros),
   so P and the right-hand side differ by rounding only, measured <= 1e-16
-  relative; a backward-stable solve amplifies that by at most cond(P) ~ 5e6
-  (worst case ~1e-9; measured 2e-12 relative, 1e-11 sigma), so 1e-10 leaves a
-  margin of 50x over what is seen while any real leak of a flagged sample (a
-  change of order 1 sigma, checked below) is 1e9 times larger.
+  relative; a backward-stable solve amplifies that by at most cond(P) ~ 5.5e6,
+  i.e. ~6e-10 in the worst case.  Measured 5e-11 to 2.2e-10 relative depending on
+  the summation order inside the response (direct or ring quadrature, with or
+  without the beam floor), so the bound is the worst case, not the typical value;
+  any real leak of a flagged sample (a change of order 1 sigma, checked below) is
+  1e8 times larger.
 * Unflagged NaN / +-Inf is a ValueError naming (freq, time, baseline) and antennas.
 """
 
@@ -36,8 +38,8 @@ from gcrsky.sampler import prepare_sampler, wiener_filter_system
 jax.config.update("jax_enable_x64", True)
 
 LMAX, NSIDE, NT, NBL = 4, 16, 6, 45
-REL = 1e-10  # flagged vs removed: relative agreement (see module docstring)
-SIG = 1e-9  # ... and in posterior-sigma units
+REL = 1e-9  # flagged vs removed: relative agreement (see module docstring)
+SIG = 1e-8  # ... and in posterior-sigma units
 
 
 @pytest.fixture(scope="module")
