@@ -17,9 +17,10 @@ from 100 MHz in 2 MHz steps.  The truth is a draw from an isotropic prior
 per-component sigma, 10% of the rms model visibility (constant in time and baseline,
 so the noise is time-stationary): nothing depends on a sky model.
 
-Response: direct quadrature (``gcrsky.response.response_matrix``) for lmax <= 20, the
-SHT route (``gcrsky.response_sht.response_matrix_sht``, same numbers) above; nside 64
-for lmax <= 50, 128 for lmax 100.  The response column includes the autos' response.
+Response: ``gcrsky.response.response_matrix`` (ring-factored quadrature, beam floor
+1e-16); nside 64 for lmax <= 50, 128 for lmax 100, 256 for lmax 200.  The response
+column includes the autos' response.  ``auto`` is the path ``method="auto"`` picks
+(:func:`gcrsky.plan.plan_sampler`).
 
 Sampler paths (``gcrsky.prepare`` + ``gcrsky.draw`` unless noted):
 
@@ -98,6 +99,7 @@ DEFAULT_GRID = [
     (50, 37, 10, 8, 1, 20),
     (50, 37, 240, 24, 1, 20),
     (100, 37, 240, 24, 2, 200),  # the issue's headline
+    (200, 37, 480, 24, 1, 200),  # lmax 200 "if it fits"
 ]
 QUICK_GRID = [(20, 10, 10, 8, 1, 5), (20, 10, 48, 24, 1, 5)]
 
@@ -145,13 +147,13 @@ def run_one(c) -> dict:
     from gcrsky.prior import isotropic_prior
     from gcrsky.problem import build_problem
     from gcrsky.response import response_matrix
-    from gcrsky.response_sht import response_matrix_sht
+    from gcrsky.plan import plan_sampler
     from gcrsky.sampler import pcg, prepare_sampler, draw
 
     lmax, nants, nt, hours, nf, ndraws = c
     out = {"name": name_of(c), "lmax": lmax, "nants": nants, "nlst": nt, "hours": hours, "nfreq": nf,
            "ndraws": ndraws, "paths": {}, "notes": []}
-    nside = 64 if lmax <= 50 else 128
+    nside = 64 if lmax <= 50 else (128 if lmax <= 100 else 256)
     n = n_params(lmax)
     nbl = nants * (nants - 1) // 2
     out.update(n=n, nbl=nbl, nside=nside)
@@ -161,14 +163,9 @@ def run_one(c) -> dict:
     autop = np.stack([np.arange(nants)] * 2, 1)
 
     t0 = time.perf_counter()
-    if lmax <= 20:
-        out["response"] = "direct"
-        resp = response_matrix(arr, pairs, freqs, lmax, nside).block_until_ready()
-        auto = response_matrix(arr, autop, freqs, lmax, nside).block_until_ready()
-    else:
-        out["response"] = "sht"
-        resp = response_matrix_sht(arr, pairs, freqs, lmax, nside).block_until_ready()
-        auto = response_matrix_sht(arr, autop, freqs, lmax, nside).block_until_ready()
+    out["response"] = "rings"
+    resp = response_matrix(arr, pairs, freqs, lmax, nside).block_until_ready()
+    auto = response_matrix(arr, autop, freqs, lmax, nside).block_until_ready()
     out["t_response"] = time.perf_counter() - t0
 
     # synthetic truth, prior, fixed sigma
@@ -191,6 +188,7 @@ def run_one(c) -> dict:
     system = prob.system()
     jax.block_until_ready(system.data)
     out["t_problem"] = time.perf_counter() - t0
+    out["auto"] = plan_sampler(system, ndraws=ndraws).method
     key = jax.random.PRNGKey(7)
 
     def timed(jitted, args, static, dyn_kw=None):
@@ -291,7 +289,7 @@ PATHS = ["chol", "cgD-ny", "cgD-mb", "cgMF-ny", "mmode"]
 
 def print_table(results) -> None:
     print()
-    print("config               n      Nbl  resp_s  prob_s  P_MB    peak_MB  it_noPC   "
+    print("config               n      Nbl  resp_s  prob_s  P_MB    peak_MB  auto     it_noPC   "
           + "  ".join(f"{p:<28}" for p in PATHS))
     for r in results:
         if "error" in r:
@@ -299,7 +297,7 @@ def print_table(results) -> None:
             continue
         cols = "  ".join(f"{fmt_path(r['paths'].get(p)):<28}" for p in PATHS)
         print(f"{r['name']:<20} {r['n']:<6} {r['nbl']:<4} {r['t_response']:>6.1f}  {r['t_problem']:>6.1f}  "
-              f"{r['P_MB']:<7.1f} {r['peak_MB']:<8.0f} {str(r['it_noPC']):<9} {cols}")
+              f"{r['P_MB']:<7.1f} {r['peak_MB']:<8.0f} {r.get('auto', '?'):<8} {str(r['it_noPC']):<9} {cols}")
     print("\npath cell: setup compile s + setup run s / time per draw (ms) [CG iters: Wiener, per draw]; "
           "'!' = a solve did not converge")
     notes = []

@@ -261,6 +261,15 @@ def response_matrix(
         raise ValueError(f"method must be 'rings' or 'direct', got {method!r}")
     if not (0.0 <= beam_floor < 1.0):
         raise ValueError(f"beam_floor must be in [0, 1), got {beam_floor!r}")
+    from .plan import check_memory
+
+    out_bytes = 16.0 * freqs.size * pairs.shape[0] * n_params(lmax)
+    check_memory(
+        2 * out_bytes + 16e6,  # the result, its accumulator and one chunk of kernels
+        f"the response ({freqs.size} freqs x {pairs.shape[0]} baselines x {n_params(lmax)} modes, complex128)",
+        "build only the distinct baselines of a redundant array (gcrsky.redundant_responses) or fewer "
+        "frequencies per call",
+    )
     grid = sky_grid(nside, array.latitude_rad, lst_ref_rad)
 
     uniq, beam_idx = unique_beams(array.beams)  # amplitude maps once per distinct beam
@@ -278,7 +287,7 @@ def response_matrix(
 
     if method == "rings":
         slot_bytes = 8 * 6 * freqs.size * pairs.shape[0]  # kernels of one slot in a chunk
-        gather, ring_theta = _ring_layout(grid.theta, slot_bytes, 64e6)
+        gather, ring_theta = _ring_layout(grid.theta, slot_bytes, 16e6)
         valid = gather >= 0
         g = np.where(valid, gather, 0)
         take = lambda x: np.where(valid.reshape(valid.shape + (1,) * (x.ndim - 1)), x[g], 0.0)  # noqa: E731

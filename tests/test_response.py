@@ -74,3 +74,11 @@ def test_bad_arguments(hexagon):
         response_matrix(hexagon, pairs, FREQS, 4, 16, method="fft")
     with pytest.raises(ValueError, match="beam_floor"):
         response_matrix(hexagon, pairs, FREQS, 4, 16, beam_floor=1.0)
+
+
+def test_response_refuses_what_does_not_fit(hexagon, monkeypatch):
+    from gcrsky.plan import InsufficientMemoryError
+
+    monkeypatch.setenv("GCRSKY_MEMORY_BUDGET_GB", "0.01")  # 10 MiB
+    with pytest.raises(InsufficientMemoryError, match=r"response \(2 freqs x 45 baselines x 441 modes.*redundant"):
+        response_matrix(hexagon, antpairs(10), FREQS, 20, 16)
