@@ -13,7 +13,8 @@ Paths (all exact; they differ only in cost):
   (:func:`gcrsky.mmode.mmode_check`): P is block-diagonal in m; blocks cost
   ``O(Nf Nbl lmax^3)`` to build and ``8 Nf (lmax+1) (2 lmax+2)^2`` bytes.
 * ``"cholesky"``: dense ``P`` built once (``8 Nf Nt Nbl n^2`` flop, ``8 Nf n^2`` bytes,
-  twice that with its factor), then each draw is a triangular solve (``n^2`` flop).
+  three times that with its factor and ``L^-T``), then each draw is a product with
+  ``L^-T`` (``2 n^2`` flop).
 * ``"eigh"``: like Cholesky, for a singular P (a flat prior, ``S^-1 = 0`` somewhere).
 * ``"cg"`` matrix-free: never forms P; ``16 Nf Nt Nbl n`` flop per product, a rank-128
   Nystrom preconditioner (``8 Nf n 128`` bytes) for a proper prior, m-blocks for a
@@ -147,7 +148,7 @@ def _sizes(system: LinearSystem) -> tuple[int, int, int, int]:
 def path_memory_bytes(system: LinearSystem, method: str, *, dense: bool = True, ndraws: int = 1) -> float:
     """Estimated peak bytes of a path's large arrays (float64), beyond the system itself.
 
-    Counts the dense P and its factor / eigenvectors (``8 Nf n^2`` each), the m-blocks,
+    Counts the dense P, its factor and inverse factor / eigenvectors (``8 Nf n^2`` each), the m-blocks,
     the Nystrom sketch and the per-draw CG work vectors (``~6 x 8 Nf ndraws n``).
     """
     nf, nt, nbl, n = _sizes(system)
@@ -155,8 +156,8 @@ def path_memory_bytes(system: LinearSystem, method: str, *, dense: bool = True, 
     vec = 6.0 * 8 * nf * max(1, ndraws) * n  # CG state per draw
     if method == "mmode":
         return 2.0 * 8 * nf * (lmax + 1) * (2 * lmax + 2) ** 2 + vec
-    if method in ("cholesky", "eigh"):
-        return 2.0 * 8 * nf * n * n + 8.0 * nf * max(1, ndraws) * n
+    if method in ("cholesky", "eigh"):  # P, factor and L^-T (Cholesky) / P and eigenvectors, sqrt_cov (eigh)
+        return 3.0 * 8 * nf * n * n + 8.0 * nf * max(1, ndraws) * n
     if method == "cg":
         sketch = max(3.0 * 8 * nf * n * min(n, NYSTROM_RANK), 8.0 * nf * (lmax + 1) * (2 * lmax + 2) ** 2)
         return (8.0 * nf * n * n if dense else 0.0) + sketch + vec

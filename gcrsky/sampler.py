@@ -247,6 +247,8 @@ class PreparedSampler(NamedTuple):
             P singular), or None.
         mblocks: (Nf, lmax+1, B, B) Cholesky factors of the m-blocks for the m-mode
             sampler (``method="mmode"``, :mod:`gcrsky.mmode`), else None.
+        chol_inv_t: (Nf, n, n) ``L^-T`` for the Cholesky sampler (draws are then one
+            matrix product, ~3x faster than a triangular solve per batch), else None.
     """
 
     system: LinearSystem
@@ -258,6 +260,7 @@ class PreparedSampler(NamedTuple):
     sqrt_cov: jax.Array | None = None
     rank: jax.Array | None = None
     mblocks: jax.Array | None = None
+    chol_inv_t: jax.Array | None = None
 
     @property
     def method(self) -> str:
@@ -340,7 +343,9 @@ def prepare_sampler(
         err = jnp.sqrt(jnp.abs(jnp.einsum("fi,fi->f", r, cho(L, r))))
         ok = jnp.all(jnp.isfinite(L), axis=(1, 2))
         winfo = SolveInfo(jnp.zeros(nf, int), err, jnp.linalg.norm(r, axis=1) / jnp.linalg.norm(b, axis=1), ok)
-        return PreparedSampler(system, a_wf, winfo, P, L, None)
+        eye = jnp.eye(L.shape[-1], dtype=L.dtype)
+        linv = jax.vmap(lambda l: jax.scipy.linalg.solve_triangular(l, eye, lower=True))(L)
+        return PreparedSampler(system, a_wf, winfo, P, L, None, chol_inv_t=jnp.swapaxes(linv, -1, -2))
     if method != "cg":
         raise ValueError(f"method must be 'cg', 'cholesky', 'eigh' or 'mmode', got {method!r}")
     precision = precision_matrix(system) if dense else None
@@ -353,7 +358,8 @@ def prepare_sampler(
 def draw(key: jax.Array, prepared: PreparedSampler, ndraws: int, *, tol: float = DEFAULT_TOL, maxiter: int = 5000):
     """``ndraws`` exact posterior draws from a :class:`PreparedSampler`.
 
-    Draw ``i`` uses ``jax.random.split(key, ndraws)[i]`` (CG, Cholesky).  m-mode:
+    Draw ``i`` uses ``jax.random.split(key, ndraws)[i]`` (CG, Cholesky: ``L^-T`` is
+    formed once by :func:`prepare_sampler`, to ~cond(L) eps relative).  m-mode:
     ``a_wf + L_m^-T z`` block by block (:func:`gcrsky.mmode.draw_mmode`).  Cholesky:
     ``a_wf + L^-T z``; eigen: ``a_wf + V_r L_r^-1/2 z``; CG: ``a_wf + delta`` with
     ``P delta`` = the GCR fluctuation right-hand side.
@@ -377,10 +383,13 @@ def draw(key: jax.Array, prepared: PreparedSampler, ndraws: int, *, tol: float =
         dinfo = SolveInfo(jnp.zeros((nf, ndraws), int), zeros, zeros, ok & jnp.all(jnp.isfinite(delta), axis=-1))
     elif prepared.chol is not None:
         z = jax.vmap(lambda k: jax.random.normal(k, (nf, n), a_wf.dtype))(keys)  # (ndraws, Nf, n)
-        tri = jax.scipy.linalg.solve_triangular
-        delta = jax.vmap(lambda l, zf: tri(l, zf.T, lower=True, trans="T").T, in_axes=(0, 1), out_axes=0)(
-            prepared.chol, z
-        )
+        if prepared.chol_inv_t is not None:  # L^-T z as one matrix product
+            delta = jnp.einsum("fij,dfj->fdi", prepared.chol_inv_t, z)
+        else:
+            tri = jax.scipy.linalg.solve_triangular
+            delta = jax.vmap(lambda l, zf: tri(l, zf.T, lower=True, trans="T").T, in_axes=(0, 1), out_axes=0)(
+                prepared.chol, z
+            )
         ok = jnp.broadcast_to(prepared.wiener.converged[:, None], (nf, ndraws))
         zeros = jnp.zeros((nf, ndraws))
         dinfo = SolveInfo(jnp.zeros((nf, ndraws), int), zeros, zeros, ok & jnp.all(jnp.isfinite(delta), axis=-1))
