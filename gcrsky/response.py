@@ -18,7 +18,7 @@ direction with hour angle ``h`` sees right ascension ``t - h``.
 
 from __future__ import annotations
 
-from functools import partial
+from functools import lru_cache, partial
 from typing import NamedTuple
 
 import healpy as hp
@@ -76,7 +76,12 @@ def equatorial_to_enu(theta, phi, lst_rad: float, latitude_rad: float) -> np.nda
 
 
 def sky_grid(nside: int, latitude_rad: float, lst_rad: float = 0.0) -> SkyGrid:
-    """Pixels strictly above the horizon (Up > 0) at ``lst_rad``."""
+    """Pixels strictly above the horizon (Up > 0) at ``lst_rad`` (cached; arrays read-only)."""
+    return _sky_grid(int(nside), float(latitude_rad), float(lst_rad))
+
+
+@lru_cache(maxsize=16)
+def _sky_grid(nside: int, latitude_rad: float, lst_rad: float) -> SkyGrid:
     if not hp.isnsideok(nside):
         raise ValueError(f"nside must be a power of two, got {nside}")
     npix = hp.nside2npix(nside)
@@ -86,7 +91,7 @@ def sky_grid(nside: int, latitude_rad: float, lst_rad: float = 0.0) -> SkyGrid:
     enu = enu[up]
     az = np.mod(np.arctan2(enu[:, 1], enu[:, 0]), 2 * np.pi)  # North of East (UVBeam)
     za = np.arccos(np.clip(enu[:, 2], -1.0, 1.0))
-    return SkyGrid(
+    grid = SkyGrid(
         pix=np.flatnonzero(up),
         theta=theta[up],
         phi=phi[up],
@@ -97,6 +102,10 @@ def sky_grid(nside: int, latitude_rad: float, lst_rad: float = 0.0) -> SkyGrid:
         nside=int(nside),
         lst_rad=float(lst_rad),
     )
+    for x in grid:
+        if isinstance(x, np.ndarray):
+            x.setflags(write=False)
+    return grid
 
 
 def kelvin_sr_to_jy(freqs_hz) -> np.ndarray:
@@ -180,19 +189,18 @@ def _ring_quadrature(lmax, ring_theta, phi, enu, weight, amp, pair_a, pair_b, bv
         th, ph, s, w, A = xs
         phase = 2 * jnp.pi * jnp.einsum("fbd,rjd->fbrj", bvec_wl, s)  # +: matvis/pyuvdata sign
         beam = A[:, pair_a] * A[:, pair_b] * w[None, None]  # (Nf, Nbl, rc, J)
+        kern = jnp.stack([beam * jnp.cos(phase), beam * jnp.sin(phase)], axis=1)  # (Nf, 2, Nbl, rc, J)
         mphi = ph[..., None] * mvec  # (rc, J, L)
-        kc, ks = beam * jnp.cos(phase), beam * jnp.sin(phase)
-        cos_m, sin_m = jnp.cos(mphi), jnp.sin(mphi)
-        # per-ring Fourier sums (Nf, Nbl, rc, L) for the real and imaginary kernels
-        qcr, qci = jnp.einsum("fbrj,rjm->fbrm", kc, cos_m), jnp.einsum("fbrj,rjm->fbrm", ks, cos_m)
-        qsr, qsi = jnp.einsum("fbrj,rjm->fbrm", kc, sin_m), jnp.einsum("fbrj,rjm->fbrm", ks, sin_m)
+        trig = jnp.stack([jnp.cos(mphi), jnp.sin(mphi)], axis=2)  # (rc, J, 2, L)
+        # per-ring Fourier sums of the real and imaginary kernels: (Nf, 2, Nbl, rc, 2, L)
+        q = jnp.einsum("fcbrj,rjtm->fcbrtm", kern, trig)
         lam = legendre_table(lmax, jnp.cos(th), jnp.sin(th))  # (L, rc, L) [l, ring, m]
-        c = lambda q: jnp.einsum("fbrm,lrm->fblm", q, lam)  # noqa: E731
-        tc, ts = acc
-        return (tc + (c(qcr) + 1j * c(qci)), ts + (c(qsr) + 1j * c(qsi))), None
+        t = jnp.einsum("fcbrtm,lrm->fcbtlm", q, lam)  # (Nf, re/im kernel, Nbl, cos/sin, L, L)
+        return acc + (t[:, 0] + 1j * t[:, 1]), None
 
-    zero = jnp.zeros((nf, nbl, L, L), jnp.result_type(bvec_wl.dtype, 1j))
-    (tc, ts), _ = jax.lax.scan(body, (zero, zero), (ring_theta, phi, enu, weight, amp))
+    zero = jnp.zeros((nf, nbl, 2, L, L), jnp.result_type(bvec_wl.dtype, 1j))
+    acc, _ = jax.lax.scan(body, zero, (ring_theta, phi, enu, weight, amp))
+    tc, ts = acc[:, :, 0], acc[:, :, 1]
     tab = mode_table(lmax)
     ell, m = jnp.asarray(tab.ell), jnp.asarray(tab.m)
     re = jnp.where(m == 0, 1.0, 2.0) * tc[:, :, ell, m]
