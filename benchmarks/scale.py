@@ -44,33 +44,44 @@ budget (dense P: 8 Nf Nt Nbl n^2 flops > 4e11, or P > 3 GB; matrix-free CG: the
 matvecs for set-up + draws > ~6e11 flops); the reason is printed.
 
 Measured (2026-11-22, this repository's machine: 2 shared x86 cores, 24 GB, CPU JAX float64,
-gcrsky safe threading), default grid, total 424 s wall.  Path cell: setup compile s +
-setup run s / time per draw [CG iterations: Wiener, mean per draw]; resp_s includes the
-autos; prob_s = simulate data + assemble the problem; skips are explained in the run output
-(dense P or matrix-free CG over budget; mmode n/a when coverage is not a uniform full day
-with Nt > 2 lmax).  it_noPC on the 24 h rows targets the m-block solve's ~1e-16 relative
-residual (m-blocks are exact there), i.e. machine precision: not meaningful.
+gcrsky safe threading; load 2-4 from other jobs, so times are ~2x the quiet machine's),
+default grid, 1226 s wall (the first two rows re-run after the Cholesky sampler started
+drawing with a precomputed ``L^-T``).  Path cell: setup compile s + setup run s / time
+per draw [CG iterations: Wiener, mean per draw]; resp_s includes the autos; prob_s =
+simulate data + assemble the problem; ``auto`` is what ``method="auto"`` picks; skips are
+explained in the run output (dense P or matrix-free CG over budget; mmode n/a when
+coverage is not a uniform full day with Nt > 2 lmax).  it_noPC on the 24 h rows targets
+the m-block solve's ~1e-16 relative residual (m-blocks are exact there), i.e. machine
+precision: not meaningful ('nc': not reached).
 
 ::
 
-    config               n      Nbl  resp_s  prob_s  P_MB    peak_MB  it_noPC   chol                          cgD-ny                        cgD-mb                        cgMF-ny                       mmode
-    l20-a10-t10-8h-f1    441    45      1.4     0.9  1.6     749      897       0.8+0.0/0.263ms               1.7+0.1/1.23ms [1,1]          1.2+0.1/4.8ms [181,195]       1.7+0.0/2.48ms [1,1]          skip
-    l20-a10-t240-24h-f1  441    45      1.2     0.8  1.6     1119     2194      0.8+0.6/0.0888ms              1.6+0.7/4.65ms [8,8]          1.3+1.0/4.73ms [2,1]          1.8+0.8/36.6ms [8,8]          0.7+0.0/0.0694ms
-    l20-a37-t10-8h-f1    441    666     1.9     0.8  1.6     815      1693      0.8+0.3/0.0805ms              1.5+0.3/1.85ms [2,2]          1.2+0.4/9.91ms [366,387]      2.3+0.3/7.9ms [2,2]           skip
-    l20-a37-t240-24h-f1  441    666     2.2     0.9  1.6     850      4787      0.8+6.8/0.111ms               1.9+7.4/23.7ms [26,23]        1.4+13.1/21.3ms [2,2]         skip                          0.9+0.1/0.122ms
-    l20-a91-t10-8h-f1    441    4095    7.0     1.0  1.6     1103     2991      1.0+2.0/0.414ms               1.9+2.1/7.08ms [2,2]          1.6+3.2/27.7ms [696,708]      3.0+1.9/66.8ms [2,2]          skip
-    l20-a91-t240-24h-f1  441    4095    7.9     1.3  1.6     928      n/a (no dense P) skip                          skip                          skip                          skip                          1.0+0.4/0.0968ms
-    l50-a10-t10-8h-f1    2601   45      0.6     1.3  54.1    860      3090      1.6+2.1/3.11ms                2.5+1.2/21.7ms [34,33]        2.2+2.4/360ms [399,440]       3.2+0.4/40.5ms [34,33]        skip
-    l50-a10-t60-8h-f1    2601   45      0.4     1.4  54.1    1327     6627      1.4+7.2/2.14ms                2.9+6.7/36.1ms [90,84]        1.4+6.8/469ms [648,740]       2.1+1.6/363ms [91,83]         skip
-    l50-a10-t240-24h-f1  2601   45      0.4     1.1  54.1    571      n/a (no dense P) skip                          skip                          skip                          skip                          0.9+0.1/0.257ms
-    l50-a37-t10-8h-f1    2601   666     3.4     1.0  54.1    1109     8150      1.0+9.0/1.82ms                2.0+8.4/41.6ms [111,105]      1.3+11.4/763ms [1244,1334]    1.9+2.0/605ms [110,104]       skip
-    l50-a37-t240-24h-f1  2601   666     3.4     0.9  54.1    998      n/a (no dense P) skip                          skip                          skip                          skip                          0.8+0.4/0.403ms
-    l100-a37-t240-24h-f2 10201  666    13.7     1.6  1665.0  3060     n/a (no dense P) skip                          skip                          skip                          skip                          0.8+4.7/1.34ms
+    config               n      Nbl  resp_s  prob_s  P_MB    peak_MB  auto     it_noPC   chol                          cgD-ny                        cgD-mb                        cgMF-ny                       mmode
+    l20-a10-t10-8h-f1    441    45      2.0     1.2  1.6     739      cholesky 909       1.9+0.3/0.153ms               3.0+0.9/2.03ms [1,1]          3.3+0.1/8.14ms [179,195]      3.3+2.5/2.86ms [1,1]          skip
+    l20-a10-t240-24h-f1  441    45      1.9     1.1  1.6     1089     mmode    2192(nc)  1.8+1.4/0.146ms               2.9+1.3/11ms [8,8]            2.2+1.7/8.55ms [2,1]          3.5+3.0/77.5ms [8,8]          1.4+0.0/0.126ms
+    l20-a37-t10-8h-f1    441    666     3.3     1.5  1.6     808      cholesky 1716      4.5+1.4/0.327ms               8.4+1.8/4.34ms [2,2]          3.1+1.1/18.8ms [370,389]      6.0+3.2/29.3ms [2,2]          skip
+    l20-a37-t240-24h-f1  441    666     6.7     4.8  1.6     851      mmode    4883(nc)  6.7+33.1/0.169ms              8.2+20.6/41.4ms [26,23]       3.2+27.3/45ms [2,2]           skip                          4.0+0.3/0.36ms
+    l20-a91-t10-8h-f1    441    4095    9.7     2.7  1.6     1039     cholesky 3013      3.8+6.3/0.284ms               6.3+5.8/17.2ms [2,2]          8.3+16.0/141ms [683,707]      13.7+5.7/140ms [2,2]          skip
+    l20-a91-t240-24h-f1  441    4095    7.8     3.5  1.6     930      mmode    n/a (no dense P) skip                          skip                          skip                          skip                          6.1+2.9/0.15ms
+    l50-a10-t10-8h-f1    2601   45      4.3     2.1  54.1    962      cholesky 3039      5.0+5.5/6.4ms                 5.7+6.3/22.3ms [34,33]        2.0+2.8/394ms [400,441]       3.3+0.6/51.7ms [34,33]        skip
+    l50-a10-t60-8h-f1    2601   45      3.6     1.8  54.1    1338     cholesky 6659      3.6+14.8/9.28ms               6.3+19.4/65.6ms [90,83]       2.6+11.7/729ms [658,738]      5.6+7.2/834ms [90,83]         skip
+    l50-a10-t240-24h-f1  2601   45      2.7     1.7  54.1    614      mmode    n/a (no dense P) skip                          skip                          skip                          skip                          1.8+0.1/0.802ms
+    l50-a37-t10-8h-f1    2601   666     4.6     1.8  54.1    1115     cholesky 8031      2.3+25.0/7.95ms               6.3+25.5/71.1ms [114,105]     2.7+21.0/2.97e+03ms [1247,1336]  2.1+2.3/1.05e+03ms [110,103]  skip
+    l50-a37-t240-24h-f1  2601   666     5.5     1.7  54.1    978      mmode    n/a (no dense P) skip                          skip                          skip                          skip                          2.2+1.2/0.644ms
+    l100-a37-t240-24h-f2 10201  666    30.4     4.9  1665.0  3307     mmode    n/a (no dense P) skip                          skip                          skip                          skip                          2.8+13.2/2.5ms
+    l200-a37-t480-24h-f1 40401  666    80.7    13.1  13057.9 5351     mmode    n/a (no dense P) skip                          skip                          skip                          skip                          2.6+60.0/14.7ms
 
-Headline (l100-a37-t240-24h-f2, SHT response, m-mode path): response 13.7 s, 200 draws
-0.27 s (+0.8 s compile; set-up 4.7 s), peak 3.1 GB.  Partial coverage at lmax 50 (8 h):
-no-preconditioner / m-block Wiener iterations = 3090/399 (7.7x, 10 LSTs, 10 ants),
-6627/648 (10.2x, 60 LSTs, 10 ants), 8150/1244 (6.6x, 10 LSTs, 37 ants); Nystrom needs 34-111.
+Headline (l100-a37-t240-24h-f2, ring response, m-mode path): response 30.4 s, set-up
+13.2 s (+2.8 s compile), 200 draws 0.50 s, peak 3.3 GB (targets: < 5 min, < 5 min,
+< 12 GB).  lmax 200 (37 antennas, 480 LSTs): response 81 s, set-up 60 s, 200 draws 2.95 s,
+peak 5.4 GB.  Partial coverage at lmax 50 (8 h): no-preconditioner / m-block Wiener
+iterations = 3039/400 (7.6x, 10 LSTs, 10 ants), 6659/658 (10.1x, 60 LSTs, 10 ants),
+8031/1247 (6.4x, 10 LSTs, 37 ants); the prior-whitened Nystrom preconditioner needs
+34 / 90 / 114 (89x, 74x, 70x).  Why m-blocks stop near 10x there: m-modes are global in
+RA, 8 h of coverage is local, so the block diagonal credits the unobserved RA range
+with the data's information; the m-block-preconditioned operator of the first case has
+201 of 2601 eigenvalues below 0.1 (smallest 1.2e-3, i.e. ~1/SNR) -- grouping 2-8
+consecutive m per block does not help (300-500 iterations).
 """
 
 from __future__ import annotations
