@@ -61,65 +61,74 @@ reference response build.
 
 Measured
 --------
-Run 2026-11-22 (machine clock), default (paper) size, ``benchmarks/reference_numpy.py`` with no options,
-total 93 s wall; shared 2-core x86 box (load ~3 from other jobs), 24 GB, OpenBLAS 0.3.30,
-one BLAS thread per worker (``--blas-threads 1``: with 2 OpenBLAS threads on this loaded box the
-45 x Npix @ Npix x 441 products ran ~20x *slower*, which would have flattered gcrsky).
-Sky truth: the offline pyradiosky GSM fallback (GSM2016 not on disk).
+Run 2026-11-22 05:50 UTC, default (paper) size, ``benchmarks/reference_numpy.py`` with no
+options, 96 s wall; shared 2-core x86 box (load ~3 from other jobs), 24 GB, OpenBLAS,
+one BLAS thread per worker (``--blas-threads 1``: with 2 OpenBLAS threads on this loaded
+box the 45 x Npix @ Npix x 441 products ran ~20x *slower*, which would have flattered
+gcrsky).  Sky truth: the offline pyradiosky GSM fallback (GSM2016 not on disk).  gcrsky's
+draws are timed as one batch of 200 (the paper's count); ``auto`` chose the dense
+Cholesky path (draws ``a_wf + L^-T z`` with ``L^-T`` formed once).
+
+::
 
     === reference_numpy vs gcrsky: nside 128, lmax 20, 10 LSTs, 2 freqs, 5 draws, fluctuation reference (randn+1j randn)/sqrt2, BLAS threads 1 ===
-    X check: per-LST reference X vs gcrsky.dense_matrix: max|dX|/max|X| = 1.41e-14, ||dX||_F/||X||_F = 1.45e-14
+    X check: per-LST reference X vs gcrsky.dense_matrix: max|dX|/max|X| = 1.41e-14, ||dX||_F/||X||_F = 1.44e-14
     cond(P) per freq: 2.99e+08 / 2.84e+08;  monopole: true 4075.1 / 3880.7, dense WF 3886.9 / 4084.0, posterior sigma 157 / 150
+    
     Reference Wiener-filter rtol sweep (per freq: iterations, max error / monopole error in posterior sigma):
-      rtol 1e-06:   4095 it   0.58 s err 1.20e+00/2.66e-01 |   3943 it   0.53 s err 1.17e+00/2.82e-01
-      rtol 1e-07:   5818 it   0.91 s err 1.39e-01/1.25e-02 |   5154 it   0.78 s err 2.89e-01/3.67e-02
-      rtol 1e-08:   6774 it   0.97 s err 1.11e-02/6.22e-05 |   6572 it   0.92 s err 1.14e-02/1.75e-04
-      rtol 1e-09:   7827 it   1.12 s err 5.45e-04/8.82e-06 |   7621 it   1.14 s err 5.16e-04/1.02e-05
-      rtol 1e-10:   8348 it   1.23 s err 1.12e-04/4.95e-06 |   8103 it   1.27 s err 1.40e-04/5.31e-06
-      rtol 1e-11:   9343 it   1.50 s err 6.73e-06/3.54e-08 |   9097 it   1.31 s err 7.63e-06/7.67e-08
-      rtol 1e-12:   9846 it   1.53 s err 9.21e-07/1.54e-08 |   9573 it   1.28 s err 1.03e-06/1.27e-08
+      rtol 1e-06:   4037 it   0.51 s err 1.31e+00/3.61e-01 |   4033 it   0.64 s err 1.06e+00/2.07e-01
+      rtol 1e-07:   5637 it   0.80 s err 2.40e-01/1.95e-02 |   5466 it   0.86 s err 2.06e-01/2.92e-02
+      rtol 1e-08:   6761 it   0.99 s err 1.17e-02/8.87e-05 |   6566 it   1.03 s err 1.16e-02/2.27e-04
+      rtol 1e-09:   7803 it   1.21 s err 6.33e-04/7.51e-06 |   7588 it   1.25 s err 7.00e-04/8.34e-06
+      rtol 1e-10:   8357 it   1.29 s err 1.12e-04/4.93e-06 |   8141 it   1.34 s err 1.40e-04/5.33e-06
+      rtol 1e-11:   9287 it   1.51 s err 8.57e-06/7.84e-08 |   9130 it   1.41 s err 7.75e-06/8.26e-08
+      rtol 1e-12:   9815 it   1.62 s err 1.01e-06/1.31e-08 |   9682 it   1.68 s err 9.24e-07/1.60e-08
+    
     quantity (per freq f=100/102 MHz where two)                          reference (numpy/scipy)                            gcrsky    ratio ref/gcrsky
-    response build time [s] (gcrsky: 2nd call / 1st call)                                  32.42                       1.86 / 2.64               17.4x
-    whole standard_case() build [s] (2nd / 1st call)                                           -                       3.37 / 6.89
-    response build peak RSS above imports [MiB]                                             1627                               276                5.9x
-      (absolute peak RSS [MiB]; tracemalloc peak ref)                             1685 (tm 1403)                               542
-    peak RSS after all solves [MiB]                                                         1685                               723
-    WF iterations, rtol 1e-5 (scipy default)                                           795 / 767
-    WF iterations, tight rtol 1e-12 | gcrsky tol 1e-6 sigma                          9846 / 9573                             2 / 2
-    WF time [s], both freqs, default rtol                                                  0.213
-    WF time [s], both freqs, tight | gcrsky prepare (2nd/1st)                              2.802                      0.161 / 4.01               17.4x
+    response build time [s] (gcrsky: 2nd call / 1st call)                                  34.72                       0.25 / 1.16              139.3x
+    whole standard_case() build [s] (2nd / 1st call)                                           -                       0.31 / 4.01
+    response build peak RSS above imports [MiB]                                             1446                                90               16.1x
+      (absolute peak RSS [MiB]; tracemalloc peak ref)                             1685 (tm 1403)                               526
+    peak RSS after all solves [MiB]                                                         1685                               816
+    WF iterations, rtol 1e-5 (scipy default)                                           746 / 765
+    WF iterations, tight rtol 1e-12 | gcrsky tol 1e-6 sigma                          9815 / 9682                             2 / 2
+    WF time [s], both freqs, default rtol                                                  0.218
+    WF time [s], both freqs, tight | gcrsky prepare (2nd/1st)                              3.297                      0.129 / 3.59               25.6x
     WF error, max over modes [posterior sigma], default                              22.6 / 24.9
     WF error, monopole [posterior sigma], default                                    22.6 / 24.9
-      monopole value at default rtol (dense value above)                           335.5 / 343.9
-    WF error, max over modes [sigma], tight | gcrsky                             9.2e-07 / 1e-06                 6.1e-09 / 6.4e-09
-    WF error, monopole [sigma], tight | gcrsky                                 1.5e-08 / 1.3e-08                 6.1e-09 / 6.4e-09
-    draw CG iterations (mean), default rtol                                            119 / 121
-    draw CG iterations (mean), tight | gcrsky                                        9176 / 8753                             2 / 2
-    per-draw time [s], both freqs, default rtol                                           0.0341                            0.0049                7.0x
-    per-draw time [s], both freqs, tight (gcrsky: batch/ndraws)                            2.7676                            0.0049              566.8x
-      gcrsky draw batch, 1st call (compile+run) [s]                                                                           3.92
-    draw error max [posterior sigma], default | tight                    23 / 27 | 1e-06 / 2e-06
-    gcrsky WF vs the reference's own dense solve (its X), 100 MHz: max 6.5e-09 sigma (monopole 5.4e-09); dense reference solve took 0.02 / 0.02 s
-    gcrsky preconditioner: NystromPreconditioner.  Wall time: gcrsky worker 28 s, reference worker 64 s, total 92 s.
+      monopole value at default rtol (dense value above)                           322.6 / 343.6
+    WF error, max over modes [sigma], tight | gcrsky                             1e-06 / 9.2e-07                 9.5e-09 / 7.5e-09
+    WF error, monopole [sigma], tight | gcrsky                                 1.3e-08 / 1.6e-08                 9.2e-09 / 5.3e-09
+    draw CG iterations (mean), default rtol                                            140 / 147
+    draw CG iterations (mean), tight | gcrsky                                        9206 / 8792                             2 / 2
+    per-draw time [s], both freqs, default rtol | gcrsky auto (cholesky)                            0.0486                          4.95e-05                982x
+    per-draw time [s], both freqs, tight | gcrsky auto (cholesky)                            2.8734                          4.95e-05              58062x
+    per-draw time [s], both freqs, default rtol | gcrsky CG                               0.0486                          1.39e-03               34.9x
+    per-draw time [s], both freqs, tight | gcrsky CG                                      2.8734                          1.39e-03             2062.7x
+      gcrsky: batch of 200, 1st call (compile+run) [s], auto | CG                                                         1.32 | 7.62
+      gcrsky auto (cholesky) prepare [s] (2nd/1st); WF error max [sigma]                                         0.115 / 1.49; 8e-09 / 9e-09
+    draw error max [posterior sigma], default | tight                    23 / 27 | 1e-06 / 1e-06
+    
+    gcrsky WF vs the reference's own dense solve (its X), 100 MHz: max 3.6e-09 sigma (monopole 2.8e-09); dense reference solve took 0.02 / 0.02 s
+    gcrsky preconditioner: NystromPreconditioner.  Wall time: gcrsky worker 26 s, reference worker 69 s, total 96 s.
 
-
-Reading it: the per-LST X equals gcrsky's rotated-response X to 1.4e-14 at nside 128 (2.1e-6
-max / 2.1e-7 Frobenius at nside 32, where the pixel quadrature of the ~l 120 integrand is no
-longer exact; gcrsky computes one grid and rotates in harmonic space, the reference re-grids
-every LST).  With scipy's default rtol 1e-5 the Wiener filter stops after ~800 iterations
-with the monopole at ~340 K instead of ~3890/4080 K: 22.6 / 24.9 posterior sigma off (DESIGN
-measured 397 vs 3953, 23 sigma, 1153 iterations, with GSM2016), and draws warm-started there
-inherit it (23 / 27 sigma).  Plain CG needs rtol 1e-12 (~9,700 iterations per solve) to bring
-every mode within ~1e-6 sigma of the dense solve (102 MHz: 1.03e-6, the best of the sweep,
-taken); 1e-10 still leaves 1.1e-4 sigma.  Even the
-wrong-answer default draw is 7x slower than gcrsky's (Nystrom-preconditioned, dense-P, vmapped:
-2 iterations, 1e-8 sigma); at a correct tolerance the reference is ~570x slower per draw.
-The per-draw gcrsky time (batch of 5 / 5) is small and noisy on this shared box (1.8 ms at
-nside 32 vs 4.9 ms here for an identical solve).  The dense WF monopoles (3887 / 4084) look
-swapped against the truths (4075 / 3881): a coincidence (each is ~1.2 posterior sigma off; the
-data fit their own channel's truth, chi2/N = 1.01 / 0.99, vs 163 / 170 with the channels swapped).
-``--quick --fixed-fluctuation`` (nside 32) ran in 48 s with the same convergence picture
-(default WF 22.7 / 24.8 sigma off; rtol 1e-12: 8e-7 sigma, ~9,800 iterations).
+Reading it: the per-LST X equals gcrsky's rotated-response X to 1.4e-14 at nside 128.
+With scipy's default rtol 1e-5 the Wiener filter stops after ~750 iterations with the
+monopole at ~330 K instead of ~3890/4080 K: 22.6 / 24.9 posterior sigma off (DESIGN
+measured 397 vs 3953, 23 sigma, 1153 iterations, with GSM2016), and draws warm-started
+there inherit it (23 / 27 sigma).  Plain CG needs rtol 1e-12 (~9,700 iterations per
+solve) to bring every mode within ~1e-6 sigma of the dense solve.  gcrsky's response
+(ring-factored quadrature, one grid, beam floor 1e-16) is 139x faster and needs 16x less
+memory above the same imports (pyuvdata's import and first beam call excluded on both
+sides); earlier runs the same day gave 97x and 142x (load).  Per draw, gcrsky's default
+path is 982x faster than the reference at its (wrong) default tolerance and 58,000x
+faster than at the tolerance that makes it right; over four runs the first ratio was
+756x, 874x, 982x, 1166x: the batch of 200 costs ~10 ms, half of it JAX's threefry
+normal generation (176,400 float64 normals, ~3.9 ms) and half the n x n products, so
+the ratio moves with the reference's own 37-67 ms.  Matrix-free CG (Nystrom, 2
+iterations) is 35x / 2,000x.  The dense WF monopoles (3887 / 4084) look swapped against
+the truths (4075 / 3881): a coincidence (each is ~1.2 posterior sigma off; the data fit
+their own channel's truth, chi2/N = 1.01 / 0.99, vs 163 / 170 with the channels swapped).
 """
 
 from __future__ import annotations
