@@ -16,11 +16,24 @@ floating-point sum over baselines (~1e-16 relative per product).
 
 Usage::
 
-    import os
-    os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"  # CPU test only
+    from gcrsky.runtime import use_host_devices
+    use_host_devices(4)        # CPU only, before JAX's first computation (see below)
     mesh = baseline_mesh()                     # all devices
     sys_sh = shard_system(problem.system(), mesh)
     draws, info = sample_system(key, sys_sh, 16, dense=False, preconditioner="nystrom")
+
+Several devices on one CPU (``--xla_force_host_platform_device_count``, for tests and
+CI).  Set them up with :func:`gcrsky.runtime.use_host_devices` (this process, before
+JAX starts) or :func:`gcrsky.runtime.host_devices_env` (a subprocess's environment),
+not with ``XLA_FLAGS`` alone.  With jaxlib 0.10 a batched LAPACK call (the Nystrom
+preconditioner's QR/Cholesky/SVD over frequencies, replicated, so every device runs
+it) blocks a thread of XLA's intra-op pool while it waits for its own tasks on that
+pool, and the pool has only ``max(cores, devices)`` threads: with N devices on <= N
+cores every thread can end up waiting, a silent hang at 0% CPU (3 of 6 runs of the
+4-device check on a 2-core host; not the collectives, which merely looked suspect).
+The helpers raise the pool to :data:`gcrsky.runtime.POOL_THREADS_PER_DEVICE` threads
+per device (``PJRT_NPROC``); see :mod:`gcrsky.runtime`.  :func:`baseline_mesh` warns
+when the environment gives the pool fewer threads than that.
 
 Padding.  ``jax.device_put`` needs the sharded axis to be a multiple of the device
 count, so :func:`shard_system` appends ``(-Nbl) % ndev`` *dummy baselines* with zero
@@ -51,6 +64,7 @@ vectors before and after the baseline contraction.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 import jax
@@ -60,6 +74,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from .normal import LinearSystem
+from .runtime import effective_pool_size, safe_pool_size
 
 __all__ = ["AXIS", "baseline_mesh", "pad_baselines", "shard_system"]
 
@@ -68,10 +83,28 @@ AXIS = "bl"
 
 
 def baseline_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
-    """A 1-d :class:`jax.sharding.Mesh` with axis ``"bl"`` over ``devices`` (default: all)."""
+    """A 1-d :class:`jax.sharding.Mesh` with axis ``"bl"`` over ``devices`` (default: all).
+
+    Warns (RuntimeWarning) if the mesh has several CPU devices and the environment
+    gives XLA's CPU thread pool fewer than :func:`gcrsky.runtime.safe_pool_size`
+    threads: batched LAPACK calls can then deadlock (module docstring; fix with
+    :func:`gcrsky.runtime.use_host_devices` before JAX starts).
+    """
     devs = jax.devices() if devices is None else list(devices)
     if len(devs) == 0:
         raise ValueError("baseline_mesh needs at least one device")
+    ncpu = sum(d.platform == "cpu" for d in devs)
+    if ncpu > 1:
+        n_all = len(jax.devices("cpu"))
+        have, want = effective_pool_size(n_all), safe_pool_size(n_all)
+        if have < want:
+            warnings.warn(
+                f"{n_all} CPU devices share an XLA thread pool of {have} threads (PJRT_NPROC / core "
+                f"count); batched LAPACK calls (e.g. the Nystrom preconditioner) can deadlock it. "
+                f"Call gcrsky.runtime.use_host_devices({n_all}) before JAX starts (wants >= {want}).",
+                RuntimeWarning,
+                stacklevel=2,
+            )
     return Mesh(np.asarray(devs, dtype=object), (AXIS,))
 
 

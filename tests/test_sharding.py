@@ -14,6 +14,15 @@ still 3 orders below the CG tolerance (1e-8 posterior sigma) they are solved to.
 Draws are compared with the *padded* system on one device: the fluctuation noise is
 drawn with the padded shape, so the unpadded system gives a different (equally
 exact) realisation from the same key (the summary records that difference, ~0.2).
+
+The subprocess's environment comes from :func:`gcrsky.runtime.host_devices_env`, which
+sizes XLA's CPU thread pool (``PJRT_NPROC``).  Without it, on a 2-core host about half
+the runs hung for good at 0% CPU: the Nystrom preconditioner's batched LAPACK calls
+(replicated, so one per device at a time) each blocked a thread of the 4-thread pool
+waiting for their own tasks on it (gdb: every ``tf_XLAEigen`` thread in
+``lapack_dgesdd_ffi -> ParallelBatchMap -> BlockingCounter::Wait``; see
+gcrsky/runtime.py).  The check runs on every host; a hang becomes a failure after
+:data:`TIMEOUT_S`, with every thread's Python traceback and the last stage reached.
 """
 
 from __future__ import annotations
@@ -28,13 +37,32 @@ import jax
 import numpy as np
 import pytest
 
+from gcrsky.runtime import (
+    POOL_THREADS_PER_DEVICE,
+    effective_pool_size,
+    forced_device_count,
+    host_devices_env,
+    safe_pool_size,
+)
 from gcrsky.sharding import baseline_mesh, pad_baselines, shard_system
 
 ROOT = Path(__file__).resolve().parents[1]
 
+#: Wall-clock limit of the 4-device subprocess.  A healthy run takes ~40 s on a 2-core
+#: host (mostly compiling sample_system three times), 60-80 s with another job on the
+#: cores and up to ~170 s under heavy load; a deadlocked one never ends.
+TIMEOUT_S = 300
+
 CHECK = r'''
-import json, time
+import faulthandler, json, os, sys, time, warnings
 t0 = time.time()
+TIMEOUT_S = float(sys.argv[1])
+# a hang must not outlive the parent's timeout silently: dump every thread and exit
+faulthandler.dump_traceback_later(max(TIMEOUT_S - 20.0, 1.0), exit=True)
+stages = {}
+def stage(name):
+    stages[name] = round(time.time() - t0, 2)
+    print("STAGE", name, stages[name], file=sys.stderr, flush=True)
 import jax, jax.numpy as jnp, numpy as np
 jax.config.update("jax_enable_x64", True)
 from gcrsky.instrument import HERA_LATITUDE_DEG, antpairs, gaussian_beam, hex_array, make_array
@@ -64,7 +92,12 @@ data = apply(op, jnp.asarray(a_true)) + sigma * (rng.standard_normal((nf, nt, nb
 w = rng.uniform(0.5, 1.0, (nf, nt, nbl)); w[:, :, 3] = 0.0  # one flagged baseline
 system = LinearSystem(op, jnp.asarray(data), jnp.asarray(w / sigma**2), prior)
 
-mesh = baseline_mesh()
+from gcrsky.runtime import effective_pool_size
+stage("setup")
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    mesh = baseline_mesh()
+mesh_warnings = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
 ssys = shard_system(system, mesh)
 psys = pad_baselines(system, 4)
 nbl_pad = ssys.op.response.shape[1]
@@ -92,11 +125,16 @@ out["wiener_rhs"] = rel(wiener_rhs(ssys), wiener_rhs(system))
 hlo = jax.jit(precision_apply).lower(ssys, a).compile().as_text()
 out["hlo_all_reduce"] = hlo.count("all-reduce(") + hlo.count("all-reduce-start(")
 out["hlo_all_gather"] = hlo.count("all-gather(") + hlo.count("all-gather-start(")
+stage("products")
 kw = dict(dense=False, preconditioner="nystrom", rank=32, tol=1e-8)
 key = jax.random.PRNGKey(7)
 d_s, i_s = sample_system(key, ssys, 3, **kw)
+d_s.block_until_ready()
+stage("sample_sharded")
 d_p, i_p = sample_system(key, psys, 3, **kw)
 d_u, i_u = sample_system(key, system, 3, **kw)
+d_u.block_until_ready()
+stage("sample_one_device")
 out["wiener_cg"] = rel(i_s["a_wf"], i_u["a_wf"])
 out["wiener_cg_vs_padded"] = rel(i_s["a_wf"], i_p["a_wf"])
 out["draws_vs_padded"] = rel(d_s, d_p)
@@ -106,47 +144,54 @@ out["iters_sharded"] = np.asarray(i_s["draws"].iterations).tolist()
 out["iters_padded"] = np.asarray(i_p["draws"].iterations).tolist()
 out["wiener_iters"] = [np.asarray(i_s["wiener"].iterations).tolist(), np.asarray(i_u["wiener"].iterations).tolist()]
 out["draws_devices"] = len(d_s.sharding.device_set)
+out["mesh_warnings"] = mesh_warnings
+# the pool XLA really made (Linux thread names) vs the one the environment asks for
+try:
+    names = [open(f"/proc/self/task/{t}/comm").read().strip() for t in os.listdir("/proc/self/task")]
+    out["pool_threads"] = sum(n == "tf_XLAEigen" for n in names)
+except OSError:
+    out["pool_threads"] = None
+out["pool_expected"] = effective_pool_size(jax.device_count())
+out["stages"] = stages
 out["seconds"] = time.time() - t0
 print("RESULT " + json.dumps(out))
 '''
 
 
+def _check_env() -> dict:
+    env = host_devices_env(4)
+    env["JAX_ENABLE_X64"] = "1"
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")
+    return env
+
+
 def _run_check() -> dict:
-    env = {
-        **os.environ,
-        "XLA_FLAGS": "--xla_force_host_platform_device_count=4 --xla_cpu_multi_thread_eigen=false",
-        "JAX_ENABLE_X64": "1",
-        "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
-    }
-    # XLA CPU with 4 forced devices on a 2-core machine sometimes stalls (0% CPU, seen in
-    # about half the runs here, in the sharded CG's collectives); a healthy run takes
-    # ~25 s.  Retry once, then skip rather than hang the suite.
-    res = None
-    for _ in range(2):
-        try:
-            res = subprocess.run(
-                [sys.executable, "-c", CHECK], check=False, env=env, cwd=ROOT,
-                capture_output=True, text=True, timeout=100,
-            )
-            break
-        except subprocess.TimeoutExpired:
-            continue
-    if res is None:
-        pytest.skip("the 4-device XLA CPU subprocess stalled twice (known XLA CPU collective stall)")
-    assert res.returncode == 0, res.stderr[-4000:]
+    try:
+        res = subprocess.run(
+            [sys.executable, "-c", CHECK, str(TIMEOUT_S)], check=False, env=_check_env(), cwd=ROOT,
+            capture_output=True, text=True, timeout=TIMEOUT_S,
+        )
+    except subprocess.TimeoutExpired as exc:
+        err = exc.stderr.decode(errors="replace") if isinstance(exc.stderr, bytes) else (exc.stderr or "")
+        pytest.fail(f"the 4-device subprocess did not finish in {TIMEOUT_S} s (hang?); stderr tail:\n{err[-6000:]}")
+    assert res.returncode == 0, (
+        f"4-device subprocess failed (rc {res.returncode}; a faulthandler dump means it hung):\n{res.stderr[-6000:]}"
+    )
     line = [ln for ln in res.stdout.splitlines() if ln.startswith("RESULT ")][-1]
     return json.loads(line[len("RESULT "):])
 
 
 @pytest.fixture(scope="module")
 def summary() -> dict:
-    # On this 2-core machine about half the 4-device runs sat at 0% CPU in the sharded
-    # CG's collectives (cause not confirmed; likely 4 device threads rendezvousing on 2
-    # cores).  Run it where there are >= 4 cores, or on demand: GCRSKY_TEST_MULTIDEVICE=1.
-    if (os.cpu_count() or 1) < 4 and os.environ.get("GCRSKY_TEST_MULTIDEVICE") != "1":
-        pytest.skip("4-device check runs on >= 4 cores (XLA CPU collectives stalled on 2 here); "
-                    "set GCRSKY_TEST_MULTIDEVICE=1 to force it")
     return _run_check()
+
+
+def test_thread_pool_sized_for_four_devices(summary):
+    # the pool XLA created is the one host_devices_env asked for, > 1 thread per device
+    assert summary["pool_expected"] >= POOL_THREADS_PER_DEVICE * summary["devices"]
+    if summary["pool_threads"] is not None:  # thread names are readable on Linux
+        assert summary["pool_threads"] == summary["pool_expected"]
+    assert summary["mesh_warnings"] == []
 
 
 def test_really_sharded_over_four_devices(summary):
@@ -206,3 +251,72 @@ def test_pad_baselines_exact_in_process(small_response):
     # one device: a 1-d mesh works and pads to a multiple of 1 (nothing)
     sh = shard_system(system, baseline_mesh(jax.devices()[:1]))
     assert sh.op.response.shape == resp.shape
+
+
+def test_host_devices_env_sizes_the_pool():
+    base = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2 --foo", "PATH": "/bin"}
+    env = host_devices_env(4, base)
+    assert base["XLA_FLAGS"] == "--xla_force_host_platform_device_count=2 --foo"  # a copy
+    assert forced_device_count(env["XLA_FLAGS"]) == 4
+    assert env["XLA_FLAGS"].count("xla_force_host_platform_device_count") == 1
+    assert "--foo" in env["XLA_FLAGS"] and "--xla_cpu_multi_thread_eigen=false" in env["XLA_FLAGS"]
+    assert env["PATH"] == "/bin" and env["OPENBLAS_NUM_THREADS"] == "1"
+    want = safe_pool_size(4)
+    assert want >= POOL_THREADS_PER_DEVICE * 4 and int(env["PJRT_NPROC"]) == want
+    assert effective_pool_size(4, env) == want
+    # a user's own choices are kept where they are safe, raised where they are not
+    big = host_devices_env(4, {"PJRT_NPROC": str(want + 3), "OPENBLAS_NUM_THREADS": "2"})
+    assert big["PJRT_NPROC"] == str(want + 3) and big["OPENBLAS_NUM_THREADS"] == "2"
+    small = host_devices_env(4, {"PJRT_NPROC": "1", "NPROC": "1"})
+    assert effective_pool_size(4, small) == want
+    # XLA's rule: PJRT_NPROC, else NPROC, else the cores; never fewer threads than devices
+    assert effective_pool_size(4, {"PJRT_NPROC": "2"}) == 4
+    assert effective_pool_size(2, {"PJRT_NPROC": "x", "NPROC": "7"}) == 7
+    # one device: only the flags, the pool is left to XLA
+    one = host_devices_env(1, {})
+    assert "PJRT_NPROC" not in one and "OPENBLAS_NUM_THREADS" not in one
+    assert forced_device_count(one["XLA_FLAGS"]) == 1
+    assert forced_device_count("") == 1
+    with pytest.raises(ValueError, match="positive integer"):
+        forced_device_count("--xla_force_host_platform_device_count=0")
+    with pytest.raises(ValueError, match="positive integer"):
+        host_devices_env(0)
+
+
+def test_baseline_mesh_warns_about_an_undersized_pool():
+    # the environment that hung: 4 devices, XLA's default pool of max(cores, 4) threads
+    # on a small host (PJRT_NPROC=1 reproduces it on any host).  Only the warning is
+    # checked here (no LAPACK), so this subprocess is cheap.
+    code = (
+        "import warnings, jax\n"
+        "from gcrsky.sharding import baseline_mesh\n"
+        "with warnings.catch_warnings(record=True) as w:\n"
+        "    warnings.simplefilter('always')\n"
+        "    baseline_mesh()\n"
+        "    baseline_mesh(jax.devices()[:1])\n"
+        "print('WARN', sum('thread pool' in str(x.message) for x in w))\n"
+    )
+    env = {**_check_env(), "PJRT_NPROC": "1", "NPROC": "1"}
+    res = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True,
+                         text=True, timeout=120, check=False)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "WARN 1" in res.stdout  # the 4-device mesh warns, the 1-device one does not
+
+
+def test_use_safe_cpu_threading_sizes_the_pool_only_for_forced_devices(monkeypatch):
+    from gcrsky.runtime import use_host_devices, use_safe_cpu_threading
+
+    for key in ("PJRT_NPROC", "NPROC", "OPENBLAS_NUM_THREADS", "GCRSKY_FAST_THREADS"):
+        monkeypatch.delenv(key, raising=False)
+    monkeypatch.setenv("XLA_FLAGS", "")
+    assert use_safe_cpu_threading()  # one device: the flag, nothing else (as before)
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_multi_thread_eigen=false"
+    assert "PJRT_NPROC" not in os.environ and "OPENBLAS_NUM_THREADS" not in os.environ
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=4")
+    monkeypatch.setenv("GCRSKY_FAST_THREADS", "1")  # opting out of the flag keeps the pool fix
+    assert not use_safe_cpu_threading()
+    assert int(os.environ["PJRT_NPROC"]) == safe_pool_size(4)
+    assert os.environ["OPENBLAS_NUM_THREADS"] == "1"
+    jax.devices()  # this process's backend has started: too late to change it
+    with pytest.raises(RuntimeError, match="before JAX"):
+        use_host_devices(4)
