@@ -137,3 +137,17 @@ def test_float32_preconditioner_keeps_the_answer_exact(partial, pc):
     assert np.max(np.abs(np.asarray(a) - a_ref) / sig) < 1e-8
     with pytest.raises(ValueError, match="pc_dtype"):
         make_preconditioner(sysm, pc, None, 32, "float16")
+
+
+def test_blocked_triangular_product_equals_dense():
+    """The Cholesky draws' block-row product skips only exact zeros (n >= 256 uses 4 blocks)."""
+    from gcrsky.sampler import _upper_triangular_product
+
+    rng = np.random.default_rng(3)
+    for n in (10, 300):
+        U = np.triu(rng.standard_normal((2, n, n)))
+        z = rng.standard_normal((5, 2, n))
+        got = np.asarray(_upper_triangular_product(jax.numpy.asarray(U), jax.numpy.asarray(z)))
+        ref = np.einsum("fij,dfj->fdi", U, z)
+        assert got.shape == (2, 5, n)
+        assert np.max(np.abs(got - ref)) < 1e-12 * np.abs(ref).max()
