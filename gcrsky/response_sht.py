@@ -41,9 +41,11 @@ cores, nside 128, 2 frequencies, 45 baselines (direct timings include JIT):
 lmax 20: 1.8 s direct vs 1.2 s here; lmax 50: 7.0 s vs 1.0 s; lmax 100: 38.5 s vs
 4.0 s (10 baselines: 34 s vs 0.9 s).  Since then the default
 ``response_matrix(method="rings")`` factors the same sum through the HEALPix rings
-in JAX and skips pixels below the beam floor; it is faster than this route at every
-size measured (nside 128, 2 channels: lmax 50, 10 antennas 0.39 s vs 4.1 s; lmax
-100, 37 antennas 21 s vs 89 s, on a loaded 2-core box).  This module stays as an
+in JAX and skips pixels below the beam floor; side by side it was faster (nside 128,
+2 channels: lmax 50, 10 antennas 0.39 s vs 4.1 s; lmax 100, 37 antennas 21 s vs 89 s,
+on a loaded 2-core box, where healpy's OpenMP threads suffer most), but on a quiet box
+this route's threaded transforms can win at lmax >= 100 (13.7 s for that case measured
+here earlier, against ~30 s for the rings under load: not a side-by-side number).  This module stays as an
 independent cross-check (healpy's transforms, not gcrsky's Legendre recursion).
 """
 
