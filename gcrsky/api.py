@@ -75,10 +75,9 @@ def choose_path(
     if method == "auto":
         plan = plan_sampler(system, ndraws=ndraws, budget=memory_budget)
         logging.getLogger("gcrsky").info("sampler path: %s (%s)", plan.method, plan.reason)
-        pc = plan.preconditioner if preconditioner == "auto" else preconditioner
-        if plan.method == "cg":
-            pc = resolve_preconditioner(system, pc or "auto")
-        return plan.method, plan.dense, pc or "nystrom"
+        if plan.method == "cg":  # validates the choice and warns about a flat prior
+            return plan.method, plan.dense, resolve_preconditioner(system, plan.preconditioner)
+        return plan.method, plan.dense, "nystrom"  # unused by the direct paths
     if method not in ("cg", "cholesky", "eigh", "mmode"):
         raise ValueError(f"method must be 'auto', 'cg', 'cholesky', 'eigh' or 'mmode', got {method!r}")
     if method == "mmode":
