@@ -17,7 +17,7 @@ table gives mean z^2 (1 when calibrated; > 1 draws too narrow, < 1 too wide) and
 the functional's exact p-value (Bonferroni over its KS, dispersion and bias
 tests); the last rows give the family p-value (Bonferroni over functionals:
 reject at alpha when p <= alpha, false-alarm rate <= alpha) and the smallest
-asymptotic rank-histogram chi-square p-value.  See :mod:`gcrsky.calibration`.
+asymptotic rank-histogram chi-square p-value.  See :mod:`gcrsky.checks.sbc`.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ try:
 except ImportError:  # running from a checkout without an install
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from gcrsky.runtime import use_safe_cpu_threading  # noqa: E402
+from gcrsky.parallel import use_safe_cpu_threading  # noqa: E402
 
 use_safe_cpu_threading()  # before JAX's first computation (gcrsky/runtime.py)
 
@@ -41,7 +41,14 @@ import jax  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 
-from gcrsky.calibration import GCRSampler, default_functionals, flagged_example_problem, reference_bug_sampler, run_sbc
+from gcrsky.checks.sbc import (  # noqa: E402
+    GCRSampler,
+    default_functionals,
+    flagged_example_problem,
+    reference_bug_sampler,
+    run_sbc,
+)
+from gcrsky.solvers import CGOptions  # noqa: E402
 
 
 def main(argv=None):
@@ -56,7 +63,7 @@ def main(argv=None):
     doubled = system._replace(inv_noise=system.inv_noise / 2.0)
     chol = GCRSampler("cholesky")
     runs = [
-        ("cg", 100, system, GCRSampler("cg", dense=True, preconditioner="nystrom", rank=8), None, None),
+        ("cg", 100, system, GCRSampler("cg", CGOptions(dense=True, preconditioner="nystrom", rank=8)), None, None),
         ("cholesky", 101, system, chol, None, 50),
         ("bug 1/sqrt2", 102, system, reference_bug_sampler, None, 50),
         ("post 2sig2", 103, system, chol, doubled, 50),

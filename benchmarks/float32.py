@@ -50,7 +50,7 @@ on this CPU it saves no time, so gcrsky keeps float64 as the default and offers
 ``pc_dtype="float32"`` for memory-bound accelerators.  Forward simulation in float32
 is safe (visibilities to ~1e-6 relative).  The solve itself is not: a float32 dense P
 and factor miss the standard case's Wiener filter by 0.07 sigma, which is why the
-linear algebra refuses float32 (``gcrsky.normal.check_float64``); storing the
+linear algebra refuses float32 (``gcrsky.base.check_float64``); storing the
 response in complex64 and solving in float64 costs 3e-5 sigma (standard case) to
 1e-7 sigma (lmax 50): usable for maps, not offered as "exact".
 """
@@ -60,7 +60,7 @@ from __future__ import annotations
 import sys
 import time
 
-from gcrsky.runtime import use_safe_cpu_threading
+from gcrsky.parallel import use_safe_cpu_threading
 
 use_safe_cpu_threading()
 import jax  # noqa: E402
@@ -70,13 +70,23 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import gcrsky  # noqa: E402
-from gcrsky.instrument import HERA_LATITUDE_DEG, antpairs, gaussian_beam, hex_array, make_array  # noqa: E402
-from gcrsky.normal import precision_matrix, wiener_rhs  # noqa: E402
-from gcrsky.operator import apply  # noqa: E402
-from gcrsky.prior import isotropic_prior  # noqa: E402
-from gcrsky.problem import build_problem  # noqa: E402
-from gcrsky.response import response_matrix  # noqa: E402
-from gcrsky.sampler import draw, prepare_sampler  # noqa: E402
+from gcrsky.inference import draw, prepare_sampler  # noqa: E402
+from gcrsky.instrument import (  # noqa: E402
+    HERA_LATITUDE_DEG,
+    antpairs,
+    gaussian_beam,
+    hex_array,
+    make_array,
+    response_matrix,  # noqa: E402
+)
+from gcrsky.model import (  # noqa: E402
+    apply,  # noqa: E402
+    build_problem,  # noqa: E402
+    isotropic_prior,  # noqa: E402
+    precision_matrix,
+    wiener_rhs,
+)
+from gcrsky.solvers import CGOptions  # noqa: E402
 
 
 def lmax50_problem():
@@ -112,11 +122,11 @@ def run(name, prob, ndraws=20):
     print(f"{'path':34s} {'WF it':>7s} {'draw it':>8s} {'ms/draw':>8s} {'WF err [sigma]':>15s}")
     for pc in ("nystrom", "mblock"):
         for dt in ("float64", "float32"):
-            kw = dict(method="cg", dense=False, preconditioner=pc, pc_dtype=dt, tol=1e-8, maxiter=20000)
+            kw = dict(options=CGOptions(dense=False, preconditioner=pc, pc_dtype=dt, tol=1e-8, maxiter=20000))
             prep = jax.block_until_ready(prepare_sampler(system, **kw))
-            jax.block_until_ready(draw(key, prep, ndraws, tol=1e-8, maxiter=20000))  # compile
+            jax.block_until_ready(draw(key, prep, ndraws))  # compile
             t0 = time.perf_counter()
-            _, info = jax.block_until_ready(draw(key, prep, ndraws, tol=1e-8, maxiter=20000))
+            _, info = jax.block_until_ready(draw(key, prep, ndraws))
             dt_ms = (time.perf_counter() - t0) / ndraws * 1e3
             ok = bool(np.all(np.asarray(info["draws"].converged)) and np.all(np.asarray(prep.wiener.converged)))
             print(f"{'matrix-free CG, ' + pc + ' pc ' + dt:34s} {float(np.mean(prep.wiener.iterations)):7.0f} "

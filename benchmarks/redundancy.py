@@ -1,4 +1,4 @@
-"""Redundant-baseline compression (gcrsky.redundancy): what it saves on HERA-like hexagons.
+"""Redundant-baseline compression (gcrsky.instrument.redundancy): what it saves on HERA-like hexagons.
 
 Usage::
 
@@ -9,8 +9,8 @@ Arrays: hexagons of 37 antennas (rows 4,5,6,7,6,5,4) and 91 antennas (rows
 6,7,...,11,...,7,6), 14.6 m spacing, 14 m Gaussian dishes (pyuvdata
 ``GaussianBeam(diameter=14)``) at HERA's latitude; all cross-correlations ``i < j``.
 Two channels (100, 102 MHz), nside 64; the response is the direct quadrature
-(``gcrsky.response.response_matrix``) at lmax 20 and the SHT route
-(``gcrsky.response_sht.response_matrix_sht``) at lmax 50, as in ``benchmarks/scale.py``.
+(``gcrsky.instrument.response_matrix``) at lmax 20 and the SHT route
+(``gcrsky.instrument.response_matrix_sht``) at lmax 50, as in ``benchmarks/scale.py``.
 Columns:
 
 * ``Nbl``, ``Ngrp``: baselines and redundant groups (``groups_for_array``);
@@ -78,7 +78,7 @@ def main() -> None:
     # healpy's OpenMP SHTs spin-wait badly on a shared 2-core host: 0.7 s single-threaded
     # vs 5.5 s with 2 threads for 63 baselines at lmax 50, measured under load
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    from gcrsky.runtime import use_safe_cpu_threading
+    from gcrsky.parallel import use_safe_cpu_threading
 
     use_safe_cpu_threading()
     import jax
@@ -87,13 +87,19 @@ def main() -> None:
     import jax.numpy as jnp
     import numpy as np
 
-    from gcrsky.instrument import HERA_LATITUDE_DEG, antpairs, gaussian_beam, hex_array, make_array
-    from gcrsky.normal import LinearSystem, precision_apply
-    from gcrsky.operator import VisOperator
-    from gcrsky.prior import Prior
-    from gcrsky.redundancy import check_redundancy, compress_system, groups_for_array, unique_response
-    from gcrsky.response import response_matrix
-    from gcrsky.response_sht import response_matrix_sht
+    from gcrsky.instrument import (
+        HERA_LATITUDE_DEG,
+        antpairs,
+        check_redundancy,
+        gaussian_beam,
+        groups_for_array,
+        hex_array,
+        make_array,
+        response_matrix,
+        response_matrix_sht,
+        unique_response,
+    )
+    from gcrsky.model import LinearSystem, Prior, VisOperator, compress_system, precision_apply
 
     freqs = np.asarray(FREQS_HZ)
     grid = [(37, 20)] if args.quick else [(37, 20), (37, 50), (91, 20), (91, 50)]

@@ -46,7 +46,7 @@ pyradiosky GSM map); frequencies are solved one at a time.
 How it runs
 -----------
 Three processes, so each side's peak RSS (``ru_maxrss``) is its own: this driver; a
-gcrsky worker (JAX x64, ``gcrsky.runtime.use_safe_cpu_threading()``): it times
+gcrsky worker (JAX x64, ``gcrsky.parallel.use_safe_cpu_threading()``): it times
 ``response_matrix`` (cross-correlations) and ``standard_case`` (the whole build incl.
 ``build_problem``) twice each (1st = compile + run, 2nd = run), ``gcrsky.prepare(prob,
 method="cg")`` twice and ``gcrsky.draw`` twice, and writes the problem to a temporary
@@ -381,15 +381,14 @@ GCR_NDRAWS = 200
 
 def gcrsky_worker(npz_path: str, out_json: str, nside: int, nlst: int, ndraws: int):
     sys.path.insert(0, str(ROOT))
-    from gcrsky.runtime import use_safe_cpu_threading
+    from gcrsky.parallel import use_safe_cpu_threading
 
     use_safe_cpu_threading()
     import jax
 
     jax.config.update("jax_enable_x64", True)
     import gcrsky
-    from gcrsky.instrument import HERA_LATITUDE_DEG, antpairs, gaussian_beam, hex_array, make_array
-    from gcrsky.response import response_matrix
+    from gcrsky.instrument import HERA_LATITUDE_DEG, antpairs, gaussian_beam, hex_array, make_array, response_matrix
 
     def timed(fn, *a, **k):
         t0 = time.perf_counter()

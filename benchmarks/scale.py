@@ -17,17 +17,17 @@ from 100 MHz in 2 MHz steps.  The truth is a draw from an isotropic prior
 per-component sigma, 10% of the rms model visibility (constant in time and baseline,
 so the noise is time-stationary): nothing depends on a sky model.
 
-Response: ``gcrsky.response.response_matrix`` (ring-factored quadrature, beam floor
+Response: ``gcrsky.instrument.response_matrix`` (ring-factored quadrature, beam floor
 1e-16); nside 64 for lmax <= 50, 128 for lmax 100, 256 for lmax 200.  The response
 column includes the autos' response.  ``auto`` is the path ``method="auto"`` picks
-(:func:`gcrsky.plan.plan_sampler`).
+(:func:`gcrsky.solvers.plan_sampler`).
 
 Sampler paths (``gcrsky.prepare`` + ``gcrsky.draw`` unless noted):
 
 * ``chol``:  dense P + Cholesky;
 * ``cgD-ny`` / ``cgD-mb``: CG on the dense P, Nystrom / m-block preconditioner;
 * ``cgMF-ny``: matrix-free CG, Nystrom preconditioner;
-* ``mmode``: ``gcrsky.mmode.prepare_mmode`` / ``draw_mmode`` (exact; needs uniform
+* ``mmode``: ``gcrsky.solvers.prepare_mmode`` / ``draw_mmode`` (exact; needs uniform
   full-day coverage with Nt > 2 lmax and time-stationary noise, else 'n/a' with the
   reason ``mmode_check`` gives).
 
@@ -35,7 +35,7 @@ For each: compile time (``jit(...).lower(...).compile()``, AOT, so it never runs
 computation twice), set-up run time, time per draw (``ndraws`` draws in one call /
 ``ndraws``), and for CG the iterations of the Wiener solve (mean over channels) and the
 mean iterations per draw.  ``it_noPC`` is plain CG (identity preconditioner,
-``gcrsky.sampler.pcg`` on the dense P of channel 0, started at 0 like the Wiener solve)
+``gcrsky.solvers.pcg`` on the dense P of channel 0, started at 0 like the Wiener solve)
 run until its residual ``||b - P x||`` reaches the relative residual the m-block CG
 Wiener solve achieved (the same tolerance in residual terms), capped at 20000
 ('capped').  ``P_MB`` is the size of one dense P (all channels) where formed.
@@ -142,7 +142,7 @@ def peak_mb() -> float:
 
 
 def run_one(c) -> dict:
-    from gcrsky.runtime import use_safe_cpu_threading
+    from gcrsky.parallel import use_safe_cpu_threading
 
     use_safe_cpu_threading()
     import jax
@@ -152,14 +152,12 @@ def run_one(c) -> dict:
     import numpy as np
 
     import gcrsky
-    from gcrsky.instrument import HERA_LATITUDE_DEG, antpairs, gaussian_beam, hex_array, make_array
-    from gcrsky.layout import n_params
-    from gcrsky.mmode import draw_mmode, mmode_check, _prepare as _prep_mm
-    from gcrsky.prior import isotropic_prior
-    from gcrsky.problem import build_problem
-    from gcrsky.response import response_matrix
-    from gcrsky.plan import plan_sampler
-    from gcrsky.sampler import pcg, prepare_sampler, draw
+    from gcrsky.inference import draw, prepare_sampler
+    from gcrsky.instrument import HERA_LATITUDE_DEG, antpairs, gaussian_beam, hex_array, make_array, response_matrix
+    from gcrsky.model import build_problem, isotropic_prior
+    from gcrsky.solvers import CGOptions, draw_mmode, mmode_check, pcg, plan_sampler
+    from gcrsky.solvers.mmode import _prepare as _prep_mm
+    from gcrsky.sphere import n_params
 
     lmax, nants, nt, hours, nf, ndraws = c
     out = {"name": name_of(c), "lmax": lmax, "nants": nants, "nlst": nt, "hours": hours, "nfreq": nf,
@@ -221,13 +219,13 @@ def run_one(c) -> dict:
     out["P_MB"] = dense_bytes / 1e6
 
     paths = [("chol", dict(method="cholesky")),
-             ("cgD-ny", dict(method="cg", dense=True, preconditioner="nystrom")),
-             ("cgD-mb", dict(method="cg", dense=True, preconditioner="mblock")),
-             ("cgMF-ny", dict(method="cg", dense=False, preconditioner="nystrom"))]
+             ("cgD-ny", dict(options=CGOptions(dense=True, preconditioner="nystrom"))),
+             ("cgD-mb", dict(options=CGOptions(dense=True, preconditioner="mblock"))),
+             ("cgMF-ny", dict(options=CGOptions(dense=False, preconditioner="nystrom")))]
     rel_mb = None
     for pname, static in paths:
         rec = {}
-        if static.get("method") == "cholesky" or static.get("dense"):
+        if static.get("method") == "cholesky" or static["options"].dense:
             if not dense_ok:
                 out["paths"][pname] = {"skip": dense_why}
                 continue
@@ -241,13 +239,13 @@ def run_one(c) -> dict:
         (dr, info), tc2, tr2 = timed(draw, (key, prep), dict(ndraws=ndraws))
         rec.update(draw_compile=tc2, draw_total=tr2, per_draw=tr2 / ndraws)
         rec["ok"] = bool(np.all(np.asarray(info["draws"].converged)) and np.all(np.asarray(prep.wiener.converged)))
-        if static["method"] == "cg":
+        if prep.method == "cg":
             rec["it_wiener"] = float(np.mean(np.asarray(prep.wiener.iterations)))
             rec["it_draw"] = float(np.mean(np.asarray(info["draws"].iterations)))
             if pname == "cgD-mb":
                 rel_mb = float(np.asarray(prep.wiener.rel_residual)[0])
                 P0 = prep.precision[0]
-                b0 = gcrsky.normal.wiener_rhs(system)[0]
+                b0 = gcrsky.model.wiener_rhs(system)[0]
                 tol = rel_mb * float(jnp.linalg.norm(b0))
                 f = jax.jit(lambda P, b, tol: pcg(lambda x: P @ x, lambda r: r, b, jnp.zeros_like(b), tol=tol,
                                                   maxiter=NOPC_CAP)[1])

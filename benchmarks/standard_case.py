@@ -19,8 +19,8 @@ project brief) are printed next to the numbers.
 from __future__ import annotations
 
 import argparse
-import os
 import inspect
+import os
 import platform
 import resource
 import sys
@@ -39,13 +39,12 @@ except ImportError:  # running from a checkout without an install
 import numpy as np
 
 import gcrsky
-from gcrsky.instrument import antpairs, gaussian_beam, hex_array, make_array
 from gcrsky import normal
-from gcrsky.sampler import draw, prepare_sampler
-from gcrsky.normal import m_block_preconditioner, precision_matrix
-from gcrsky.response import response_matrix
-from gcrsky.sampler import sample_system, wiener_filter_system
-from gcrsky.sky import sky_truth
+from gcrsky.inference import draw, prepare_sampler, sample_system, wiener_filter_system
+from gcrsky.instrument import antpairs, gaussian_beam, hex_array, make_array, response_matrix
+from gcrsky.model import precision_matrix
+from gcrsky.sim.sky import sky_truth
+from gcrsky.solvers import m_block_preconditioner
 
 
 def maxrss_mib() -> float:
@@ -221,7 +220,7 @@ def main(argv=None) -> int:
         print(
             f"CG ({name}) vs Cholesky Wiener filter: max |diff| / posterior sigma = {np.max(diff / sd):.2e} "
             f"(max |diff| {diff.max():.2e} K); draws err_sigma median {np.median(err):.1e}, max {err.max():.1e} "
-            f"(tol {gcrsky.sampler.DEFAULT_TOL:g})"
+            f"(tol {gcrsky.solvers.DEFAULT_TOL:g})"
         )
     print(f"peak memory (ru_maxrss): {maxrss_mib():.0f} MiB")
     return 0

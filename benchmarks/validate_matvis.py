@@ -15,10 +15,10 @@ the two frequencies its file holds).  One row per configuration: the error figur
 ``max |V_gcrsky - 2 V_matvis| / rms(V_gcrsky)`` over all cross-correlations, times and
 frequencies, the worst visibility, and wall times (gcrsky's includes the frame map,
 the response build and JIT compilation; matvis' its per-time astropy transforms).
-See :mod:`gcrsky.validate` for the method and the error floors.
+See :mod:`gcrsky.checks.matvis` for the method and the error floors.
 
 Default nsides are what each beam needs for the 1e-3 target (Gaussian 128; Airy
-512 because of its horizon sidelobes, see :mod:`gcrsky.validate`); the UVBeam runs at
+512 because of its horizon sidelobes, see :mod:`gcrsky.checks.matvis`); the UVBeam runs at
 256, where it reads up to 1.8e-3 (``--nside-uvbeam 512``: <= 6.5e-4, +~4 min).  The
 whole grid takes about 6 minutes on 2 cores, most of it the four Airy rows;
 ``--quick`` (Airy 256, UVBeam 128, 6 times) about 1.5 minutes, with those rows above
@@ -42,7 +42,7 @@ try:
 except ImportError:  # running from a checkout without an install
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from gcrsky.runtime import use_safe_cpu_threading  # noqa: E402
+from gcrsky.parallel import use_safe_cpu_threading  # noqa: E402
 
 use_safe_cpu_threading()  # before JAX's first computation (gcrsky/runtime.py)
 
@@ -53,7 +53,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np
 from astropy.utils import iers
 
-from gcrsky import validate as V
+from gcrsky.checks import matvis as V
 from gcrsky.instrument import gaussian_beam, hex_array
 
 DISH_M = 14.0

@@ -1,58 +1,54 @@
 """gcrsky: full-sky maps with honest uncertainties from drift-scan visibilities.
 
 Gaussian constrained realisations of the sky's spherical-harmonic coefficients
-(Glasscock et al. 2024), as pure JAX functions.  Conventions: README.md.
+(Glasscock et al. 2024), as pure JAX functions.  This namespace holds the user
+tier; every primitive is reachable from its subpackage, which follow the data flow:
+
+- :mod:`gcrsky.base`: dtype policy, memory budgets, units;
+- :mod:`gcrsky.sphere`: the realified mode layout, harmonics, rotations, frames, maps;
+- :mod:`gcrsky.instrument`: antenna arrays, beams, the response, redundancy;
+- :mod:`gcrsky.model`: visibility operator, noise, priors, the linear system, problems;
+- :mod:`gcrsky.solvers`: the exact paths (CG, Cholesky / eigh, m-mode) and the planner;
+- :mod:`gcrsky.inference`: Wiener filter, draws, batches, the Gibbs kernel;
+- :mod:`gcrsky.parallel`: sharding over devices; :mod:`gcrsky.io`: results on disk;
+- applications: :mod:`gcrsky.sim` (truth skies, the standard case),
+  :mod:`gcrsky.paper` (scenarios, metrics, figures, the run pipeline),
+  :mod:`gcrsky.checks` (matvis validation, simulation-based calibration) and the
+  ``gcrsky`` command line (:mod:`gcrsky.cli`).
+
+Conventions: ``docs/conventions.md``.  ``import gcrsky`` does not import matplotlib,
+matvis, pygdsm or pyradiosky (nor healpy, which would import matplotlib).
 """
 
-from .api import choose_path, prepare, sample, wiener_filter
-from .layout import ModeTable, alm_to_map, mode_table, n_params, realify, unrealify
-from .frames import FrameMap, observing_geometry
-from .noise import weights_from_flags
-from .normal import LinearSystem, precision_apply, precision_matrix
-from .operator import VisOperator, adjoint, apply, dense_matrix
-from .plan import InsufficientMemoryError, SamplerPlan, plan_sampler
-from .prior import Prior, flat_prior, isotropic_prior, paper_prior
-from .problem import Config, Problem, build_problem, standard_case
-from .redundancy import (
-    RedundantGroups,
-    compress_problem,
-    compress_system,
-    groups_for_array,
-    redundant_groups,
-    redundant_responses,
-)
-from .rotation import rotate, rotate_euler, wigner_blocks
-from .sampler import (
-    GCRState,
-    PreparedSampler,
-    SolveInfo,
-    draw,
-    gcr_init,
-    gcr_step,
-    prepare_sampler,
-    sample_system,
-    wiener_filter_system,
-)
+from .inference.api import prepare, sample, wiener_filter
+from .inference.gibbs import GCRState, gcr_init, gcr_step
+from .inference.posterior import draw, prepare_sampler, sample_system, wiener_filter_system
+from .model.compress import compress_problem, compress_system
+from .model.operator import VisOperator, dense_matrix
+from .model.prior import Prior, flat_prior, isotropic_prior, paper_prior
+from .model.problem import Problem, build_problem
+from .model.system import LinearSystem
+from .sim.config import Config
+from .sim.standard import standard_case
+from .solvers.info import SolveInfo
+from .solvers.options import CGOptions, CholeskyOptions, EighOptions, MModeOptions
+from .sphere.maps import alm_to_map
+from .sphere.modes import mode_table, realify, unrealify
 
 __all__ = [
+    "CGOptions",
+    "CholeskyOptions",
     "Config",
-    "FrameMap",
+    "EighOptions",
     "GCRState",
-    "InsufficientMemoryError",
     "LinearSystem",
-    "PreparedSampler",
-    "ModeTable",
+    "MModeOptions",
     "Prior",
     "Problem",
-    "RedundantGroups",
-    "SamplerPlan",
     "SolveInfo",
     "VisOperator",
-    "adjoint",
     "alm_to_map",
-    "apply",
     "build_problem",
-    "choose_path",
     "compress_problem",
     "compress_system",
     "dense_matrix",
@@ -60,30 +56,18 @@ __all__ = [
     "flat_prior",
     "gcr_init",
     "gcr_step",
-    "groups_for_array",
     "isotropic_prior",
     "mode_table",
-    "n_params",
-    "observing_geometry",
     "paper_prior",
-    "plan_sampler",
-    "precision_apply",
     "prepare",
     "prepare_sampler",
-    "precision_matrix",
     "realify",
-    "redundant_groups",
-    "redundant_responses",
-    "rotate",
-    "rotate_euler",
     "sample",
     "sample_system",
     "standard_case",
     "unrealify",
-    "weights_from_flags",
     "wiener_filter",
     "wiener_filter_system",
-    "wigner_blocks",
 ]
 
 __version__ = "0.1.0"

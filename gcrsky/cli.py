@@ -30,11 +30,9 @@ bad arguments (argparse).
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -99,8 +97,8 @@ def _nside(s: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The argument parser (defaults of the physics options come from :class:`gcrsky.Config`)."""
-    from .problem import Config
+    """The argument parser (defaults of the physics options come from :class:`gcrsky.sim.Config`)."""
+    from .sim.config import Config
 
     d = Config()
     p = argparse.ArgumentParser(
@@ -181,110 +179,39 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-# ---------------------------------------------------------------- helpers
+# ---------------------------------------------------------------- terminal
 
 
-def _stats(info) -> dict:
-    import numpy as np
-
-    it = np.asarray(info.iterations)
-    err = np.asarray(info.err_sigma, np.float64)
-    conv = np.asarray(info.converged, bool)
-    return {
-        "n_solves": int(conv.size),
-        "iterations_mean": float(it.mean()) if it.size else 0.0,
-        "iterations_median": float(np.median(it)) if it.size else 0.0,
-        "iterations_max": int(it.max()) if it.size else 0,
-        "err_sigma_max": float(np.nanmax(err)) if err.size and np.isfinite(err).any() else float("nan"),
-        "n_not_converged": int((~conv).sum()),
-        "all_converged": bool(conv.all()),
-    }
-
-
-def _json_default(o):
-    import numpy as np
-
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return str(o)
-
-
-def _clean_json(x):
-    """Replace non-finite floats by None so summary.json is strict JSON."""
-    if isinstance(x, float):
-        return x if math.isfinite(x) else None
-    if isinstance(x, dict):
-        return {k: _clean_json(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean_json(v) for v in x]
-    return x
-
-
-def _versions() -> dict:
-    import h5py
-    import healpy
-    import jax
-    import matplotlib
-    import numpy
-
-    from . import __version__
-
-    return {
-        "gcrsky": __version__,
-        "jax": jax.__version__,
-        "jaxlib": getattr(getattr(jax, "lib", None), "__version__", None) or _pkg_version("jaxlib"),
-        "numpy": numpy.__version__,
-        "healpy": healpy.__version__,
-        "h5py": h5py.__version__,
-        "matplotlib": matplotlib.__version__,
-        "python": platform.python_version(),
-        "jax_backend": jax.default_backend(),
-    }
-
-
-def _pkg_version(name: str):
-    try:
-        from importlib.metadata import version
-
-        return version(name)
-    except Exception:  # noqa: BLE001
-        return None
-
-
-class _Stages:
-    """Wall-clock timer of named stages with an optional tqdm bar over them."""
+class _StageBar:
+    """A tqdm bar over the named stages of a run (the terminal is the CLI's)."""
 
     def __init__(self, names, disable):
         from tqdm.auto import tqdm
 
         self.bar = tqdm(total=len(names), desc="gcrsky", unit="stage", disable=disable, leave=False, position=0,
                         bar_format="{desc}: {n_fmt}/{total_fmt} stages |{bar}| {elapsed}")
-        self.times: dict[str, float] = {}
-        self._t0 = None
-        self._name = None
 
-    def start(self, name: str):
-        self._name, self._t0 = name, time.perf_counter()
-        self.bar.set_description(f"gcrsky: {name}")
-        log.info("stage %s ...", name)
-
-    def stop(self):
-        dt = time.perf_counter() - self._t0
-        self.times[self._name] = dt
-        log.info("stage %s done in %.2f s", self._name, dt)
-        self.bar.update(1)
+    def __call__(self, name: str, event: str) -> None:
+        if event == "start":
+            self.bar.set_description(f"gcrsky: {name}")
+        else:
+            self.bar.update(1)
 
     def close(self):
         self.bar.close()
+
+
+def _batch_bar(disable):
+    from tqdm.auto import tqdm
+
+    return lambda it: tqdm(it, desc="draw batches", unit="batch", disable=disable, leave=False, position=1)
 
 
 # ---------------------------------------------------------------- the run command
 
 
 def _setup_jax():
-    from .runtime import use_safe_cpu_threading
+    from .parallel.runtime import use_safe_cpu_threading
 
     use_safe_cpu_threading()  # before the first JAX computation (see gcrsky/runtime.py)
     import jax
@@ -304,8 +231,8 @@ def _run_settings(args):
     setting; an option that changes a field the scenario also sets, to another value,
     is an error.
     """
-    from .problem import Config
-    from .scenarios import scenario
+    from .paper.scenarios import scenario
+    from .sim.config import Config
 
     fields = dict(
         lmax=args.lmax, nside=args.nside, n_lst=args.n_lst, lst_range_hours=(args.lst_start, args.lst_stop),
@@ -329,7 +256,9 @@ def _run_settings(args):
 
 def _run(args) -> int:
     _setup_jax()
-    from .problem import Config, problem_from_config
+    from .paper.pipeline import run_problem
+    from .sim.config import Config
+    from .sim.standard import problem_from_config
 
     fields, nsamples, method, scen, tol = _run_settings(args)
     out = Path(args.out)
@@ -338,10 +267,16 @@ def _run(args) -> int:
     t0 = time.perf_counter()
     prob = problem_from_config(Config(**fields).validate())
     build_s = time.perf_counter() - t0
-    summary, _ = _execute(
-        prob, out, nsamples=nsamples, seed=args.seed, batch=args.batch, method=method, plots=not args.no_plots,
-        disable_bars=disable_bars, build_s=build_s, argv=getattr(args, "_argv", None), scenario_name=scen, tol=tol,
-    )
+    plots = not args.no_plots
+    bar = _StageBar(["wiener", "draws", "maps"] + (["plots"] if plots else []) + ["write"], disable_bars)
+    try:
+        summary, _ = run_problem(
+            prob, out, nsamples=nsamples, seed=args.seed, batch=args.batch, method=method, plots=plots,
+            build_s=build_s, argv=getattr(args, "_argv", None), scenario_name=scen, tol=tol,
+            on_stage=bar, progress=_batch_bar(disable_bars),
+        )
+    finally:
+        bar.close()
     _print_summary(summary, out)
     for w in summary["warnings"]:
         print(w, file=sys.stderr)
@@ -352,359 +287,44 @@ def _run(args) -> int:
     return 0
 
 
-class RunProducts(dict):
-    """In-memory products of one run that the suite reuses (first frequency): the
-    truth / mean / std maps, per-mode z-scores, the draws and the mode table."""
-
-
-def _execute(prob, out: Path, *, nsamples: int, seed: int, batch: int, method: str, plots: bool,
-             disable_bars, build_s: float, argv=None, scenario_name=None, tol: float = 1e-6):
-    """Sample ``prob`` and write results.h5, summary.json and figures to ``out``.
-
-    Returns (summary dict, :class:`RunProducts`).
-    """
-    import jax
-    import numpy as np
-    from tqdm.auto import tqdm
-
-    import h5py
-
-    from . import maps as M
-    from .api import prepare
-    from .instrument import beam_fwhm_rad
-    from .layout import alm_to_map
-    from .problem import Config, beam_for_config
-    from .sampler import draw
-
-    stage_names = ["wiener", "draws", "maps"] + (["plots"] if plots else []) + ["write"]
-    st = _Stages(stage_names, disable_bars)
-    st.times["build"] = build_s
-    warnings: list[str] = []
-    cfg: Config = prob.config
-    lmax, nside = prob.lmax, prob.nside
-    freqs = np.asarray(prob.freqs_hz)
-    nf, n = np.asarray(prob.prior.mean).shape
-
-    # ---- Wiener filter (compile included)
-    st.start("wiener")
-    prepared = prepare(prob, method=method, tol=tol, ndraws=batch)  # P, factor/preconditioner, Wiener filter: once
-    method = prepared.method  # what "auto" chose
-    a_wf, winfo = np.asarray(jax.block_until_ready(prepared.a_wf)), prepared.wiener
-    st.stop()
-
-    # ---- draws, in full batches keyed by fold_in(seed key, batch index)
-    st.start("draws")
-    key = jax.random.PRNGKey(seed)
-    nbatch = -(-nsamples // batch)
-    chunks, dinfos, batch_times = [], [], []
-    for b in tqdm(range(nbatch), desc="draw batches", unit="batch", disable=disable_bars, leave=False, position=1):
-        tb = time.perf_counter()
-        d, info = draw(jax.random.fold_in(key, b), prepared, batch, tol=tol)
-        d = np.asarray(jax.block_until_ready(d))
-        take = min(batch, nsamples - b * batch)
-        chunks.append(d[:, :take])
-        dinfos.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[:, :take], info["draws"]))
-        batch_times.append(time.perf_counter() - tb)
-    draws = np.concatenate(chunks, axis=1)  # (Nf, nsamples, n)
-    dinfo = jax.tree_util.tree_map(lambda *a: np.concatenate(a, axis=1), *dinfos)
-    st.stop()
-
-    finite = bool(np.isfinite(draws).all())
-    solver = {"method": method, "tol_sigma": tol, "wiener": _stats(winfo), "draws": _stats(dinfo)}
-    if prepared.rank is not None:
-        rank = [int(r) for r in np.asarray(prepared.rank)]
-        solver["rank"] = rank
-        if min(rank) < n:
-            warnings.append(
-                f"NOTE: P is singular (improper posterior, e.g. S^-1 = 0): {n - min(rank)} of {n} directions carry "
-                f"no information and are pinned at 0; draws and the mean cover the {min(rank)} the data inform."
-            )
-    solver["all_converged"] = solver["wiener"]["all_converged"] and solver["draws"]["all_converged"]
-    if not solver["all_converged"]:
-        msg = (
-            f"WARNING: {solver['wiener']['n_not_converged']} Wiener-filter and "
-            f"{solver['draws']['n_not_converged']} draw solves did not converge "
-            f"(worst error {max(solver['wiener']['err_sigma_max'], solver['draws']['err_sigma_max']):.3g} "
-            "posterior sigma); results are written but may be inaccurate (exit status stays 0)."
-        )
-        warnings.append(msg)
-    if not finite:
-        warnings.append(f"ERROR: {int((~np.isfinite(draws)).sum())} non-finite values in the draws.")
-
-    # ---- maps and metrics
-    st.start("maps")
-    truth = np.asarray(prob.a_true)
-    truth_maps = alm_to_map(truth, lmax, nside)
-    wf_maps = alm_to_map(a_wf, lmax, nside)
-    if finite:
-        mean_maps, std_maps = M.posterior_maps(draws, lmax, nside)
-    else:
-        mean_maps = std_maps = np.full_like(truth_maps, np.nan)
-    z = M.mode_z_scores(draws, truth)  # (Nf, n)
-    centre_dec = float(cfg.latitude_deg)
-    ra_range = (15.0 * cfg.lst_range_hours[0], 15.0 * cfg.lst_range_hours[1])
-    per_freq = []
-    for f in range(nf):
-        fwhm = float(np.rad2deg(beam_fwhm_rad(beam_for_config(cfg), float(freqs[f]))))
-        m = {"freq_hz": float(freqs[f]), "fwhm_deg": fwhm}
-        m.update(M.summary_metrics(mean_maps[f], truth_maps[f], centre_dec, fwhm, ra_range, std_map=std_maps[f]))
-        wfm = M.summary_metrics(wf_maps[f], truth_maps[f], centre_dec, fwhm, ra_range)
-        m["wiener_frac_diff_centre_median"] = wfm["frac_diff_centre_median"]
-        m["wiener_frac_diff_fwhm_median"] = wfm["frac_diff_fwhm_median"]
-        m["mode_z"] = M.z_score_stats(z[f])
-        per_freq.append(m)
-    st.stop()
-
-    # ---- plots (first frequency, as in the paper)
-    fig_paths = {}
-    if plots:
-        st.start("plots")
-        if finite:
-            from . import plots as P
-
-            modes = prob.modes
-            f0 = per_freq[0]
-            lab = (f"{scenario_name}: " if scenario_name else "") + f"{freqs[0] / 1e6:g} MHz, {nsamples} draws"
-            fig_paths["fig3"] = P.plot_alm_residuals(
-                z[0], modes.ell, modes.m, modes.is_imag, out / "fig3_alm_residuals.png",
-                title=f"(posterior mean $-$ truth) / posterior std per mode, {lab}",
-            )
-            region = (centre_dec, f0["fwhm_deg"], ra_range)
-            fig_paths["fig4"] = P.plot_sky_maps(
-                truth_maps[0], mean_maps[0], std_maps[0], out / "fig4_sky_maps.png", region=region,
-                title=f"{lab}; green: $\\pm$1 FWHM band over the observed LSTs",
-            )
-            fig_paths["fig5"] = P.plot_beam_region(
-                M.frac_diff_map(mean_maps[0], truth_maps[0]), out / "fig5_beam_region.png",
-                centre_dec_deg=centre_dec, fwhm_deg=f0["fwhm_deg"], ra_range_deg=ra_range,
-                title=f"(posterior mean $-$ truth) / truth near the beam, {lab}\nmedian |frac|: "
-                f"{f0['frac_diff_centre_median']:.2%} on the centre ring, {f0['frac_diff_fwhm_median']:.2%} within "
-                f"$\\pm$1 FWHM (observed RA range)",
-            )
-            absfrac = np.abs(M.frac_diff_map(mean_maps[0], truth_maps[0]))
-            ra_ring, vals = M.ring_slice(absfrac, nside, centre_dec)
-            fig_paths["fig6"] = P.plot_frac_slices(
-                [(scenario_name or "this run", ra_ring, vals)], out / "fig6_slice.png", fwhm_deg=f0["fwhm_deg"],
-                ra_range_deg=ra_range, dec_deg=centre_dec, title=f"|mean $-$ truth| / truth along the beam centre, {lab}",
-            )
-            if nsamples >= 2:
-                fig_paths["fig7_correlation"] = P.plot_correlation_matrix(
-                    draws[0], modes.ell, modes.m, modes.is_imag, out / "fig7_correlation.png",
-                    title=f"posterior correlation (real parts), {lab}",
-                )
-                fig_paths["fig7_corner"] = P.plot_corner(
-                    draws[0], truth[0], modes.ell, modes.m, modes.is_imag, out / "fig7_corner.png", m_value=2,
-                    title=f"marginal posteriors / truth at m = 2, {lab}",
-                )
-            fig_paths = {k: os.path.basename(v) for k, v in fig_paths.items()}
-        st.stop()
-
-    # ---- write
-    st.start("write")
-    cfg_json = json.dumps(cfg.to_dict(), default=_json_default)
-    with h5py.File(out / "results.h5", "w") as h:
-        h.attrs["config_json"] = cfg_json
-        h.attrs["sky_note"] = prob.sky_note
-        h.attrs["gcrsky_version"] = _versions()["gcrsky"]
-        h.attrs["seed"] = seed
-        h.attrs["batch"] = batch
-        h.attrs["method"] = method
-        h.attrs["scenario"] = scenario_name or ""
-        h.attrs["key_scheme"] = "batch b: jax.random.fold_in(jax.random.PRNGKey(seed), b); full batches, last truncated"
-        h.attrs["units"] = "coefficients and maps in K; data in K sr; freqs Hz; lsts rad"
-        h.attrs["layout"] = "realified: [Re a_lm (l, m>=0) healpy order] ++ [Im a_lm (m>=1) healpy order]"
-        ds = h.create_dataset("draws", data=draws)
-        ds.attrs["shape"] = "(nfreq, ndraws, nparams)"
-        h["truth"] = truth
-        h["wiener_filter"] = a_wf
-        h["prior_mean"] = np.asarray(prob.prior.mean)
-        h["prior_inv_var"] = np.asarray(prob.prior.inv_var)
-        modes = prob.modes
-        h["modes/ell"] = modes.ell
-        h["modes/m"] = modes.m
-        h["modes/is_imag"] = modes.is_imag
-        h["freqs_hz"] = freqs
-        h["lsts_rad"] = np.asarray(prob.lsts_rad)
-        h["antpairs"] = np.asarray(prob.antpairs)
-        h["data"] = np.asarray(prob.data)
-        h["sigma"] = np.asarray(prob.sigma)
-        h["mode_z"] = z
-        g = h.create_group("maps")
-        g.attrs["note"] = "HEALPix RING, equatorial, K; mean/std over the draws"
-        for name, arr in (("truth", truth_maps), ("mean", mean_maps), ("std", std_maps)):
-            g.create_dataset(name, data=arr.astype(np.float32), compression="gzip", compression_opts=4)
-    st.stop()
-    st.close()
-
-    timings = dict(st.times)
-    timings["total"] = float(sum(v for v in st.times.values()))
-    timings["draw_batches_s"] = batch_times
-    timings["note"] = (
-        "wall-clock seconds; 'wiener' and the first draw batch include JIT compilation; "
-        "the set-up (P, its Cholesky factor or CG preconditioner, the Wiener filter) is done once, in 'wiener'"
-    )
-    summary = {
-        "frac_diff_centre_median": per_freq[0]["frac_diff_centre_median"],
-        "frac_diff_fwhm_median": per_freq[0]["frac_diff_fwhm_median"],
-        "metrics": dict(per_freq[0]),
-        "metrics_note": (
-            "metrics at the first frequency; |mean - truth|/|truth| of the posterior-mean map (sample mean of the "
-            "draws) over the beam-centre ring (the HEALPix ring nearest dec = site latitude) and the +-1 FWHM band, "
-            "both within RA = 15 x LST range; FWHM measured from the simulated beam's power pattern; "
-            "per_frequency has every channel; the two top-level frac_diff_* keys repeat the first channel's"
-        ),
-        "per_frequency": per_freq,
-        "region": {"centre_dec_deg": centre_dec, "ra_range_deg": list(ra_range),
-                   "fwhm_deg": [m["fwhm_deg"] for m in per_freq]},
-        "solver": solver,
-        "draws_finite": finite,
-        "warnings": warnings,
-        "timings_s": timings,
-        "run": {"nsamples": nsamples, "seed": seed, "batch": batch, "method": method, "scenario": scenario_name,
-                "argv": argv},
-        "figures": fig_paths,
-        "config": cfg.to_dict(),
-        "sky_note": prob.sky_note,
-        "versions": _versions(),
-        "exit_status": 0 if finite else 1,
-    }
-    with open(out / "summary.json", "w") as fh:
-        json.dump(_clean_json(summary), fh, indent=2, default=_json_default)
-    products = RunProducts(
-        truth_map=truth_maps[0], mean_map=mean_maps[0], std_map=std_maps[0], z=z[0], draws=draws[0],
-        truth=truth[0], modes=prob.modes, fwhm_deg=per_freq[0]["fwhm_deg"], centre_dec_deg=centre_dec,
-        ra_range_deg=ra_range,
-    )
-    return summary, products
-
-
-#: Groups of runs overlaid in the slice figures (the paper's Figs. 6 and 8).
-_SLICE_GROUPS = (
-    ("A", "fig6_slices_A1.png", ("standard", "A1")),
-    ("B", "fig6_slices_B.png", ("standard", "B1", "B2", "B3", "B4", "B5", "B6", "B7", "B8")),
-    ("C", "fig8_slices_C.png", ("standard", "C1", "C2", "C3", "C4", "C5")),
-    ("D", "fig8_slices_D1.png", ("standard", "D1")),
-)
-
-
 def _scenarios(args) -> int:
-    from .scenarios import (
-        SCENARIOS,
-        claims_markdown,
-        evaluate_claims,
-        result_row,
-        results_csv,
-        results_markdown,
-        scenario,
-        scenario_config,
-    )
+    from .paper.scenarios import SCENARIOS
 
     if args.list:
         for sc in SCENARIOS.values():
             extra = ", ".join(f"{k}={v}" for k, v in sc.overrides) or "-"
             print(f"{sc.name:9s} {sc.varies:28s} draws {sc.nsamples:5d}  method {sc.method:5s}  Config: {extra}")
         return 0
-    names = _suite_names(args)
+    from .paper.suite import run_suite, suite_names
+
+    names = suite_names(args.names)
     _setup_jax()
     from tqdm.auto import tqdm
 
-    from . import maps as M
-    from .problem import problem_from_config
-
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     disable_bars = True if args.no_progress else None
-    cache: dict = {}
-    rows, prods = {}, {}
-    t_suite = time.perf_counter()
-    bar = tqdm(names, desc="scenarios", unit="run", disable=disable_bars, leave=False)
-    for name in bar:
-        bar.set_description(f"scenario {name}")
-        sc = scenario(name)
-        t0 = time.perf_counter()
-        prob = problem_from_config(scenario_config(name, nside=args.nside), response_cache=cache)
-        build_s = time.perf_counter() - t0
-        nsamples = args.nsamples or sc.nsamples
-        summary, prod = _execute(
-            prob, out / name, nsamples=nsamples, seed=args.seed, batch=args.batch, method=sc.method,
-            plots=not args.no_plots, disable_bars=True, build_s=build_s, argv=getattr(args, "_argv", None),
-            scenario_name=name, tol=sc.tol,
-        )
-        row = result_row(name, summary, prod["z"])
-        reg = M.summary_metrics(prod["mean_map"], prod["truth_map"], prod["centre_dec_deg"], prod["fwhm_deg"],
-                                (0.0, 120.0))
-        row["fwhm_median_0_8h"] = reg["frac_diff_fwhm_median"]
-        rows[name] = row
-        prod.pop("draws")  # keep the suite's memory small
-        prods[name] = prod
+    bar = {}
+
+    def progress(it):
+        bar["bar"] = tqdm(it, desc="scenarios", unit="run", disable=disable_bars, leave=False)
+        return bar["bar"]
+
+    def on_result(name, row, summary):
         tqdm.write(
             f"{name:9s} centre {100 * row['centre_median']:7.2f}%  +-1 FWHM {100 * row['fwhm_median']:7.2f}%  "
             f"sky<10% {100 * row['sky_within_10pct']:5.1f}%  |z|>15: {row['z_beyond_15']:3d}  "
             f"{row['wall_s']:6.1f} s" + ("" if summary["solver"]["all_converged"] else "  (NOT CONVERGED)")
         )
-    bar.close()
-    total = time.perf_counter() - t_suite
-    table = [rows[n] for n in names]
-    claims = evaluate_claims(rows)
-    head = (
-        f"# gcrsky scenario suite\n\n{len(names)} scenarios, nside {args.nside}, seed {args.seed}; "
-        f"wall time {total:.0f} s in all (one process, JIT compilation included).  Metrics at the first "
-        "frequency (100 MHz): |posterior mean - truth| / |truth| of the maps along the beam-centre ring and "
-        "in the +-1 FWHM band over the observed RA range, the fraction of the whole sky within 10%, and "
-        "per-mode z = (mean - truth) / std of the draws.  CG iterations are per draw (0: dense sampler).\n\n"
-    )
-    (out / "results.md").write_text(head + results_markdown(table))
-    (out / "results.csv").write_text(results_csv(table))
-    (out / "claims.md").write_text("# The paper's claims, checked by this suite\n\n" + claims_markdown(claims))
-    figures = []
-    if not args.no_plots:
-        figures = _slice_figures(prods, out)
-    with open(out / "suite.json", "w") as fh:
-        json.dump(_clean_json({"scenarios": names, "rows": table, "claims": [c._asdict() for c in claims],
-                               "wall_s": total, "nside": args.nside, "seed": args.seed, "figures": figures,
-                               "versions": _versions()}), fh, indent=2, default=_json_default)
-    print(head + results_markdown(table))
-    print(claims_markdown(claims))
-    print(f"wrote {out}/results.md, results.csv, claims.md, suite.json" + (", " + ", ".join(figures) if figures else ""))
+
+    res = run_suite(names, args.out, nside=args.nside, nsamples=args.nsamples, seed=args.seed, batch=args.batch,
+                    plots=not args.no_plots, argv=getattr(args, "_argv", None), progress=progress,
+                    on_result=on_result)
+    if "bar" in bar:
+        bar["bar"].close()
+    print(res.markdown)
+    print(res.claims_markdown)
+    print(f"wrote {args.out}/results.md, results.csv, claims.md, suite.json"
+          + (", " + ", ".join(res.figures) if res.figures else ""))
     return 0
-
-
-def _suite_names(args) -> list[str]:
-    """The scenarios to run, canonical names; ValueError for unknown or repeated ones."""
-    from .scenarios import SCENARIOS, scenario
-
-    names = [scenario(n).name for n in args.names] or list(SCENARIOS)
-    if len(set(names)) != len(names):
-        raise ValueError(f"scenario names repeat: {names}")
-    return names
-
-
-def _slice_figures(prods: dict, out: Path) -> list[str]:
-    """The slice figures of every group with at least two runs present."""
-    import numpy as np
-
-    from . import maps as M
-    from . import plots as P
-
-    written = []
-    for _, fname, members in _SLICE_GROUPS:
-        have = [n for n in members if n in prods]
-        if len(have) < 2 and not (len(have) == 1 and len(members) == 1):
-            continue
-        ref = prods["standard"] if "standard" in prods else prods[have[0]]
-        curves = []
-        for n in have:
-            p = prods[n]
-            nside = int(np.sqrt(p["mean_map"].size / 12))
-            absfrac = np.abs(M.frac_diff_map(p["mean_map"], p["truth_map"]))
-            ra, vals = M.ring_slice(absfrac, nside, p["centre_dec_deg"])
-            same = tuple(p["ra_range_deg"]) == tuple(ref["ra_range_deg"])
-            curves.append((n, ra, vals) if same else (n, ra, vals, p["ra_range_deg"]))
-        P.plot_frac_slices(curves, out / fname, fwhm_deg=ref["fwhm_deg"], ra_range_deg=ref["ra_range_deg"],
-                           dec_deg=ref["centre_dec_deg"],
-                           title="|posterior mean - truth| / truth along the beam-centre declination")
-        written.append(fname)
-    return written
 
 
 def _print_summary(s: dict, out: Path) -> None:
@@ -747,8 +367,10 @@ def main(argv=None) -> int:
     if args.command == "scenarios":
         from tqdm.contrib.logging import logging_redirect_tqdm
 
+        from .paper.suite import suite_names
+
         try:
-            _suite_names(args)
+            suite_names(args.names)
         except ValueError as e:
             parser.error(str(e))
         with logging_redirect_tqdm():
@@ -759,7 +381,7 @@ def main(argv=None) -> int:
                 f"--lst-stop ({args.lst_stop:g} h) is before --lst-start ({args.lst_start:g} h); to wrap "
                 f"through 0 h give a stop beyond 24 h (e.g. --lst-start 22 --lst-stop 26)"
             )
-        from .problem import Config
+        from .sim.config import Config
 
         try:
             Config(lmax=args.lmax, nside=args.nside, n_lst=args.n_lst,

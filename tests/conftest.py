@@ -14,11 +14,10 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 from typing import NamedTuple
-
-import os
 
 # before JAX starts its backend: avoid XLA CPU's Eigen-pool hang (gcrsky/runtime.py)
 if os.environ.get("GCRSKY_FAST_THREADS") != "1" and "xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", ""):
@@ -36,8 +35,15 @@ except ImportError:  # running from a checkout without an install
 import numpy as np
 import pytest
 
-from gcrsky.instrument import HERA_LATITUDE_DEG, Array, antpairs, gaussian_beam, hex_array, make_array
-from gcrsky.response import response_matrix
+from gcrsky.instrument import (
+    HERA_LATITUDE_DEG,
+    AntennaArray,
+    antpairs,
+    gaussian_beam,
+    hex_array,
+    make_array,
+    response_matrix,
+)
 
 #: The small shared problem (cheap: the response builds in well under a second).
 SMALL_LMAX = 6
@@ -59,7 +65,7 @@ def getkey():
 
 
 @pytest.fixture(scope="session")
-def small_array() -> Array:
+def small_array() -> AntennaArray:
     """The paper's 10-antenna hexagon (rows 3-4-3, 14.6 m) of 14 m Gaussian dishes at HERA."""
     return make_array(hex_array(), HERA_LATITUDE_DEG, gaussian_beam(SMALL_DISH_M))
 
@@ -69,14 +75,14 @@ class SmallResponse(NamedTuple):
 
     Attributes:
         response: (Nf, Nbl, n) complex response at ``lst_ref_rad = 0``.
-        array: the :class:`gcrsky.instrument.Array`.
+        array: the :class:`gcrsky.instrument.AntennaArray`.
         pairs: (Nbl, 2) cross-correlation antenna pairs (45 for 10 antennas).
         freqs_hz: (Nf,) frequencies in Hz.
         lmax, nside: degree and HEALPix nside of the quadrature.
     """
 
     response: jax.Array
-    array: Array
+    array: AntennaArray
     pairs: np.ndarray
     freqs_hz: np.ndarray
     lmax: int

@@ -4,10 +4,10 @@ Set-up: the 10-antenna hexagon at lmax 4 (n = 25), nside 16, one channel, 6 LSTs
 over 0-6 h, heterogeneous per-component noise sigma in [1.5, 3] x 1e-4, an
 isotropic prior C_l = 200 / (1 + l)^2, and flags: 20% of samples at random plus
 the whole time index 2 and the whole baseline index 7 (33% flagged in all), with
-NaN in the flagged data (cleaned by :func:`gcrsky.noise.clean_data` like real data).
+NaN in the flagged data (cleaned by :func:`gcrsky.model.clean_data` like real data).
 Each SBC run: M = 1000 replicates, truth ~ prior, data ~ likelihood, L = 15
 posterior draws per replicate, ranks of 9 functionals fixed in advance
-(:func:`gcrsky.calibration.default_functionals`): the 3 most data-dominated
+(:func:`gcrsky.checks.sbc.default_functionals`): the 3 most data-dominated
 directions in prior-whitened coordinates (whitened data-term eigenvalue lam ~
 1e5-8e5, the data carry > 99.99% of the precision), the 1 most balanced (lam 0.68),
 the 2 most prior-dominated (lam < 3e-4) and the coefficients a_00, Re a_11, Im a_31.
@@ -46,7 +46,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from gcrsky.calibration import (
+from gcrsky.checks.sbc import (
     GCRSampler,
     default_functionals,
     flagged_example_problem,
@@ -54,6 +54,7 @@ from gcrsky.calibration import (
     reference_bug_sampler,
     run_sbc,
 )
+from gcrsky.solvers import CGOptions
 
 jax.config.update("jax_enable_x64", True)
 
@@ -112,7 +113,7 @@ def test_setup_is_realistic_and_functionals_probe_both_regimes(setup):
         # iterates (up to ~25 iterations); dense P (gcrsky.sample's default; the
         # matrix-free P is checked against it in test_flags.py).  Replicates one at a
         # time: the vmapped CG compiles slower than it runs here.
-        (GCRSampler("cg", dense=True, preconditioner="nystrom", rank=8), 100, None),
+        (GCRSampler("cg", CGOptions(dense=True, preconditioner="nystrom", rank=8)), 100, None),
         (GCRSampler("cholesky"), 101, 50),
     ],
     ids=["cg", "cholesky"],

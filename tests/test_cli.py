@@ -138,15 +138,15 @@ def test_no_command_is_an_error(capsys):
 
 def test_nan_draws_exit_nonzero(monkeypatch, tmp_path, capsys):
     """Non-finite draws: results are still written, the exit status is 1, with a message."""
-    import gcrsky.sampler
+    import gcrsky.inference.batches
 
-    real = gcrsky.sampler.draw
+    real = gcrsky.inference.batches.draw
 
     def poisoned(*a, **k):
         d, info = real(*a, **k)
         return d.at[0, 0, 0].set(np.nan), info
 
-    monkeypatch.setattr(gcrsky.sampler, "draw", poisoned)
+    monkeypatch.setattr(gcrsky.inference.batches, "draw", poisoned)
     rc = cli.main(["run", "--out", str(tmp_path), "--nsamples", "4", "--no-plots", *SMALL])
     assert rc == 1
     assert "NaN" in capsys.readouterr().err

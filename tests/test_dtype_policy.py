@@ -7,7 +7,7 @@ import textwrap
 import jax.numpy as jnp
 import pytest
 
-from gcrsky.normal import check_float64
+from gcrsky.base import check_float64
 
 
 def test_check_float64_rejects_float32_and_complex64():

@@ -1,6 +1,6 @@
 """Flags and bad samples (DESIGN section 3): a flagged sample has no effect at all.
 
-* :func:`gcrsky.noise.weights_from_flags` turns boolean flags into weights.
+* :func:`gcrsky.model.weights_from_flags` turns boolean flags into weights.
 * Whatever a flagged sample holds (NaN, +Inf, -Inf, 1e300, finite garbage) the
   problem is *bitwise* the same: same cleaned data, precision matrix, Wiener
   filter and draws for the same key (``clean_data`` zeroes every flagged sample).
@@ -27,13 +27,20 @@ import numpy as np
 import pytest
 
 import gcrsky
+from gcrsky.inference import prepare_sampler, wiener_filter_system
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
-from gcrsky.noise import clean_data, weights_from_flags
-from gcrsky.normal import LinearSystem, precision_matrix, wiener_rhs
-from gcrsky.operator import dense_matrix
-from gcrsky.prior import isotropic_prior
-from gcrsky.problem import build_problem, hours_to_rad
-from gcrsky.sampler import prepare_sampler, wiener_filter_system
+from gcrsky.model import (
+    LinearSystem,
+    build_problem,
+    clean_data,
+    dense_matrix,
+    isotropic_prior,
+    precision_matrix,
+    weights_from_flags,
+    wiener_rhs,
+)
+from gcrsky.solvers import CGOptions
+from gcrsky.sphere import hours_to_rad
 
 jax.config.update("jax_enable_x64", True)
 
@@ -213,7 +220,7 @@ def test_scattered_flags_equal_dense_posterior_of_unflagged_rows(base):
     # matrix-free CG (flags enter through W in every matvec): with the rank-128 >= n Nystrom
     # preconditioner err_sigma bounds the error's P-norm, which bounds every mode's error
     # in sigma units; 1e-9 is just above the rounding floor of the residual (~1.4e-10)
-    a_cg, info = wiener_filter_system(p.system(), dense=False, tol=1e-9)
+    a_cg, info = wiener_filter_system(p.system(), options=CGOptions(dense=False), tol=1e-9)
     assert bool(info.converged.all())
     assert (np.abs(np.asarray(a_cg)[0] - a_ref) / sig).max() < 1e-9
     # Cholesky draws: a_ref + L^-T z with z = normal(split(key, k)[i], (Nf, n))

@@ -1,4 +1,4 @@
-"""Tests of gcrsky.harmonics.real_basis against healpy and scipy.
+"""Tests of gcrsky.sphere.real_basis against healpy and scipy.
 
 References:
 * healpy ``alm2map`` at HEALPix pixel centres (independent SHT library);
@@ -23,8 +23,7 @@ import pytest
 from jax.test_util import check_grads
 from scipy.special import sph_harm_y_all
 
-from gcrsky.harmonics import legendre_table, real_basis
-from gcrsky.layout import mode_table, n_params, realify
+from gcrsky.sphere import legendre_table, mode_table, n_params, real_basis, realify
 
 REL = 1e-10
 

@@ -1,4 +1,4 @@
-"""Tests of gcrsky.layout: the (l, m) packing and the real-harmonic basis convention.
+"""Tests of gcrsky.sphere.modes: the (l, m) packing and the real-harmonic basis convention.
 
 References: healpy's ``Alm`` indexing and ``alm2map`` (independent SHT code), and
 scipy's ``sph_harm_y`` (Condon-Shortley phase, ``sph_harm_y(l, m, colatitude,
@@ -17,15 +17,7 @@ import numpy as np
 import pytest
 from scipy.special import sph_harm_y
 
-from gcrsky.layout import (
-    alm_to_map,
-    lmax_from_nparams,
-    mode_table,
-    n_alm,
-    n_params,
-    realify,
-    unrealify,
-)
+from gcrsky.sphere import alm_to_map, lmax_from_nparams, mode_table, n_alm, n_params, realify, unrealify
 
 EXACT = 1e-12  # float64 identity on O(1) values (see module docstring)
 

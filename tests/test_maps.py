@@ -1,4 +1,4 @@
-"""Tests of gcrsky.maps: beam-region masks, posterior maps and accuracy metrics.
+"""Tests of gcrsky.paper.metrics: beam-region masks, posterior maps and accuracy metrics.
 
 All synthetic, NumPy-only and fast: masks are checked against the sphere's
 geometry (ring declinations, band areas), metrics against maps with known answers.
@@ -10,8 +10,8 @@ import healpy as hp
 import numpy as np
 import pytest
 
-from gcrsky import maps as M
-from gcrsky.layout import alm_to_map, n_params
+from gcrsky.paper import metrics as M
+from gcrsky.sphere import alm_to_map, n_params, posterior_maps
 
 LAT = -30.7215
 
@@ -177,13 +177,13 @@ def test_posterior_maps_mean_and_std():
     rng = np.random.default_rng(3)
     lmax, nside, nd = 4, 8, 7
     draws = rng.normal(size=(2, nd, n_params(lmax)))
-    mean_map, std_map = M.posterior_maps(draws, lmax, nside, chunk=3)
+    mean_map, std_map = posterior_maps(draws, lmax, nside, chunk=3)
     direct = alm_to_map(draws, lmax, nside)  # (2, nd, npix)
     np.testing.assert_allclose(mean_map, direct.mean(axis=1), atol=1e-12)
     np.testing.assert_allclose(std_map, direct.std(axis=1, ddof=1), atol=1e-12)
     assert mean_map.shape == std_map.shape == (2, hp.nside2npix(nside))
     # lmax inferred from n
-    m2, s2 = M.posterior_maps(draws[0], nside=nside)
+    m2, s2 = posterior_maps(draws[0], nside=nside)
     np.testing.assert_allclose(m2, mean_map[0], atol=1e-12)
 
 

@@ -82,10 +82,20 @@ from astropy.utils import iers  # noqa: E402
 from matvis.core.coords import CoordinateRotation  # noqa: E402
 from pyuvdata.analytic_beam import UnpolarizedAnalyticBeam  # noqa: E402
 
-from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array  # noqa: E402
-from gcrsky.layout import alm_to_map, n_params  # noqa: E402
-from gcrsky.response import equatorial_to_enu, kelvin_sr_to_jy, response_matrix  # noqa: E402
-from gcrsky.rotation import rotate  # noqa: E402
+from gcrsky.base import kelvin_sr_to_jy
+from gcrsky.instrument import (  # noqa: E402  # noqa: E402
+    HERA_LATITUDE_DEG,
+    equatorial_to_enu,
+    gaussian_beam,
+    hex_array,
+    make_array,
+    response_matrix,
+)
+from gcrsky.sphere import (  # noqa: E402
+    alm_to_map,
+    n_params,
+    rotate,  # noqa: E402
+)
 
 LMAX = 20
 NSIDE = 32

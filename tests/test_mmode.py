@@ -1,6 +1,6 @@
-"""Tests of the exact m-mode solver (gcrsky.mmode, DESIGN §4, issue 5).
+"""Tests of the exact m-mode solver (gcrsky.solvers.mmode, DESIGN §4, issue 5).
 
-References: the dense precision matrix :func:`gcrsky.normal.precision_matrix`, a dense
+References: the dense precision matrix :func:`gcrsky.model.precision_matrix`, a dense
 NumPy solve for the Wiener filter and the dense Cholesky factor for whitening draws.
 The problem is the shared small one (10-antenna hexagon, lmax 6, nside 32, two
 frequencies) observed with Nt = 2 lmax + 3 equally spaced LSTs over the whole day and
@@ -17,21 +17,11 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from gcrsky.instrument import antpairs
-from gcrsky.layout import lmax_from_nparams, mode_table
-from gcrsky.mmode import (
-    blocks_to_dense,
-    draw_mmode,
-    is_mmode_diagonal,
-    mmode_blocks,
-    mmode_check,
-    mmode_wiener_and_draws,
-    prepare_mmode,
-)
-from gcrsky.normal import LinearSystem, precision_matrix, wiener_rhs
-from gcrsky.operator import VisOperator
-from gcrsky.prior import isotropic_prior
-from gcrsky.response import response_matrix
+from gcrsky.instrument import antpairs, response_matrix
+from gcrsky.model import LinearSystem, VisOperator, isotropic_prior, precision_matrix, wiener_rhs
+from gcrsky.solvers import draw_mmode, mmode_blocks, mmode_check, prepare_mmode
+from gcrsky.solvers.mmode import blocks_to_dense, is_mmode_diagonal, mmode_wiener_and_draws
+from gcrsky.sphere import lmax_from_nparams, mode_table
 
 #: total false-alarm rate of the statistical test of the draws, split over its parts
 FALSE_ALARM = 1e-3

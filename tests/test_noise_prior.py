@@ -1,4 +1,4 @@
-"""Tests of gcrsky.noise and gcrsky.prior (and normal.check_float64).
+"""Tests of gcrsky.model.noise and gcrsky.model.prior (and normal.check_float64).
 
 Statistical tests use fixed keys, so they are deterministic; each states the
 false-alarm rate it would have under fresh randomness (a z-score bound of 5
@@ -14,10 +14,17 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from gcrsky.layout import mode_table, n_params, realify, unrealify
-from gcrsky.noise import clean_data, draw_noise, inverse_variance, radiometer_sigma
-from gcrsky.normal import check_float64
-from gcrsky.prior import flat_prior, isotropic_prior, paper_prior
+from gcrsky.base import check_float64
+from gcrsky.model import (
+    clean_data,
+    draw_noise,
+    flat_prior,
+    inverse_variance,
+    isotropic_prior,
+    paper_prior,
+    radiometer_sigma,
+)
+from gcrsky.sphere import mode_table, n_params, realify, unrealify
 
 Z = 5.0  # two-sided false-alarm rate 2 * norm.sf(5) = 5.7e-7 per check
 

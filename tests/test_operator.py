@@ -2,7 +2,7 @@
 
 References used:
 * the complex-alm definition of the rotation ``a_lm exp(i m dphi)`` evaluated in
-  NumPy (independent of :func:`gcrsky.rotation.rotate`);
+  NumPy (independent of :func:`gcrsky.sphere.rotate`);
 * the response recomputed by quadrature at another reference angle;
 * dense linear algebra (``dense_matrix``, ``X^T W X`` by NumPy, eigenvalues);
 * the analytic m-mode structure of P for uniform full-day coverage (DESIGN §4);
@@ -20,21 +20,20 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gcrsky.harmonics import real_basis
-from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
-from gcrsky.layout import mode_table, n_alm, n_params, realify, unrealify
-from gcrsky.normal import (
+from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array, response_matrix
+from gcrsky.model import (
     LinearSystem,
-    apply_preconditioner,
-    m_block_preconditioner,
-    m_blocks,
+    Prior,
+    VisOperator,
+    adjoint,
+    apply,
+    dense_matrix,
     precision_apply,
     precision_matrix,
 )
-from gcrsky.operator import VisOperator, adjoint, apply, dense_matrix
-from gcrsky.prior import Prior
-from gcrsky.response import response_matrix
-from gcrsky.rotation import rotate, rotate_complex_alm
+from gcrsky.solvers import apply_preconditioner, m_block_preconditioner
+from gcrsky.solvers.preconditioners import m_blocks
+from gcrsky.sphere import mode_table, n_alm, n_params, real_basis, realify, rotate, rotate_complex_alm, unrealify
 
 ALG = 1e-12
 #: Every operator in this file has NT angles, so apply/adjoint/precision_matrix compile once.

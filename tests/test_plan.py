@@ -1,4 +1,4 @@
-"""Automatic sampler-path choice and memory checks (gcrsky.plan, gcrsky.api.choose_path).
+"""Automatic sampler-path choice and memory checks (gcrsky.solvers.plan, gcrsky.solvers.choose_path).
 
 References: the dense Cholesky posterior (Wiener filter and covariance) of the same
 problem.  Every path is exact, so whatever ``"auto"`` picks must reproduce the dense
@@ -13,15 +13,10 @@ import numpy as np
 import pytest
 
 import gcrsky
-from gcrsky.plan import (
-    InsufficientMemoryError,
-    available_memory_bytes,
-    path_memory_bytes,
-    plan_sampler,
-)
-from gcrsky.prior import flat_prior, isotropic_prior
-from gcrsky.problem import build_problem
-from gcrsky.response import response_matrix
+from gcrsky.base import InsufficientMemoryError, available_memory_bytes
+from gcrsky.instrument import response_matrix
+from gcrsky.model import build_problem, flat_prior, isotropic_prior
+from gcrsky.solvers import CGOptions, path_memory_bytes, plan_sampler
 
 
 def _problem(small_response, lsts, *, flat=False):
@@ -51,7 +46,7 @@ def partial(small_response):
 
 def _dense_wf_and_sigma(problem):
     P = np.asarray(problem.precision_matrix())
-    b = np.asarray(gcrsky.normal.wiener_rhs(problem.system()))
+    b = np.asarray(gcrsky.model.wiener_rhs(problem.system()))
     a = np.stack([np.linalg.solve(P[f], b[f]) for f in range(P.shape[0])])
     sig = np.stack([np.sqrt(np.diag(np.linalg.inv(P[f]))) for f in range(P.shape[0])])
     return a, sig
@@ -74,7 +69,7 @@ def test_small_budget_falls_back_to_matrix_free_cg(partial, getkey):
     sysm = partial.system()
     dense = path_memory_bytes(sysm, "cholesky")
     plan = plan_sampler(sysm, budget=1.9 * dense)  # dense needs <= 50% of the budget: not met
-    assert (plan.method, plan.dense, plan.preconditioner) == ("cg", False, "nystrom")
+    assert (plan.method, plan.options.dense, plan.options.preconditioner) == ("cg", False, "nystrom")
     assert "matrix-free" in plan.reason
     a_ref, sig = _dense_wf_and_sigma(partial)
     a = gcrsky.wiener_filter(partial, tol=1e-10, memory_budget=1.9 * dense)
@@ -84,12 +79,12 @@ def test_small_budget_falls_back_to_matrix_free_cg(partial, getkey):
 def test_flat_prior_uses_the_eigen_sampler(small_response):
     prob = _problem(small_response, np.linspace(0.0, 2 * np.pi / 3, 10), flat=True)
     assert plan_sampler(prob.system()).method == "eigh"
-    assert plan_sampler(prob.system(), budget=1.0 * path_memory_bytes(prob.system(), "cg", dense=False)).preconditioner == "mblock"
+    assert plan_sampler(prob.system(), budget=1.0 * path_memory_bytes(prob.system(), "cg", dense=False)).options.preconditioner == "mblock"
 
 
 def test_memory_errors_name_size_and_alternative(partial):
     sysm = partial.system()
-    with pytest.raises(InsufficientMemoryError, match=r"method='cholesky' needs ~.*KiB.*dense=False"):
+    with pytest.raises(InsufficientMemoryError, match=r"method='cholesky' needs ~.*KiB.*CGOptions\(dense=False\)"):
         gcrsky.prepare(partial, method="cholesky", memory_budget=1000.0)
     with pytest.raises(InsufficientMemoryError, match="matrix-free CG.*smaller batches"):
         plan_sampler(sysm, budget=1000.0)
@@ -107,7 +102,7 @@ def test_estimates_cover_the_arrays_they_describe(partial, full_day):
     assert actual <= est <= 1.5 * actual
     pm = gcrsky.prepare(full_day, method="mmode")
     est = path_memory_bytes(full_day.system(), "mmode")
-    assert pm.mblocks.nbytes <= est <= 4 * pm.mblocks.nbytes + 6 * 8 * full_day.n * 2 + 1
+    assert pm.chol.nbytes <= est <= 4 * pm.chol.nbytes + 6 * 8 * full_day.n * 2 + 1
 
 
 def test_budget_environment_override(monkeypatch):
@@ -124,14 +119,15 @@ def test_budget_environment_override(monkeypatch):
 def test_float32_preconditioner_keeps_the_answer_exact(partial, pc):
     """A float32 preconditioner changes only the iteration count: products, iterates and
     the stopping test stay float64, so the Wiener filter meets the same 1e-8 sigma bar."""
-    from gcrsky.sampler import make_preconditioner, wiener_filter_system
+    from gcrsky.inference import wiener_filter_system
+    from gcrsky.solvers import make_preconditioner
 
     sysm = partial.system()
     pc32 = make_preconditioner(sysm, pc, None, 32, "float32")
     leaves = [x for x in jax.tree_util.tree_leaves(pc32) if np.issubdtype(x.dtype, np.floating)]
     assert leaves and all(x.dtype == np.float32 for x in leaves)
     a_ref, sig = _dense_wf_and_sigma(partial)
-    a, info = wiener_filter_system(sysm, tol=1e-10, maxiter=5000, dense=False, preconditioner=pc, pc_dtype="float32")
+    a, info = wiener_filter_system(sysm, options=CGOptions(tol=1e-10, maxiter=5000, dense=False, preconditioner=pc, pc_dtype="float32"))
     assert bool(np.all(np.asarray(info.converged)))
     assert np.asarray(a).dtype == np.float64
     assert np.max(np.abs(np.asarray(a) - a_ref) / sig) < 1e-8
@@ -141,13 +137,13 @@ def test_float32_preconditioner_keeps_the_answer_exact(partial, pc):
 
 def test_blocked_triangular_product_equals_dense():
     """The Cholesky draws' block-row product skips only exact zeros (n >= 256 uses 4 blocks)."""
-    from gcrsky.sampler import _upper_triangular_product
+    from gcrsky.solvers.dense import upper_triangular_product
 
     rng = np.random.default_rng(3)
     for n in (10, 300):
         U = np.triu(rng.standard_normal((2, n, n)))
         z = rng.standard_normal((5, 2, n))
-        got = np.asarray(_upper_triangular_product(jax.numpy.asarray(U), jax.numpy.asarray(z)))
+        got = np.asarray(upper_triangular_product(jax.numpy.asarray(U), jax.numpy.asarray(z)))
         ref = np.einsum("fij,dfj->fdi", U, z)
         assert got.shape == (2, 5, n)
         assert np.max(np.abs(got - ref)) < 1e-12 * np.abs(ref).max()

@@ -1,4 +1,4 @@
-"""Figure functions (gcrsky.plots) and the slice helpers they rely on (gcrsky.maps).
+"""Figure functions (gcrsky.paper.figures) and the slice helpers they rely on (gcrsky.paper.metrics).
 
 Synthetic, small inputs only (random draws at lmax 6, maps at nside 16/32): every
 figure function must write a PNG that reads back as a real, non-blank image.
@@ -12,9 +12,9 @@ import healpy as hp
 import numpy as np
 import pytest
 
-from gcrsky import maps as M
-from gcrsky import plots as P
-from gcrsky.layout import alm_to_map, mode_table, n_params
+from gcrsky.paper import figures as P
+from gcrsky.paper import metrics as M
+from gcrsky.sphere import alm_to_map, mode_table, n_params, posterior_maps
 
 LMAX = 6
 LAT = -30.7215
@@ -48,7 +48,7 @@ def synth():
     draws = truth + 0.1 * np.abs(truth) * (rng.normal(size=(300, n)) @ mix.T)
     nside = 16
     truth_map = alm_to_map(truth, LMAX, nside)
-    mean_map, std_map = M.posterior_maps(draws, LMAX, nside)
+    mean_map, std_map = posterior_maps(draws, LMAX, nside)
     return dict(mt=mt, truth=truth, draws=draws, nside=nside, truth_map=truth_map, mean_map=mean_map, std_map=std_map)
 
 

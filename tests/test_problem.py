@@ -6,10 +6,9 @@ import numpy as np
 import pytest
 
 import gcrsky
-from gcrsky.instrument import HERA_LATITUDE_DEG, antpairs, gaussian_beam, hex_array, make_array
-from gcrsky.noise import radiometer_sigma
-from gcrsky.response import response_matrix
-from gcrsky.rotation import rotate
+from gcrsky.instrument import HERA_LATITUDE_DEG, antpairs, gaussian_beam, hex_array, make_array, response_matrix
+from gcrsky.model import radiometer_sigma
+from gcrsky.sphere import rotate
 
 SMALL = dict(lmax=6, nside=32, n_lst=4)
 

@@ -1,4 +1,4 @@
-"""Redundant-baseline compression (gcrsky.redundancy) is exact.
+"""Redundant-baseline compression (gcrsky.instrument.redundancy) is exact.
 
 Setting: the shared 10-antenna hexagon (rows 3-4-3, 14.6 m, 14 m Gaussian dishes),
 lmax 6, nside 32, 100 and 102 MHz (``small_response`` in conftest), 4 rotation
@@ -28,24 +28,35 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gcrsky.instrument import HERA_LATITUDE_DEG, antpairs, gaussian_beam, hex_array, make_array
-from gcrsky.normal import LinearSystem, fluctuation_rhs, precision_matrix, wiener_rhs
-from gcrsky.operator import VisOperator, adjoint
-from gcrsky.prior import Prior
-from gcrsky.problem import build_problem
-from gcrsky.redundancy import (
+from gcrsky.inference import prepare_sampler, sample_system
+from gcrsky.instrument import (
+    HERA_LATITUDE_DEG,
     RedundantGroups,
+    antpairs,
     check_redundancy,
+    gaussian_beam,
+    groups_for_array,
+    hex_array,
+    make_array,
+    redundant_groups,
+    redundant_responses,
+    response_matrix,
+    unique_response,
+)
+from gcrsky.model import (
+    LinearSystem,
+    Prior,
+    VisOperator,
+    adjoint,
+    build_problem,
     compress_problem,
     compress_system,
     compress_visibilities,
-    groups_for_array,
-    redundant_groups,
-    redundant_responses,
-    unique_response,
+    fluctuation_rhs,
+    precision_matrix,
+    wiener_rhs,
 )
-from gcrsky.response import response_matrix
-from gcrsky.sampler import prepare_sampler, sample_system
+from gcrsky.solvers import CGOptions
 
 NT = 4
 EXACT = 1e-12  # products (P, rhs, covariances): measured <= 1e-15
@@ -226,7 +237,7 @@ def test_wiener_filter_and_draws_identical(system, groups, getkey):
     assert rel(i1["a_wf"], i0["a_wf"]) < SOLVE
     assert rel(d1, d0) < SOLVE  # same P -> same Cholesky factor -> same draws for the same key
     # the CG path (matrix-free) converges to the same Wiener filter
-    p = prepare_sampler(c, dense=False, preconditioner="nystrom", tol=1e-8)  # rounding floor ~5e-9 sigma here
+    p = prepare_sampler(c, options=CGOptions(dense=False, preconditioner="nystrom"), tol=1e-8)  # rounding floor ~5e-9 sigma here
     assert bool(np.all(p.wiener.converged))
     assert rel(p.a_wf, i0["a_wf"]) < 1e-8  # measured 6e-12
 
@@ -362,15 +373,16 @@ def test_compress_problem(small_response, groups, getkey):
     # unchanged metadata; the original is untouched
     assert small.auto_response is prob.auto_response and small.prior is prob.prior
     assert prob.response.shape[1] == 45
-    # from the config (standard-case-like problems record their hexagon)
-    from gcrsky.problem import Config
-
-    cfg = Config(lmax=small_response.lmax, nside=small_response.nside)
-    prob_cfg = dataclasses.replace(prob, config=cfg)
-    small_cfg = compress_problem(prob_cfg)
-    np.testing.assert_array_equal(np.asarray(small_cfg.data), np.asarray(small.data))
+    # from the layout the Problem records (build_problem stores positions and beam labels)
+    assert prob.config is None
+    small_rec = compress_problem(prob)
+    np.testing.assert_array_equal(np.asarray(small_rec.data), np.asarray(small.data))
+    np.testing.assert_array_equal(small_rec.antpairs, small.antpairs)
     with pytest.raises(ValueError, match="pass array"):
-        compress_problem(prob)  # no config, no array
+        compress_problem(dataclasses.replace(prob, antpos_enu_m=None))  # no recorded layout, no array
+    # the recorded beam labels count: baselines whose antennas carry other labels are not merged
+    split = dataclasses.replace(prob, beam_ids=np.arange(10) % 2)
+    assert compress_problem(split).response.shape[1] > small.response.shape[1]
     with pytest.raises(ValueError, match="different antenna pairs"):
         compress_problem(prob, groups=groups_for_array(arr, antpairs(10)[::-1]))
 

@@ -19,8 +19,15 @@ import numpy as np
 import pytest
 from pyuvdata.analytic_beam import AiryBeam
 
-from gcrsky.instrument import HERA_LATITUDE_DEG, antpairs, gaussian_beam, hex_array, make_array
-from gcrsky.response import response_matrix, sky_grid
+from gcrsky.instrument import (
+    HERA_LATITUDE_DEG,
+    antpairs,
+    gaussian_beam,
+    hex_array,
+    make_array,
+    response_matrix,
+    sky_grid,
+)
 
 FREQS = (100e6, 102e6)
 
@@ -72,7 +79,7 @@ def test_bad_arguments(small_array):
 
 
 def test_response_refuses_what_does_not_fit(small_array, monkeypatch):
-    from gcrsky.plan import InsufficientMemoryError
+    from gcrsky.base import InsufficientMemoryError
 
     monkeypatch.setenv("GCRSKY_MEMORY_BUDGET_GB", "0.01")  # 10 MiB
     with pytest.raises(InsufficientMemoryError, match=r"response \(2 freqs x 45 baselines x 441 modes.*redundant"):

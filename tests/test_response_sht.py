@@ -16,16 +16,17 @@ import numpy as np
 import pytest
 from pyuvdata.analytic_beam import UnpolarizedAnalyticBeam
 
-from gcrsky.harmonics import real_basis
 from gcrsky.instrument import (
     HERA_LATITUDE_DEG,
     antpairs,
     gaussian_beam,
     hex_array,
     make_array,
+    realified_projection,
+    response_matrix,
+    response_matrix_sht,
 )
-from gcrsky.response import response_matrix
-from gcrsky.response_sht import realified_projection, response_matrix_sht
+from gcrsky.sphere import real_basis
 
 FREQS = (100e6, 102e6)
 RTOL = 1e-12

@@ -1,4 +1,4 @@
-"""Full Wigner-D rotations of realified coefficients (gcrsky.rotation) against healpy.
+"""Full Wigner-D rotations of realified coefficients (gcrsky.sphere.rotation) against healpy.
 
 healpy's ``rotate_alm`` (HEALPix C++ Wigner recursion) is the independent
 reference; gcrsky's blocks come from the eigenvectors of J_x (LAPACK), so
@@ -11,16 +11,19 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gcrsky.layout import n_alm, n_params, realify, unrealify
-from gcrsky.rotation import (
+from gcrsky.sphere import (
     euler_zyz,
     from_lm_grid,
+    n_alm,
+    n_params,
+    realify,
     rotate,
     rotate_euler,
     rotate_euler_transpose,
     rotate_matrix,
     rotation_matrix_zyz,
     to_lm_grid,
+    unrealify,
     wigner_blocks,
 )
 
@@ -82,7 +85,7 @@ def test_rotation_of_the_map_is_the_active_rotation(blocks64):
 
 def _synth(a, lmax, vec):
     """Band-limited synthesis at arbitrary unit vectors (3, P) via gcrsky's real basis."""
-    from gcrsky.harmonics import real_basis
+    from gcrsky.sphere import real_basis
 
     theta = np.arccos(np.clip(vec[2], -1, 1))
     phi = np.arctan2(vec[1], vec[0])

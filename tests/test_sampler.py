@@ -17,11 +17,11 @@ import pytest
 from scipy import stats
 
 import gcrsky
+from gcrsky.inference import sample_system, wiener_filter_system
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
-from gcrsky.normal import fluctuation_rhs, wiener_rhs
-from gcrsky.problem import build_problem, hours_to_rad
-from gcrsky.prior import Prior, isotropic_prior
-from gcrsky.sampler import pcg, sample_system, wiener_filter_system
+from gcrsky.model import Prior, build_problem, fluctuation_rhs, isotropic_prior, wiener_rhs
+from gcrsky.solvers import CGOptions, EighOptions, pcg
+from gcrsky.sphere import hours_to_rad
 
 jax.config.update("jax_enable_x64", True)
 
@@ -174,7 +174,7 @@ def test_fixed_key_reproduces_and_keys_differ(small):
 
 @pytest.mark.parametrize("preconditioner", ["nystrom", "mblock"])
 def test_wiener_filter_cg_equals_dense(small, preconditioner):
-    a, info = gcrsky.wiener_filter(small["prob"], return_info=True, preconditioner=preconditioner)
+    a, info = gcrsky.wiener_filter(small["prob"], return_info=True, options=CGOptions(preconditioner=preconditioner))
     assert bool(np.all(np.asarray(info.converged)))
     sig = np.sqrt(np.diag(np.linalg.inv(small["P"])))
     # tol 1e-6 in P-norm bounds every mode's error by 1e-6 sigma (|e_k| <= sigma_k ||e||_P)
@@ -187,7 +187,7 @@ def test_nystrom_error_estimate_bounds_the_true_error(small):
     system = small["prob"].system()
     P = small["P"]
     for maxiter in (1, 2, 3):
-        a, info = wiener_filter_system(system, tol=1e-14, maxiter=maxiter, preconditioner="nystrom", rank=6)
+        a, info = wiener_filter_system(system, options=CGOptions(tol=1e-14, maxiter=maxiter, preconditioner="nystrom", rank=6))
         e = np.asarray(a)[0] - small["a_wf"]
         true = np.sqrt(e @ P @ e)
         assert true > 1e-6  # really unconverged, so the comparison means something
@@ -207,7 +207,7 @@ def test_pcg_matches_jax_scipy_cg(small):
 
 
 def test_non_convergence_is_reported(small):
-    a, info = wiener_filter_system(small["prob"].system(), tol=1e-12, maxiter=1, preconditioner="mblock")
+    a, info = wiener_filter_system(small["prob"].system(), options=CGOptions(tol=1e-12, maxiter=1, preconditioner="mblock"))
     assert not bool(np.any(np.asarray(info.converged)))
     assert int(np.asarray(info.iterations).max()) == 1
     assert float(np.asarray(info.err_sigma).max()) > 1e-12
@@ -218,8 +218,8 @@ def test_flat_prior_singular_is_reported():
     n = 49
     prob = _small_problem(prior=Prior(jnp.zeros((1, n)), jnp.zeros((1, n))), weights=np.zeros((1, 6, 45)))
     with pytest.raises(ValueError, match="flat prior"):
-        gcrsky.wiener_filter(prob, preconditioner="nystrom")
-    a, info = gcrsky.wiener_filter(prob, method="cg", return_info=True, maxiter=300)
+        gcrsky.wiener_filter(prob, options=CGOptions(preconditioner="nystrom"))
+    a, info = gcrsky.wiener_filter(prob, method="cg", return_info=True, options=CGOptions(maxiter=300))
     assert not bool(np.any(np.asarray(info.converged)))
 
 
@@ -238,7 +238,7 @@ def test_eigh_sampler_on_a_singular_flat_prior_problem():
     rcond = 1e-14  # inside the gap
     keep = lam > rcond * lam[-1]
     assert 0 < keep.sum() <= 20 and lam[~keep].max() < 1e-15 * lam[-1]  # the construction holds
-    prepared = gcrsky.prepare(prob, method="eigh", rcond=rcond)
+    prepared = gcrsky.prepare(prob, options=EighOptions(rcond=rcond))
     assert int(np.asarray(prepared.rank)[0]) == keep.sum()
     b = np.asarray(wiener_rhs(prob.system()))[0]
     ref = V[:, keep] @ ((V[:, keep].T @ b) / lam[keep])
@@ -328,7 +328,7 @@ def test_simulation_based_calibration():
     def one(k):
         kt, kn, ks = jax.random.split(k, 3)
         truth = system.prior.mean + sd * jax.random.normal(kt, sd.shape)
-        v = gcrsky.apply(system.op, truth)
+        v = gcrsky.model.apply(system.op, truth)
         noise = sigma * (jax.random.normal(kn, v.shape) + 1j * jax.random.normal(jax.random.fold_in(kn, 1), v.shape))
         sys_k = system._replace(data=v + noise)
         draws, _ = sample_system(ks, sys_k, Ld, method="cholesky")

@@ -1,7 +1,7 @@
 """The scenario suite of the paper's Table 1: definitions, built problems, response
 reuse, and a small end-to-end ``gcrsky scenarios`` run whose every figure is checked.
 
-Table 1 is transcribed here independently of gcrsky.scenarios (as the paper states
+Table 1 is transcribed here independently of gcrsky.paper.scenarios (as the paper states
 it: noise covariance N, prior covariance S, prior mean a0, lmax, LSTs, dish), and
 the *built* problems are compared with the standard case, so a wrong mapping of
 a row to Config fields fails.
@@ -17,8 +17,8 @@ import pytest
 
 from gcrsky import cli
 from gcrsky.instrument import beam_fwhm_rad
-from gcrsky.problem import beam_for_config, problem_from_config
-from gcrsky.scenarios import SCENARIOS, instrument_key, scenario, scenario_config
+from gcrsky.paper.scenarios import SCENARIOS, scenario, scenario_config
+from gcrsky.sim import beam_for_config, instrument_key, problem_from_config
 
 # name: (noise var factor, prior var factor or "flat", a0 zero?, lmax, n_lst, LST range h, dish m, FWHM deg, draws)
 TABLE1 = {

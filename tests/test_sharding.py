@@ -1,4 +1,4 @@
-"""Baseline sharding over 4 forced host CPU devices (gcrsky.sharding).
+"""Baseline sharding over 4 forced host CPU devices (gcrsky.parallel.sharding).
 
 The device count is fixed when JAX's backend starts, so the real check runs in a
 subprocess with ``--xla_force_host_platform_device_count=4``; it prints a JSON
@@ -15,7 +15,7 @@ Draws are compared with the *padded* system on one device: the fluctuation noise
 drawn with the padded shape, so the unpadded system gives a different (equally
 exact) realisation from the same key (the summary records that difference, ~0.2).
 
-The subprocess's environment comes from :func:`gcrsky.runtime.host_devices_env`, which
+The subprocess's environment comes from :func:`gcrsky.parallel.host_devices_env`, which
 sizes XLA's CPU thread pool (``PJRT_NPROC``).  Without it, on a 2-core host about half
 the runs hung for good at 0% CPU: the Nystrom preconditioner's batched LAPACK calls
 (replicated, so one per device at a time) each blocked a thread of the 4-thread pool
@@ -37,14 +37,16 @@ import jax
 import numpy as np
 import pytest
 
-from gcrsky.runtime import (
+from gcrsky.parallel import (
     POOL_THREADS_PER_DEVICE,
+    baseline_mesh,
     effective_pool_size,
     forced_device_count,
     host_devices_env,
+    pad_baselines,
     safe_pool_size,
+    shard_system,
 )
-from gcrsky.sharding import baseline_mesh, pad_baselines, shard_system
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -66,13 +68,13 @@ def stage(name):
 import jax, jax.numpy as jnp, numpy as np
 jax.config.update("jax_enable_x64", True)
 from gcrsky.instrument import HERA_LATITUDE_DEG, antpairs, gaussian_beam, hex_array, make_array
-from gcrsky.response import response_matrix
-from gcrsky.layout import n_params
-from gcrsky.normal import LinearSystem, precision_apply, wiener_rhs
-from gcrsky.operator import VisOperator, apply, adjoint
-from gcrsky.prior import isotropic_prior
-from gcrsky.sampler import sample_system
-from gcrsky.sharding import baseline_mesh, pad_baselines, shard_system
+from gcrsky.instrument import response_matrix
+from gcrsky.sphere import n_params
+from gcrsky.model import LinearSystem, precision_apply, wiener_rhs
+from gcrsky.model import VisOperator, adjoint, apply, isotropic_prior
+from gcrsky.inference import sample_system
+from gcrsky.solvers import CGOptions
+from gcrsky.parallel import baseline_mesh, pad_baselines, shard_system
 
 assert jax.device_count() == 4, jax.devices()
 lmax, nside, nf, nt = 6, 32, 2, 4
@@ -92,7 +94,7 @@ data = apply(op, jnp.asarray(a_true)) + sigma * (rng.standard_normal((nf, nt, nb
 w = rng.uniform(0.5, 1.0, (nf, nt, nbl)); w[:, :, 3] = 0.0  # one flagged baseline
 system = LinearSystem(op, jnp.asarray(data), jnp.asarray(w / sigma**2), prior)
 
-from gcrsky.runtime import effective_pool_size
+from gcrsky.parallel import effective_pool_size
 stage("setup")
 with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("always")
@@ -126,7 +128,7 @@ hlo = jax.jit(precision_apply).lower(ssys, a).compile().as_text()
 out["hlo_all_reduce"] = hlo.count("all-reduce(") + hlo.count("all-reduce-start(")
 out["hlo_all_gather"] = hlo.count("all-gather(") + hlo.count("all-gather-start(")
 stage("products")
-kw = dict(dense=False, preconditioner="nystrom", rank=32, tol=1e-8)
+kw = dict(options=CGOptions(tol=1e-8, dense=False, preconditioner="nystrom", rank=32))
 key = jax.random.PRNGKey(7)
 d_s, i_s = sample_system(key, ssys, 3, **kw)
 d_s.block_until_ready()
@@ -232,9 +234,7 @@ def test_non_1d_mesh_rejected():
 def test_pad_baselines_exact_in_process(small_response):
     import jax.numpy as jnp
 
-    from gcrsky.normal import LinearSystem, precision_apply
-    from gcrsky.operator import VisOperator
-    from gcrsky.prior import flat_prior
+    from gcrsky.model import LinearSystem, VisOperator, flat_prior, precision_apply
 
     resp = small_response.response
     nf, nbl, n = resp.shape
@@ -289,7 +289,7 @@ def test_baseline_mesh_warns_about_an_undersized_pool():
     # checked here (no LAPACK), so this subprocess is cheap.
     code = (
         "import warnings, jax\n"
-        "from gcrsky.sharding import baseline_mesh\n"
+        "from gcrsky.parallel.sharding import baseline_mesh\n"
         "with warnings.catch_warnings(record=True) as w:\n"
         "    warnings.simplefilter('always')\n"
         "    baseline_mesh()\n"
@@ -304,7 +304,7 @@ def test_baseline_mesh_warns_about_an_undersized_pool():
 
 
 def test_use_safe_cpu_threading_sizes_the_pool_only_for_forced_devices(monkeypatch):
-    from gcrsky.runtime import use_host_devices, use_safe_cpu_threading
+    from gcrsky.parallel import use_host_devices, use_safe_cpu_threading
 
     for key in ("PJRT_NPROC", "NPROC", "OPENBLAS_NUM_THREADS", "GCRSKY_FAST_THREADS"):
         monkeypatch.delenv(key, raising=False)

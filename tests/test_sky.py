@@ -1,4 +1,4 @@
-"""Tests of gcrsky.sky: truth skies from pyradiosky's GSM map (offline) and GSM2016.
+"""Tests of gcrsky.sim.sky: truth skies from pyradiosky's GSM map (offline) and GSM2016.
 
 No test may touch the network: the ``no_network`` fixture makes every socket
 name lookup / connection fail *and records it*, so an attempted download is a
@@ -24,9 +24,9 @@ try:
 except ImportError:  # running from outside the repo without an install
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from gcrsky import sky
-from gcrsky.layout import alm_to_map, mode_table, realify, unrealify
-from gcrsky.sky import SkyTruth, gsm2016_available, sky_truth
+from gcrsky.sim import sky
+from gcrsky.sim.sky import SkyTruth, gsm2016_available, sky_truth
+from gcrsky.sphere import alm_to_map, mode_table, realify, unrealify
 
 NSIDE_SRC = 8
 LMAX_DATA = 2 * NSIDE_SRC  # 16
@@ -369,7 +369,7 @@ def test_gsm2016_absent_raises_and_auto_falls_back(caplog):
         pytest.skip("GSM2016 data are on disk: the absent-data branch cannot be exercised")
     with pytest.raises(RuntimeError, match="not in the astropy download cache"):
         sky_truth([100e6], 20, source="gsm2016")
-    with caplog.at_level(logging.WARNING, logger="gcrsky.sky"):
+    with caplog.at_level(logging.WARNING, logger="gcrsky.sim.sky"):
         t = sky_truth([100e6, 102e6], 20)
     assert t.source == "pyradiosky-gsm"
     assert "FALLBACK" in t.note and "not on disk" in t.note

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 import gcrsky
-from gcrsky import maps as M
 from gcrsky.instrument import beam_fwhm_rad, gaussian_beam
-from gcrsky.layout import alm_to_map
+from gcrsky.paper import metrics as M
+from gcrsky.sphere import alm_to_map
 
 
 @pytest.mark.slow

@@ -1,4 +1,4 @@
-"""gcrsky's real-time forward model against ``matvis.simulate_vis`` (``gcrsky.validate``).
+"""gcrsky's real-time forward model against ``matvis.simulate_vis`` (``gcrsky.checks.matvis``).
 
 Real UTC times (3 over 8 h, 2025-03-01: 8.02 h of LST), two frequencies, the same
 band-limited random ICRS sky (lmax 20) fed to both codes: gcrsky through
@@ -41,7 +41,7 @@ pytest.importorskip("matvis")
 from astropy import units as u
 from astropy.utils import iers
 
-from gcrsky import validate as V
+from gcrsky.checks import matvis as V
 from gcrsky.instrument import gaussian_beam, hex_array
 
 START = "2025-03-01T00:00:00"  # inside astropy's bundled IERS tables (to 2026-09)
@@ -143,7 +143,7 @@ def test_negative_controls_have_power():
 
 def test_pad_realified_is_an_embedding():
     """The negative control's zero padding keeps the sky map unchanged."""
-    from gcrsky.layout import alm_to_map
+    from gcrsky.sphere import alm_to_map
 
     a = V.random_sky(6, 3)
     np.testing.assert_allclose(alm_to_map(V.pad_realified(a, 6, 9), 9, 16), alm_to_map(a, 6, 16), atol=1e-12)

@@ -1,0 +1,11 @@
+"""Independent checks of gcrsky: forward-model validation against matvis, calibration of the samplers.
+
+- ``matvis``: gcrsky's visibilities at real observing times against
+  ``matvis.simulate_vis`` (the ``[validate]`` extra) for the same sky, array and beams;
+- ``sbc``: simulation-based calibration of any sampler with exact-size rank tests;
+- ``imports``: the package's import graph (layers, floors, circles), parsed with ``ast``.
+
+Submodules are imported on use (``from gcrsky.checks import sbc``).
+"""
+
+__all__ = ["imports", "matvis", "sbc"]

@@ -1,0 +1,149 @@
+"""The user tier: posterior mean and draws of a :class:`~gcrsky.model.Problem`, path chosen by size.
+
+``wiener_filter``, ``sample`` and ``prepare`` accept a Problem or its
+:class:`~gcrsky.model.LinearSystem` (e.g. from :func:`gcrsky.model.compress_system`).
+They run host-side: ``method="auto"`` (the default) picks the cheapest exact path
+that fits in memory (:func:`gcrsky.solvers.choose_path`), an explicit ``method`` is
+checked against the memory first, and unconverged solves are logged as warnings.
+``tol`` is the CG tolerance in posterior-sigma units; every other knob of a path
+lives in its options object (:mod:`gcrsky.solvers.options`), passed as
+``options=`` (which also selects the path).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Literal
+
+import jax
+import numpy as np
+
+from ..model.problem import Problem
+from ..model.system import LinearSystem
+from ..solvers.options import SolverOptions
+from ..solvers.plan import choose_path
+from .posterior import SamplerState, draw, prepare_sampler, wiener_filter_system
+
+__all__ = ["Method", "prepare", "sample", "wiener_filter"]
+
+Method = Literal["auto", "cg", "cholesky", "eigh", "mmode"]
+
+
+def wiener_filter(
+    problem: Problem | LinearSystem,
+    *,
+    method: Method = "auto",
+    tol: float | None = None,
+    options: SolverOptions | None = None,
+    memory_budget: float | None = None,
+    return_info: bool = False,
+):
+    """Posterior mean (Wiener filter) of the realified coefficients, (Nf, n), kelvin.
+
+    Solved on the path ``method`` chooses (as for :func:`prepare`: exact m-mode or
+    dense factorisation where they apply, else preconditioned CG to ``tol`` posterior
+    sigma, the P-norm of the error).  With ``return_info`` also returns the
+    :class:`~gcrsky.solvers.SolveInfo`.  A solve that did not converge logs a warning
+    and is flagged in the info.
+    """
+    system = as_system(problem)
+    opts = choose_path(system, method, options=options, tol=tol, memory_budget=memory_budget)
+    a, info = wiener_filter_system(system, options=opts)
+    warn_unconverged(info, "Wiener filter")
+    return (a, info) if return_info else a
+
+
+def sample(
+    key: jax.Array,
+    problem: Problem | LinearSystem,
+    ndraws: int,
+    method: Method = "auto",
+    *,
+    tol: float | None = None,
+    options: SolverOptions | None = None,
+    memory_budget: float | None = None,
+):
+    """Draw ``ndraws`` exact posterior samples (GCR).
+
+    Args:
+        key: JAX PRNG key; a fixed key reproduces the draws (for a given path).
+        problem: the :class:`~gcrsky.model.Problem`, or its
+            :class:`~gcrsky.model.LinearSystem`.
+        ndraws: number of draws (static).
+        method: ``"auto"`` (default: chosen by problem size, see
+            :func:`gcrsky.solvers.plan_sampler`), ``"mmode"`` (exact block solves;
+            uniform full-day coverage and time-stationary noise only), ``"cholesky"``
+            (exact factorisation of the dense P), ``"eigh"`` (eigen-decomposition of the
+            dense P; exact too, and the only one that handles a singular P, e.g. a
+            flat prior, by sampling the directions the data constrain and pinning the
+            others at 0) or ``"cg"`` (preconditioned CG, vmapped over draws).
+        tol: CG tolerance in posterior-sigma units (P-norm of the error); default
+            :data:`gcrsky.solvers.DEFAULT_TOL`.
+        options: a path's options (:class:`~gcrsky.solvers.CGOptions`, ...: dense or
+            matrix-free CG, preconditioner, iteration cap, eigen cut, ...); selects
+            that path when ``method="auto"``.
+        memory_budget: bytes the path may use (default: what is free on the device,
+            :func:`gcrsky.base.available_memory_bytes`).
+
+    Returns:
+        draws (Nf, ndraws, n) realified, Kelvin; info dict with ``"wiener"`` and
+        ``"draws"`` :class:`~gcrsky.solvers.SolveInfo` and ``"a_wf"``.
+    """
+    if int(ndraws) != ndraws or ndraws < 1:
+        raise ValueError(f"ndraws must be a positive integer, got {ndraws}")
+    prepared = prepare(problem, method, tol=tol, options=options, ndraws=int(ndraws), memory_budget=memory_budget)
+    draws, info = draw(key, prepared, int(ndraws))
+    warn_unconverged(info["draws"], "GCR draws")
+    return draws, info
+
+
+def prepare(
+    problem: Problem | LinearSystem,
+    method: Method = "auto",
+    *,
+    tol: float | None = None,
+    options: SolverOptions | None = None,
+    ndraws: int = 1,
+    memory_budget: float | None = None,
+) -> SamplerState:
+    """Set up once for many draws: P, its factor or preconditioner, and the Wiener filter.
+
+    Then ``gcrsky.draw(key, prepared, ndraws)`` as often as needed (each call costs only
+    the draws); ``prepared.method`` says which path ``"auto"`` chose.  Arguments as for
+    :func:`sample`; ``ndraws``: the batch size you will draw (sizes the memory check).
+
+    Returns:
+        the path's state (:class:`~gcrsky.solvers.CGState`,
+        :class:`~gcrsky.solvers.CholeskyState`, :class:`~gcrsky.solvers.EighState` or
+        :class:`~gcrsky.solvers.MModeState`).
+    """
+    system = as_system(problem)
+    opts = choose_path(system, method, options=options, tol=tol, ndraws=int(ndraws), memory_budget=memory_budget)
+    prepared = prepare_sampler(system, options=opts)
+    warn_unconverged(prepared.wiener, "Wiener filter")
+    return prepared
+
+
+def as_system(problem: Problem | LinearSystem) -> LinearSystem:
+    """A :class:`Problem`'s linear system, or the system itself."""
+    if isinstance(problem, LinearSystem):
+        return problem
+    if isinstance(problem, Problem):
+        return problem.system()
+    raise TypeError(f"expected a gcrsky Problem or LinearSystem, got {type(problem).__name__}")
+
+
+def warn_unconverged(info, what: str) -> None:
+    """Log a warning naming how many solves in ``info`` did not converge, and the worst error."""
+    bad = ~np.asarray(info.converged)
+    if bad.any():
+        err = np.asarray(info.err_sigma)
+        worst = float(np.max(np.where(np.isfinite(err), err, np.inf)))
+        logging.getLogger("gcrsky").warning(
+            "%s: %d of %d solves did not converge (worst error estimate %.3g posterior sigma; "
+            "inf/NaN means a singular or indefinite precision matrix)",
+            what,
+            int(bad.sum()),
+            bad.size,
+            worst,
+        )

@@ -1,0 +1,79 @@
+"""The instrument: antenna arrays, beams, the response to every mode, redundancy.
+
+- ``antennas``: :class:`AntennaArray`, hexagonal layouts, antenna pairs, sites
+- ``beams``: pyuvdata beams evaluated on the sky (unpolarised amplitude)
+- ``response``: the response of every baseline and frequency to every mode at the reference angle: a quadrature over HEALPix rings
+- ``response_sht``: the same by healpy transforms (an independent cross-check)
+- ``redundancy``: groups of identical baselines, verified; unique-row responses
+"""
+
+
+from .antennas import (
+    HERA_HEIGHT_M,
+    HERA_LATITUDE_DEG,
+    HERA_LONGITUDE_DEG,
+    AntennaArray,
+    antpairs,
+    baseline_vectors,
+    hex_array,
+    make_array,
+)
+from .beams import (
+    beam_amplitude,
+    beam_fwhm_rad,
+    fwhm_airy_rad,
+    gaussian_beam,
+    unique_beams,
+)
+from .redundancy import (
+    DEFAULT_RTOL,
+    DEFAULT_TOL_M,
+    RedundantGroups,
+    check_redundancy,
+    groups_for_array,
+    redundant_groups,
+    redundant_responses,
+    unique_response,
+    validate_groups,
+)
+from .response import (
+    SkyGrid,
+    equatorial_to_enu,
+    response_matrix,
+    sky_grid,
+)
+from .response_sht import (
+    realified_projection,
+    response_matrix_sht,
+)
+
+__all__ = [
+    "DEFAULT_RTOL",
+    "DEFAULT_TOL_M",
+    "HERA_HEIGHT_M",
+    "HERA_LATITUDE_DEG",
+    "HERA_LONGITUDE_DEG",
+    "AntennaArray",
+    "RedundantGroups",
+    "SkyGrid",
+    "antpairs",
+    "baseline_vectors",
+    "beam_amplitude",
+    "beam_fwhm_rad",
+    "check_redundancy",
+    "equatorial_to_enu",
+    "fwhm_airy_rad",
+    "gaussian_beam",
+    "groups_for_array",
+    "hex_array",
+    "make_array",
+    "realified_projection",
+    "redundant_groups",
+    "redundant_responses",
+    "response_matrix",
+    "response_matrix_sht",
+    "sky_grid",
+    "unique_beams",
+    "unique_response",
+    "validate_groups",
+]

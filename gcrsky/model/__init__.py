@@ -1,0 +1,96 @@
+"""The statistical model: visibility operator, noise, prior, the linear system, problems.
+
+- ``operator``: :class:`VisOperator`: ``X`` and its adjoint as jitted functions
+- ``noise``: radiometer noise from the autos, flags as weights, data cleaning
+- ``prior``: Gaussian priors (the paper's, isotropic from C_l, flat)
+- ``system``: :class:`LinearSystem`: precision operator, Wiener and GCR right-hand sides
+- ``problem``: :class:`Problem` and :func:`build_problem` (geometry, responses, simulation, assembly)
+- ``compress``: exact redundant-baseline compression of data, systems, problems
+"""
+
+
+from .compress import (
+    compress_problem,
+    compress_system,
+    compress_visibilities,
+)
+from .noise import (
+    clean_data,
+    draw_noise,
+    inverse_variance,
+    radiometer_sigma,
+    weights_from_flags,
+)
+from .operator import (
+    VisOperator,
+    adjoint,
+    apply,
+    dense_matrix,
+    frame_shape,
+    from_response_frame,
+    n_in,
+    response_at,
+    to_response_frame,
+)
+from .prior import (
+    Prior,
+    flat_prior,
+    isotropic_prior,
+    paper_prior,
+)
+from .problem import (
+    Geometry,
+    Problem,
+    assemble_problem,
+    build_problem,
+    observation_geometry,
+    problem_responses,
+    simulate_data,
+)
+from .system import (
+    LinearSystem,
+    data_apply,
+    fluctuation_rhs,
+    precision_apply,
+    precision_matrix,
+    time_terms,
+    wiener_rhs,
+)
+
+__all__ = [
+    "Geometry",
+    "LinearSystem",
+    "Prior",
+    "Problem",
+    "VisOperator",
+    "adjoint",
+    "apply",
+    "assemble_problem",
+    "build_problem",
+    "clean_data",
+    "compress_problem",
+    "compress_system",
+    "compress_visibilities",
+    "data_apply",
+    "dense_matrix",
+    "draw_noise",
+    "flat_prior",
+    "fluctuation_rhs",
+    "frame_shape",
+    "from_response_frame",
+    "inverse_variance",
+    "isotropic_prior",
+    "n_in",
+    "observation_geometry",
+    "paper_prior",
+    "precision_apply",
+    "precision_matrix",
+    "problem_responses",
+    "radiometer_sigma",
+    "response_at",
+    "simulate_data",
+    "time_terms",
+    "to_response_frame",
+    "weights_from_flags",
+    "wiener_rhs",
+]

@@ -1,0 +1,216 @@
+"""Process-level runtime settings that the CLI and the test suite apply (never on import).
+
+XLA's CPU backend can wedge its multi-threaded Eigen pool on large vmapped graphs:
+the main thread waits in ``block_until_ready`` while every worker idles at 0% CPU
+(seen here twice under load, in the vmapped CG loops; also reported upstream, e.g.
+PyAutoFit#1530, where ``--xla_cpu_multi_thread_eigen=false`` removed it).  The
+single-threaded Eigen path costs ~15% on matrix products; a hung job costs more.
+
+Forced host devices (``--xla_force_host_platform_device_count=N``, used to run the
+sharded code of :mod:`gcrsky.parallel.sharding` on one CPU) need one more setting, because
+of a deadlock in jaxlib 0.10's CPU LAPACK kernels that is independent of the flag
+above:
+
+* every batched LAPACK custom call (``jnp.linalg.cholesky``/``qr``/``svd``/``eigh``,
+  ``solve_triangular``, ... on a batch of matrices, e.g. the Nystrom preconditioner's
+  per-frequency QR, Cholesky, triangular solve and SVD) splits its batch into tasks on
+  XLA's intra-op thread pool ("XLAEigen") and *blocks* its thread until they are done
+  (``jax::ParallelBatchMap`` -> ``absl::BlockingCounter::Wait``);
+* XLA's thunk executor runs independent thunks of a program on the same pool, so a
+  LAPACK call often runs *on* a pool worker, and a replicated computation on N
+  devices runs N such calls at once;
+* the pool has ``max(PJRT_NPROC or the CPU count, N)`` threads: with N forced devices
+  on N or fewer cores it has exactly N, and when the N devices' LAPACK calls each hold
+  one worker, every worker waits for tasks that no thread is left to run.  The process
+  then hangs at 0% CPU forever.
+
+Measured on a 2-core host with 4 forced devices (the sharded CG check of
+``tests/test_sharding.py``, Nystrom preconditioner): with XLA's default 4-thread
+pool 3 of 6 runs hung (7 of 8 with ``OPENBLAS_NUM_THREADS=1``), every time with all
+4 ``tf_XLAEigen`` threads in ``lapack_dgesdd_ffi -> ParallelBatchMap ->
+BlockingCounter::Wait`` (gdb) and no thread in a collective; with a 16-thread pool
+20 of 20 runs finished (37-78 s, the cores shared with other jobs).
+:func:`host_devices_env` / :func:`use_host_devices` therefore size the pool
+(``PJRT_NPROC``, read by XLA when it creates the CPU client) to
+:data:`POOL_THREADS_PER_DEVICE` threads per device, so a deadlock would need that
+many LAPACK calls blocked at once per device.  This is a workaround for jaxlib
+0.10.x's parallel batch path; a jaxlib that runs the batch inline needs none.
+
+They also default ``OPENBLAS_NUM_THREADS`` to 1: the pool's LAPACK tasks call
+multi-threaded OpenBLAS concurrently, which on few cores spins in
+``exec_blas_async_wait`` (4 devices, an 8-thread pool, two replicated batched SVDs
+of 4 x 120 x 60 a hundred times: not done after 60 s, 3 of 3, vs 4-5 s with one
+OpenBLAS thread; jax-ml/jax#39292 reports the same oversubscription corrupting the
+heap on many-core hosts).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import sys
+from collections.abc import Mapping
+
+__all__ = [
+    "POOL_THREADS_PER_DEVICE",
+    "SAFE_XLA_FLAG",
+    "effective_pool_size",
+    "forced_device_count",
+    "host_devices_env",
+    "safe_pool_size",
+    "use_host_devices",
+    "use_safe_cpu_threading",
+]
+
+SAFE_XLA_FLAG = "--xla_cpu_multi_thread_eigen=false"
+
+#: Intra-op pool threads per forced host device (see the module docstring).  One
+#: device's program can have more than one batched LAPACK call in flight (independent
+#: branches run concurrently); 4 leaves room for that and costs only idle threads.
+POOL_THREADS_PER_DEVICE = 4
+
+_FORCE_FLAG = "--xla_force_host_platform_device_count"
+_FORCE_RE = re.compile(r"--xla_force_host_platform_device_count=(\S*)")
+
+
+def _cpu_count() -> int:
+    """Schedulable CPUs, as XLA counts them when it sizes its pool (affinity-aware)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not on Linux
+        return os.cpu_count() or 1
+
+
+def forced_device_count(flags: str | None = None) -> int:
+    """The host device count that ``XLA_FLAGS`` (or ``flags``) forces; 1 if none.
+
+    The last occurrence wins, as in XLA's flag parser.  Raises ValueError for a value
+    that is not a positive integer.
+    """
+    flags = os.environ.get("XLA_FLAGS", "") if flags is None else flags
+    found = _FORCE_RE.findall(flags)
+    if not found:
+        return 1
+    try:
+        n = int(found[-1])
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise ValueError(f"{_FORCE_FLAG} must be a positive integer, got {found[-1]!r}")
+    return n
+
+
+def safe_pool_size(n_devices: int) -> int:
+    """XLA CPU intra-op pool size that keeps ``n_devices`` forced devices deadlock-free.
+
+    ``max(CPU count, POOL_THREADS_PER_DEVICE * n_devices)`` for ``n_devices > 1``;
+    the CPU count (XLA's own default) for one device.
+    """
+    if int(n_devices) != n_devices or n_devices < 1:
+        raise ValueError(f"n_devices must be a positive integer, got {n_devices}")
+    if n_devices == 1:
+        return _cpu_count()
+    return max(_cpu_count(), POOL_THREADS_PER_DEVICE * int(n_devices))
+
+
+def effective_pool_size(n_devices: int, environ: Mapping[str, str] | None = None) -> int:
+    """The intra-op pool size XLA's CPU client picks for ``n_devices`` under ``environ``.
+
+    ``max(PJRT_NPROC, or else NPROC, or else the CPU count; n_devices)``, XLA's own rule
+    (``xla::DefaultThreadPoolSize``; the client never makes fewer threads than devices).
+    Only meaningful for the environment the backend was started with.
+    """
+    env = os.environ if environ is None else environ
+    size = _cpu_count()
+    for key in ("PJRT_NPROC", "NPROC"):
+        try:
+            size = max(0, int(env[key]))
+            break
+        except (KeyError, ValueError):
+            continue
+    return max(size, int(n_devices))
+
+
+def _pool_env(env: dict[str, str], n_devices: int) -> None:
+    """Raise ``PJRT_NPROC`` to :func:`safe_pool_size` and default ``OPENBLAS_NUM_THREADS``."""
+    if n_devices <= 1:
+        return
+    want = safe_pool_size(n_devices)
+    if effective_pool_size(n_devices, env) < want:  # only raised: a larger pool is kept
+        env["PJRT_NPROC"] = str(want)
+    env.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
+def host_devices_env(n_devices: int, environ: Mapping[str, str] | None = None) -> dict[str, str]:
+    """A copy of ``environ`` (default ``os.environ``) set up for ``n_devices`` host CPU devices.
+
+    For a subprocess that runs sharded code on one CPU (``subprocess.run(..., env=...)``).
+    ``XLA_FLAGS`` gets ``--xla_force_host_platform_device_count=n_devices`` (replacing any
+    earlier count) and :data:`SAFE_XLA_FLAG` (unless ``xla_cpu_multi_thread_eigen`` is
+    already set); for more than one device ``PJRT_NPROC`` is raised to
+    :func:`safe_pool_size` and ``OPENBLAS_NUM_THREADS`` defaults to 1 (module docstring:
+    without them batched LAPACK calls on 4 devices deadlock on a 2-core host).
+    """
+    if int(n_devices) != n_devices or n_devices < 1:
+        raise ValueError(f"n_devices must be a positive integer, got {n_devices}")
+    env = dict(os.environ if environ is None else environ)
+    flags = _FORCE_RE.sub("", env.get("XLA_FLAGS", "")).split()
+    flags.append(f"{_FORCE_FLAG}={int(n_devices)}")
+    if not any("xla_cpu_multi_thread_eigen" in f for f in flags):
+        flags.append(SAFE_XLA_FLAG)
+    env["XLA_FLAGS"] = " ".join(flags)
+    _pool_env(env, int(n_devices))
+    return env
+
+
+def _backend_started() -> bool:
+    xb = sys.modules.get("jax._src.xla_bridge")
+    return bool(xb is not None and xb.backends_are_initialized())
+
+
+def use_host_devices(n_devices: int) -> int:
+    """Apply :func:`host_devices_env` to this process; returns the pool size it asks for.
+
+    Must run before JAX starts its backend (XLA reads ``XLA_FLAGS`` and ``PJRT_NPROC``
+    when it creates the CPU client), and ideally before NumPy/SciPy load OpenBLAS
+    (``OPENBLAS_NUM_THREADS`` is read then).
+
+    Raises:
+        RuntimeError: if JAX's backend has already started.
+    """
+    if _backend_started():
+        raise RuntimeError(
+            "use_host_devices must run before JAX's first computation (its backend has already "
+            "started, so the device count and the thread pool are fixed)"
+        )
+    env = host_devices_env(n_devices)
+    for key in ("XLA_FLAGS", "PJRT_NPROC", "OPENBLAS_NUM_THREADS"):
+        if key in env:
+            os.environ[key] = env[key]
+    return effective_pool_size(n_devices)
+
+
+def use_safe_cpu_threading() -> bool:
+    """Add :data:`SAFE_XLA_FLAG` to ``XLA_FLAGS`` unless the user set that flag already.
+
+    Must run before the first JAX computation (XLA reads the flags when its backend
+    starts).  Set ``GCRSKY_FAST_THREADS=1`` to opt out.  Returns whether the flag is active.
+
+    If ``XLA_FLAGS`` forces more than one host device it also sizes the intra-op pool
+    (``PJRT_NPROC``, ``OPENBLAS_NUM_THREADS``) as :func:`host_devices_env` does, opt-out
+    or not: that one is a deadlock fix, not a speed trade-off.  With one device (the
+    default) nothing but the flag is touched.
+    """
+    n = forced_device_count()
+    if n > 1:
+        env = dict(os.environ)
+        _pool_env(env, n)
+        for key in ("PJRT_NPROC", "OPENBLAS_NUM_THREADS"):
+            if key in env:
+                os.environ[key] = env[key]
+    if os.environ.get("GCRSKY_FAST_THREADS") == "1":
+        return False
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_cpu_multi_thread_eigen" not in flags:
+        os.environ["XLA_FLAGS"] = (flags + " " + SAFE_XLA_FLAG).strip()
+    return SAFE_XLA_FLAG in os.environ["XLA_FLAGS"]

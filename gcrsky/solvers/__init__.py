@@ -1,0 +1,88 @@
+"""Exact solver paths for the GCR system, one module each, and the planner that picks one.
+
+- ``options``: one frozen options object per path (:class:`CGOptions`, ...)
+- ``info``: :class:`SolveInfo`, what every solve reports
+- ``preconditioners``: prior-whitened Nystrom and m-block preconditioners for CG
+- ``cg``: preconditioned CG (matrix-free or dense P): :func:`prepare_cg`, :func:`draw_cg`, :func:`wiener_cg`
+- ``dense``: dense Cholesky and eigen-decomposition
+- ``mmode``: block-by-block solves for uniform full-day coverage
+- ``plan``: :func:`plan_sampler` / :func:`choose_path`: the cheapest exact path that fits in memory
+
+Every path is a pair ``prepare_*(system, options) -> State`` (set up once: factor or
+preconditioner and the Wiener filter) and ``draw_*(key, state, ndraws)`` (exact
+posterior draws), with one typed state per path (:class:`CGState`,
+:class:`CholeskyState`, :class:`EighState`, :class:`MModeState`, each an equinox
+Module whose ``method`` names the path).  :mod:`gcrsky.inference` dispatches on them.
+"""
+
+from .cg import CGState, draw_cg, pcg, prepare_cg, resolve_cg_options, solve_cg, wiener_cg
+from .dense import CholeskyState, EighState, draw_cholesky, draw_eigh, prepare_cholesky, prepare_eigh
+from .info import SolveInfo
+from .mmode import MModeState, draw_mmode, mmode_blocks, mmode_check, prepare_mmode
+from .options import (
+    DEFAULT_TOL,
+    EIGH_RCOND,
+    METHODS,
+    CGOptions,
+    CholeskyOptions,
+    EighOptions,
+    MModeOptions,
+    SolverOptions,
+    method_of,
+    options_for,
+)
+from .plan import DENSE_MAX_N, DENSE_MEMORY_FRACTION, SamplerPlan, choose_path, path_memory_bytes, plan_sampler
+from .preconditioners import (
+    MBlockPreconditioner,
+    NystromPreconditioner,
+    apply_preconditioner,
+    m_block_preconditioner,
+    make_preconditioner,
+    nystrom_preconditioner,
+    resolve_preconditioner,
+)
+
+__all__ = [
+    "DEFAULT_TOL",
+    "DENSE_MAX_N",
+    "DENSE_MEMORY_FRACTION",
+    "EIGH_RCOND",
+    "METHODS",
+    "CGOptions",
+    "CGState",
+    "CholeskyOptions",
+    "CholeskyState",
+    "EighOptions",
+    "EighState",
+    "MBlockPreconditioner",
+    "MModeOptions",
+    "MModeState",
+    "NystromPreconditioner",
+    "SamplerPlan",
+    "SolveInfo",
+    "SolverOptions",
+    "apply_preconditioner",
+    "choose_path",
+    "draw_cg",
+    "draw_cholesky",
+    "draw_eigh",
+    "draw_mmode",
+    "m_block_preconditioner",
+    "make_preconditioner",
+    "method_of",
+    "mmode_blocks",
+    "mmode_check",
+    "nystrom_preconditioner",
+    "options_for",
+    "path_memory_bytes",
+    "pcg",
+    "plan_sampler",
+    "prepare_cg",
+    "prepare_cholesky",
+    "prepare_eigh",
+    "prepare_mmode",
+    "resolve_cg_options",
+    "resolve_preconditioner",
+    "solve_cg",
+    "wiener_cg",
+]

@@ -1,0 +1,214 @@
+"""The matrix-free exact path: preconditioned conjugate gradients, vmapped over draws.
+
+Convergence is judged in *posterior-sigma units*: iterate until
+``sqrt(r^T M^-1 r) <= tol``.  With the default prior-whitened Nystrom preconditioner
+``M <= P`` in the Loewner order (a Nystrom sketch never exceeds the matrix it
+approximates), so ``r^T M^-1 r >= r^T P^-1 r = ||x - x*||_P^2``: a rigorous bound on
+the error's P-norm, which itself bounds every mode's error in units of its posterior
+std.  With the m-block preconditioner (flat priors) the same number is only an
+estimate (measured 100x optimistic on the standard case), so pass a smaller ``tol``
+there.  ``jax.scipy.sparse.linalg.cg`` implements the same recurrence but reports
+neither iterations nor residual, so it is written out here with ``lax.while_loop``
+(tests check the two agree).
+
+Set up once (:func:`prepare_cg`: the preconditioner, optionally the dense P, the
+Wiener filter), then draw as often as needed (:func:`draw_cg`): draw ``i`` of a
+batch solves ``P delta = `` (GCR fluctuation right-hand side of
+``jax.random.split(key, ndraws)[i]``) from 0, so a fixed key reproduces the draws.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import partial
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ..base.dtypes import check_float64
+from ..model.system import LinearSystem, fluctuation_rhs, precision_apply, precision_matrix, wiener_rhs
+from .info import SolveInfo
+from .options import CGOptions
+from .preconditioners import make_preconditioner, precondition_one, resolve_preconditioner
+
+__all__ = ["CGState", "draw_cg", "freq_slice", "pcg", "prepare_cg", "resolve_cg_options", "solve_cg", "wiener_cg"]
+
+
+def pcg(matvec, precond, b, x0, *, tol: float = CGOptions.tol, maxiter: int = CGOptions.maxiter):
+    """Preconditioned CG for one right-hand side (vectors of any shape).
+
+    The recurrence residual drifts from the true one ``b - P x`` in floating point;
+    when the loop stops, CG is restarted once from the true residual ("residual
+    replacement"), so the reported error is that of the returned ``x`` and meets
+    ``tol`` whenever the iteration budget allows.
+
+    Args:
+        matvec: x -> P x (symmetric positive definite).
+        precond: r -> M^-1 r (symmetric positive definite).
+        b, x0: right-hand side and initial guess.
+        tol: stop when ``sqrt(r . M^-1 r) <= tol`` (posterior-sigma units).
+        maxiter: hard cap on iterations (both passes together).
+
+    Returns:
+        (x, SolveInfo) with scalar info fields.
+    """
+
+    def cond(s):
+        k, x, r, z, p, rz, bad = s
+        return (k < maxiter) & (jnp.sqrt(jnp.abs(rz)) > tol) & (~bad)
+
+    def body(s):
+        k, x, r, z, p, rz, bad = s
+        Ap = matvec(p)
+        pAp = jnp.vdot(p, Ap).real
+        bad = ~(pAp > 0)
+        alpha = jnp.where(bad, 0.0, rz / jnp.where(bad, 1.0, pAp))
+        x = x + alpha * p
+        r = r - alpha * Ap
+        z = precond(r)
+        rz_new = jnp.vdot(r, z).real
+        beta = rz_new / jnp.where(rz == 0, 1.0, rz)
+        p = z + beta * p
+        return k + 1, x, r, z, p, rz_new, bad
+
+    def run(k0, x):
+        r = b - matvec(x)
+        z = precond(r)
+        init = (k0, x, r, z, z, jnp.vdot(r, z).real, jnp.asarray(False))
+        k, x, r, z, _, rz, bad = jax.lax.while_loop(cond, body, init)
+        return k, x, bad
+
+    k, x, bad1 = run(jnp.asarray(0), x0)
+    k, x, bad2 = run(k, x)  # restart from the true residual (exits at once if converged)
+    bad = bad1 | bad2
+    r = b - matvec(x)
+    err = jnp.sqrt(jnp.abs(jnp.vdot(r, precond(r)).real))
+    rel = jnp.linalg.norm(r) / jnp.maximum(jnp.linalg.norm(b), jnp.finfo(b.dtype).tiny)
+    ok = (err <= tol) & (~bad) & jnp.isfinite(err)
+    return x, SolveInfo(k, err, rel, ok)
+
+
+def freq_slice(system: LinearSystem, f) -> LinearSystem:
+    """The one-frequency system ``f`` (traced index allowed), leading axis of length 1."""
+    sl = lambda a: jax.lax.dynamic_slice_in_dim(a, f, 1, axis=0)  # noqa: E731
+    return LinearSystem(
+        op=system.op._replace(response=sl(system.op.response)),
+        data=sl(system.data),
+        inv_noise=sl(system.inv_noise),
+        prior=system.prior._replace(mean=sl(system.prior.mean), inv_var=sl(system.prior.inv_var)),
+    )
+
+
+def solve_cg(system: LinearSystem, precision, pc, b, x0, options: CGOptions):
+    """Solve ``P x = b`` for b (Nf, n) or (Nf, k, n) batches by preconditioned CG.
+
+    vmapped over frequencies (and over the k right-hand sides); every solve keeps its
+    own iteration count.  ``precision``: the dense P (Nf, n, n) or None (matrix-free).
+
+    Returns:
+        (x like b, SolveInfo with b's batch shape).
+    """
+
+    def one_freq(f, bf, x0f):
+        if precision is not None:
+            mv = lambda x: precision[f] @ x  # noqa: E731
+        else:
+            sys_f = freq_slice(system, f)
+            mv = lambda x: precision_apply(sys_f, x[None])[0]  # noqa: E731
+        prec = lambda r: precondition_one(pc, f, r)  # noqa: E731
+        solve1 = partial(pcg, mv, prec, tol=options.tol, maxiter=options.maxiter)
+        if bf.ndim == 1:
+            return solve1(bf, x0f)
+        return jax.vmap(solve1)(bf, x0f)
+
+    return jax.vmap(one_freq)(jnp.arange(b.shape[0]), b, x0)
+
+
+def resolve_cg_options(system: LinearSystem, options: CGOptions | None = None) -> CGOptions:
+    """``options`` with ``preconditioner="auto"`` made concrete for ``system``.
+
+    See :func:`gcrsky.solvers.preconditioners.resolve_preconditioner` (host-side on
+    concrete arrays; ``"nystrom"`` under a trace).
+    """
+    options = CGOptions() if options is None else options
+    if not isinstance(options, CGOptions):
+        raise TypeError(f"the CG path takes CGOptions, got {type(options).__name__}")
+    kind = resolve_preconditioner(system, options.preconditioner)
+    return options if kind == options.preconditioner else dataclasses.replace(options, preconditioner=kind)
+
+
+def _setup(system: LinearSystem, options: CGOptions):
+    check_float64(system.op.response, system.inv_noise)
+    if options.preconditioner == "auto":
+        raise ValueError("resolve preconditioner='auto' first (resolve_cg_options)")
+    precision = precision_matrix(system) if options.dense else None
+    pc = make_preconditioner(system, options.preconditioner, precision, options.rank, options.pc_dtype)
+    return precision, pc
+
+
+@partial(jax.jit, static_argnames=("options",))
+def _wiener_cg(system: LinearSystem, options: CGOptions):
+    precision, pc = _setup(system, options)
+    return solve_cg(system, precision, pc, wiener_rhs(system), system.prior.mean, options)
+
+
+def wiener_cg(system: LinearSystem, options: CGOptions | None = None):
+    """Wiener filter (posterior mean) by preconditioned CG, started at the prior mean.
+
+    Returns:
+        (a_wf (Nf, n), SolveInfo with (Nf,) fields).
+    """
+    return _wiener_cg(system, resolve_cg_options(system, options))
+
+
+class CGState(eqx.Module):
+    """The CG path set up for many draws (a PyTree; pass it through jit).
+
+    Attributes:
+        system: the linear system.
+        a_wf: (Nf, n) Wiener filter (posterior mean).
+        wiener: SolveInfo of the Wiener-filter solve, (Nf,) fields.
+        precision: dense P (Nf, n, n), or None (matrix-free).
+        pc: the preconditioner (:mod:`gcrsky.solvers.preconditioners`).
+        options: the :class:`CGOptions` (static), ``preconditioner`` resolved.
+    """
+
+    system: LinearSystem
+    a_wf: jax.Array
+    wiener: SolveInfo
+    precision: jax.Array | None
+    pc: object
+    options: CGOptions = eqx.field(static=True)
+
+    method: ClassVar[str] = "cg"
+
+
+@partial(jax.jit, static_argnames=("options",))
+def _prepare_cg(system: LinearSystem, options: CGOptions) -> CGState:
+    precision, pc = _setup(system, options)
+    a_wf, winfo = solve_cg(system, precision, pc, wiener_rhs(system), system.prior.mean, options)
+    return CGState(system, a_wf, winfo, precision, pc, options)
+
+
+def prepare_cg(system: LinearSystem, options: CGOptions | None = None) -> CGState:
+    """Build the preconditioner (and the dense P if ``options.dense``) and solve for the Wiener filter."""
+    return _prepare_cg(system, resolve_cg_options(system, options))
+
+
+@partial(jax.jit, static_argnames=("ndraws",))
+def draw_cg(key: jax.Array, state: CGState, ndraws: int):
+    """``ndraws`` exact draws ``a_wf + delta``, ``P delta`` = the GCR fluctuation right-hand side.
+
+    Draw ``i`` uses ``jax.random.split(key, ndraws)[i]``.
+
+    Returns:
+        draws (Nf, ndraws, n); info dict ``"wiener"``, ``"draws"`` (SolveInfo over
+        (Nf, ndraws)) and ``"a_wf"``.
+    """
+    system, a_wf = state.system, state.a_wf
+    keys = jax.random.split(key, ndraws)
+    fl = jax.vmap(lambda k: fluctuation_rhs(k, system), out_axes=1)(keys)  # (Nf, ndraws, n)
+    delta, dinfo = solve_cg(system, state.precision, state.pc, fl, jnp.zeros_like(fl), state.options)
+    return a_wf[:, None, :] + delta, {"wiener": state.wiener, "draws": dinfo, "a_wf": a_wf}

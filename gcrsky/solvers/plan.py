@@ -1,0 +1,206 @@
+"""Choosing a sampler path by problem size, and memory estimates before large allocations.
+
+Given a :class:`~gcrsky.model.LinearSystem`, :func:`plan_sampler` picks the
+cheapest *exact* path and says why, and :func:`choose_path` turns a user's
+``method=`` / ``options=`` into the options of one path (``"auto"`` through the plan;
+an explicit choice after checking that its large arrays fit, with
+:func:`gcrsky.base.check_memory`, which raises
+:class:`~gcrsky.base.InsufficientMemoryError` naming the size and the path that would
+fit).
+
+Paths (all exact; they differ only in cost):
+
+* ``"mmode"``: uniform full-day coverage with time-stationary noise and no frame map
+  (:func:`gcrsky.solvers.mmode.mmode_check`): P is block-diagonal in m; blocks cost
+  ``O(Nf Nbl lmax^3)`` to build and ``8 Nf (lmax+1) (2 lmax+2)^2`` bytes.
+* ``"cholesky"``: dense ``P`` built once (``8 Nf Nt Nbl n^2`` flop, ``8 Nf n^2`` bytes,
+  three times that with its factor and ``L^-T``), then each draw is a product with
+  ``L^-T`` (``2 n^2`` flop).
+* ``"eigh"``: like Cholesky, for a singular P (a flat prior, ``S^-1 = 0`` somewhere).
+* ``"cg"`` matrix-free: never forms P; ``16 Nf Nt Nbl n`` flop per product, a rank-128
+  Nystrom preconditioner (``8 Nf n 128`` bytes) for a proper prior, m-blocks for a
+  flat one.
+
+Rule of :func:`plan_sampler` (``method="auto"`` in :func:`gcrsky.prepare` /
+:func:`gcrsky.sample`): m-mode when its check passes; else dense (Cholesky, or the
+eigen sampler for a flat prior) when the dense P and its factor fit in
+:data:`DENSE_MEMORY_FRACTION` of the available memory and ``n <= DENSE_MAX_N``; else
+matrix-free CG.  The crossovers are measured in ``benchmarks/scale.py``: at lmax 50
+(n = 2601) Cholesky set-up is 2-9 s and a draw 2-3 ms against 40-600 ms per draw for
+matrix-free CG, so dense wins wherever it fits; ``DENSE_MAX_N`` = 12000 keeps the
+``n^3 / 3`` factorisation under ~1 min on two cores.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import NamedTuple
+
+import numpy as np
+
+from ..base.memory import available_memory_bytes, check_memory, format_bytes
+from ..model.operator import n_in
+from ..model.system import LinearSystem
+from .mmode import mmode_check
+from .options import CGOptions, CholeskyOptions, EighOptions, MModeOptions, SolverOptions, method_of, options_for
+from .preconditioners import resolve_preconditioner
+
+__all__ = [
+    "DENSE_MAX_N",
+    "DENSE_MEMORY_FRACTION",
+    "SamplerPlan",
+    "choose_path",
+    "path_memory_bytes",
+    "plan_sampler",
+]
+
+log = logging.getLogger(__name__)
+
+#: Largest n for which ``method="auto"`` forms and factorises the dense P.
+DENSE_MAX_N = 12000
+#: Fraction of the available memory the dense P and its factor may take under "auto".
+DENSE_MEMORY_FRACTION = 0.5
+
+
+class SamplerPlan(NamedTuple):
+    """What :func:`plan_sampler` chose.
+
+    Attributes:
+        options: the chosen path's options (:mod:`gcrsky.solvers.options`); for CG
+            with ``dense`` and ``preconditioner`` set.
+        memory_bytes: estimated peak of the path's large arrays.
+        reason: one line saying why.
+    """
+
+    options: SolverOptions
+    memory_bytes: float
+    reason: str
+
+    @property
+    def method(self) -> str:
+        """``"mmode"``, ``"cholesky"``, ``"eigh"`` or ``"cg"``."""
+        return method_of(self.options)
+
+
+def _sizes(system: LinearSystem) -> tuple[int, int, int, int]:
+    nf, nbl, _ = system.op.response.shape
+    return int(nf), int(system.data.shape[1]), int(nbl), int(n_in(system.op))
+
+
+def path_memory_bytes(
+    system: LinearSystem, method: str, *, dense: bool = True, ndraws: int = 1, rank: int = CGOptions.rank
+) -> float:
+    """Estimated peak bytes of a path's large arrays (float64), beyond the system itself.
+
+    ``dense`` and ``rank`` describe the CG path (:class:`~gcrsky.solvers.CGOptions`).
+    Counts the dense P, its factor and inverse factor / eigenvectors (``8 Nf n^2`` each), the m-blocks,
+    the Nystrom sketch and the per-draw CG work vectors (``~6 x 8 Nf ndraws n``).
+    """
+    nf, nt, nbl, n = _sizes(system)
+    lmax = int(round(np.sqrt(n))) - 1
+    vec = 6.0 * 8 * nf * max(1, ndraws) * n  # CG state per draw
+    if method == "mmode":
+        return 2.0 * 8 * nf * (lmax + 1) * (2 * lmax + 2) ** 2 + vec
+    if method in ("cholesky", "eigh"):  # P, factor and L^-T (Cholesky) / P and eigenvectors, sqrt_cov (eigh)
+        return 3.0 * 8 * nf * n * n + 8.0 * nf * max(1, ndraws) * n
+    if method == "cg":
+        sketch = max(3.0 * 8 * nf * n * min(n, rank), 8.0 * nf * (lmax + 1) * (2 * lmax + 2) ** 2)
+        return (8.0 * nf * n * n if dense else 0.0) + sketch + vec
+    raise ValueError(f"unknown method {method!r}")
+
+
+def plan_sampler(system: LinearSystem, *, ndraws: int = 1, budget: float | None = None) -> SamplerPlan:
+    """The cheapest exact path for ``system`` (host-side; call outside ``jit``).
+
+    Args:
+        system: the linear system (concrete arrays).
+        ndraws: draws per batch (sizes the CG work vectors).
+        budget: bytes available; default :func:`available_memory_bytes`.
+
+    Returns:
+        a :class:`SamplerPlan`; raises :class:`~gcrsky.base.InsufficientMemoryError` if
+        even the matrix-free path does not fit.
+    """
+    avail = available_memory_bytes() if budget is None else float(budget)
+    nf, nt, nbl, n = _sizes(system)
+    flat = bool(np.any(np.asarray(system.prior.inv_var) <= 0))
+    chk = mmode_check(system)
+    if chk.ok and not flat:
+        mem = path_memory_bytes(system, "mmode", ndraws=ndraws)
+        if mem <= avail:
+            return SamplerPlan(MModeOptions(), mem, "uniform full-day coverage, stationary noise: P is block-diagonal in m")
+    dense_mem = path_memory_bytes(system, "cholesky", ndraws=ndraws)
+    if n <= DENSE_MAX_N and dense_mem <= DENSE_MEMORY_FRACTION * avail:
+        why = (f"n = {n} <= {DENSE_MAX_N} and the dense P + factor ({format_bytes(dense_mem)}) fit in "
+               f"{DENSE_MEMORY_FRACTION:.0%} of {format_bytes(avail)}")
+        if flat:
+            why += "; flat prior: eigen sampler (P may be singular)"
+        if not chk.ok:
+            why += f"; not m-mode: {chk.reason}"
+        return SamplerPlan(EighOptions() if flat else CholeskyOptions(), dense_mem, why)
+    pc = "mblock" if flat else "nystrom"
+    mem = path_memory_bytes(system, "cg", dense=False, ndraws=ndraws)
+    check_memory(mem, f"matrix-free CG ({ndraws} draws per batch, n = {n}, Nf = {nf})",
+                 "draw in smaller batches (ndraws) or shard the baselines (gcrsky.parallel)", budget=avail)
+    why = (f"dense P + factor would need {format_bytes(dense_mem)} (n = {n}); matrix-free CG, "
+           f"{pc} preconditioner")
+    return SamplerPlan(CGOptions(dense=False, preconditioner=pc), mem, why)
+
+
+def choose_path(
+    system: LinearSystem,
+    method: str = "auto",
+    *,
+    options: SolverOptions | None = None,
+    tol: float | None = None,
+    ndraws: int = 1,
+    memory_budget: float | None = None,
+) -> SolverOptions:
+    """Resolve a user's ``method`` / ``options`` / ``tol`` into one path's options (host-side).
+
+    * ``method="auto"`` without options follows :func:`plan_sampler` (m-mode, else
+      dense Cholesky/eigen where P fits, else matrix-free CG) and logs its choice at
+      INFO.
+    * Options alone (``method="auto"``) select their path; ``method`` and options of
+      another path are an error.
+    * An explicit path is used as given, after checking that its large arrays fit
+      (:class:`~gcrsky.base.InsufficientMemoryError` otherwise, naming the
+      alternative); ``"mmode"`` raises ``ValueError`` with the reason when P is not
+      block-diagonal in m.
+    * ``tol`` sets the CG tolerance (the direct paths are exact and ignore it).
+
+    CG options come back with ``preconditioner`` resolved (Nystrom for a proper
+    prior, m-blocks for a flat one; a warning is logged for a flat prior).
+
+    Args:
+        system: the linear system (concrete arrays).
+        method: ``"auto"``, ``"cg"``, ``"cholesky"``, ``"eigh"`` or ``"mmode"``.
+        options: options of one path (:mod:`gcrsky.solvers.options`).
+        tol: CG tolerance in posterior-sigma units.
+        ndraws: draws per batch (sizes the memory check).
+        memory_budget: bytes the path may use (default: what is free on the device).
+    """
+    if method == "auto" and options is not None:
+        method = method_of(options)
+    if method == "auto":
+        plan = plan_sampler(system, ndraws=ndraws, budget=memory_budget)
+        logging.getLogger("gcrsky").info("sampler path: %s (%s)", plan.method, plan.reason)
+        chosen = options_for(plan.method, plan.options, tol=tol)
+    else:
+        chosen = options_for(method, options, tol=tol)
+        if method == "mmode":
+            chk = mmode_check(system, atol=chosen.atol, rtol=chosen.rtol)
+            if not chk.ok:
+                raise ValueError(f"method='mmode' needs P block-diagonal in m, but {chk.reason}; use method='auto'")
+        dense = chosen.dense if isinstance(chosen, CGOptions) else True
+        rank = chosen.rank if isinstance(chosen, CGOptions) else CGOptions.rank
+        need = path_memory_bytes(system, method, dense=dense, ndraws=ndraws, rank=rank)
+        alt = ("use method='cg' with options=CGOptions(dense=False) (matrix-free) or method='auto'"
+               if (method != "cg" or dense) else "draw in smaller batches or shard the baselines (gcrsky.parallel)")
+        check_memory(need, f"method={method!r}" + (" (dense P)" if method == "cg" and dense else ""), alt,
+                     budget=memory_budget)
+    if isinstance(chosen, CGOptions):  # validates the choice and warns about a flat prior
+        pc = resolve_preconditioner(system, chosen.preconditioner)
+        chosen = dataclasses.replace(chosen, preconditioner=pc)
+    return chosen
