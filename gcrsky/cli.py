@@ -358,6 +358,9 @@ def _print_summary(s: dict, out: Path) -> None:
 
 def main(argv=None) -> int:
     """Entry point of the ``gcrsky`` command; returns the exit status."""
+    from .base.extras import require
+
+    require("tqdm", "cli", "the gcrsky command line")
     parser = build_parser()
     args = parser.parse_args(argv)
     args._argv = list(sys.argv[1:] if argv is None else argv)

@@ -59,6 +59,7 @@ from typing import NamedTuple
 import healpy as hp
 import numpy as np
 
+from ..base.extras import require
 from ..base.units import kelvin_sr_to_jy
 from ..instrument.antennas import antpairs, make_array
 from ..sphere.maps import alm_to_map
@@ -212,8 +213,7 @@ def matvis_hera_beam_path() -> Path:
     az_za grid, 2 deg in zenith angle, 180 azimuths 0..359 deg, feeds x and y, 100 and
     101 MHz, peak-normalised.
     """
-    import matvis
-
+    matvis = require("matvis", "validate", "the matvis comparison")
     return Path(matvis.__file__).parent / "data" / "NF_HERA_Dipole_small.fits"
 
 
@@ -343,9 +343,10 @@ def matvis_visibilities(case: MatvisCase, sky_map_k: np.ndarray, pairs: np.ndarr
         takes ``sqrt(I)``).
     """
     import astropy.units as u
-    import matvis
 
     from ..instrument.response import equatorial_to_enu
+
+    matvis = require("matvis", "validate", "the matvis comparison")
     from ..sphere.frames import local_sidereal_angles
 
     sky_map_k = np.asarray(sky_map_k, np.float64)

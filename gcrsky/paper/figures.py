@@ -28,8 +28,9 @@ def _plt():
     """pyplot, selecting the Agg backend unless the caller already set pyplot up."""
     import sys
 
-    import matplotlib
+    from ..base.extras import require
 
+    matplotlib = require("matplotlib", "plots", "the paper's figures")
     if "matplotlib.pyplot" not in sys.modules:
         matplotlib.use("Agg")
     import matplotlib.pyplot as plt

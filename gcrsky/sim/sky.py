@@ -36,6 +36,7 @@ from unittest import mock
 
 import numpy as np
 
+from ..base.extras import require
 from ..sphere.modes import n_params, realify, unrealify
 
 __all__ = ["SkyTruth", "sky_truth", "gsm2016_available"]
@@ -169,6 +170,7 @@ def _realify_stack(alm: np.ndarray, lmax: int) -> np.ndarray:
 
 
 def _pyradiosky_gsm_path() -> str:
+    require("pyradiosky", "sim", "the embedded GSM truth sky")
     res = importlib.resources.files("pyradiosky").joinpath("data/gsm_icrs.skyh5")
     path = str(res)
     if not os.path.isfile(path):
