@@ -38,7 +38,7 @@ Rules this module keeps:
   the other rows: there the guard is the phase bound
   ``2 pi max|b - b_rep| nu_max / c <= rtol``.
 
-Typical use::
+Typical use:
 
     groups = groups_for_array(array)                        # pairs = antpairs(Nant)
     cross, auto = redundant_responses(array, groups, freqs, lmax, nside)  # unique rows only
@@ -267,7 +267,7 @@ def check_redundancy(response, groups: RedundantGroups, *, rtol: float = DEFAULT
 
     Raises:
         ValueError: naming up to 5 offending baselines (index, antenna pair,
-        representative, frequency, relative difference).
+            representative, frequency, relative difference).
     """
     if isinstance(response, jax.core.Tracer):
         raise TypeError(

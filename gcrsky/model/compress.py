@@ -145,7 +145,7 @@ def compress_problem(
 
     Raises:
         ValueError: the grouping does not match the problem's baselines, or a group's
-        responses differ (naming the antenna pairs).
+            responses differ (naming the antenna pairs).
     """
     if groups is None:
         groups = _problem_groups(problem, array, tol_m)

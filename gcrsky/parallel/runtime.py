@@ -62,6 +62,7 @@ __all__ = [
     "use_safe_cpu_threading",
 ]
 
+#: The XLA flag that keeps the CPU backend's Eigen pool single-threaded (see the module docstring).
 SAFE_XLA_FLAG = "--xla_cpu_multi_thread_eigen=false"
 
 #: Intra-op pool threads per forced host device (see the module docstring).  One

@@ -14,7 +14,7 @@ partial sums with one all-reduce per product.  No gcrsky function needs to chang
 as is and return the same numbers as on one device, up to the order of the
 floating-point sum over baselines (~1e-16 relative per product).
 
-Usage::
+Usage:
 
     from gcrsky.parallel.runtime import use_host_devices
     use_host_devices(4)        # CPU only, before JAX's first computation (see below)

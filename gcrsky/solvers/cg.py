@@ -135,7 +135,7 @@ def resolve_cg_options(system: LinearSystem, options: CGOptions | None = None) -
     options = CGOptions() if options is None else options
     if not isinstance(options, CGOptions):
         raise TypeError(f"the CG path takes CGOptions, got {type(options).__name__}")
-    kind = resolve_preconditioner(system, options.preconditioner)
+    kind = resolve_preconditioner(system, options.preconditioner, warn=options.preconditioner == "auto")
     return options if kind == options.preconditioner else dataclasses.replace(options, preconditioner=kind)
 
 

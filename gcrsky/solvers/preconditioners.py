@@ -210,20 +210,20 @@ def make_preconditioner(system: LinearSystem, kind: str, precision=None, rank: i
     return pc
 
 
-def resolve_preconditioner(system: LinearSystem, kind: str = "auto") -> str:
+def resolve_preconditioner(system: LinearSystem, kind: str = "auto", *, warn: bool = True) -> str:
     """Concrete choice for ``"auto"``: Nystrom if every mode has a proper prior, else m-blocks.
 
     Host-side (inspects the prior's values); under a trace, where the values are
     unknown, ``"auto"`` means ``"nystrom"`` (pass ``"mblock"`` for a flat prior).
-    Logs a warning for a flat prior, whose P may be singular, and refuses Nystrom
-    there.
+    Logs a warning for a flat prior, whose P may be singular (unless ``warn=False``),
+    and refuses Nystrom there.
     """
     if kind not in ("auto", "nystrom", "mblock"):
         raise ValueError(f"preconditioner must be 'auto', 'nystrom' or 'mblock', got {kind!r}")
     if isinstance(system.prior.inv_var, jax.core.Tracer):
         return "nystrom" if kind == "auto" else kind
     nflat = int(np.sum(np.asarray(system.prior.inv_var) <= 0))  # NumPy: the caller may be tracing
-    if nflat:
+    if nflat and warn:
         logging.getLogger(__name__).warning(
             "flat prior (S^-1 = 0) in %d modes: P may be singular; directions the data do not "
             "constrain have no posterior and solves along them are reported as unconverged",
