@@ -106,6 +106,7 @@ def test_setup_is_realistic_and_functionals_probe_both_regimes(setup):
     assert sum(s.startswith(("a_", "Re", "Im")) for s in names) == 3
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "sampler,seed,batch_size",
     [
@@ -125,6 +126,7 @@ def test_sbc_calibrated_with_flags(setup, sampler, seed, batch_size):
     assert res.p_family > ALPHA, _report(res)
 
 
+@pytest.mark.slow
 def test_sbc_detects_reference_fluctuation_bug(setup):
     res = _sbc(setup, reference_bug_sampler, 102)
     assert res.p_family < POWER_P, _report(res)

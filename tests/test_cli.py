@@ -39,6 +39,7 @@ def _finite_numbers(x, path="summary"):
         yield path, x
 
 
+@pytest.mark.slow
 def test_run_writes_everything(small_run):
     out, rc = small_run
     assert rc == 0
@@ -46,6 +47,7 @@ def test_run_writes_everything(small_run):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
 
 
+@pytest.mark.slow
 def test_results_h5_layout(small_run):
     out, _ = small_run
     n, nf = 81, 2
@@ -69,6 +71,7 @@ def test_results_h5_layout(small_run):
         assert np.all(np.abs(d.mean(axis=1) - wf) <= 5 * d.std(axis=1, ddof=1) / np.sqrt(NSAMPLES) + 1e-9)
 
 
+@pytest.mark.slow
 def test_summary_json(small_run):
     out, _ = small_run
     s = json.loads((out / "summary.json").read_text())
@@ -96,6 +99,7 @@ def test_summary_json(small_run):
     assert m["frac_diff_centre_median"] < 0.05 and m["frac_diff_fwhm_median"] < 0.10
 
 
+@pytest.mark.slow
 def test_draws_depend_only_on_seed_and_batch(small_run, tmp_path):
     """A shorter run with the same seed and batch reproduces the first draws."""
     out, _ = small_run
@@ -136,6 +140,7 @@ def test_no_command_is_an_error(capsys):
     assert e.value.code == 2
 
 
+@pytest.mark.slow
 def test_nan_draws_exit_nonzero(monkeypatch, tmp_path, capsys):
     """Non-finite draws: results are still written, the exit status is 1, with a message."""
     import gcrsky.inference.batches
@@ -155,6 +160,7 @@ def test_nan_draws_exit_nonzero(monkeypatch, tmp_path, capsys):
     assert (tmp_path / "results.h5").is_file()
 
 
+@pytest.mark.slow
 def test_run_with_real_date(tmp_path):
     """--date: real UTC times of that date, sky in ICRS; the headline still holds."""
     rc = cli.main(["run", "--out", str(tmp_path), "--nsamples", "8", "--no-plots", "--date", "2026-03-21", *SMALL])

@@ -18,6 +18,7 @@ def test_check_float64_rejects_float32_and_complex64():
         check_float64(jnp.zeros(3, jnp.complex64))
 
 
+@pytest.mark.slow
 def test_building_a_problem_without_x64_is_a_clear_error():
     # a fresh interpreter: the test session itself runs with x64 on
     code = textwrap.dedent(

@@ -94,6 +94,7 @@ def _matvis_icrs_map(sky_map, nside, times):
     return np.asarray(out).reshape(FREQS_HZ.size, len(times), NANT, NANT)
 
 
+@pytest.mark.slow
 def test_real_times_match_matvis_fed_icrs():
     """gcrsky R . rotate(M a_icrs, ERA_loc(t)) vs matvis fed the ICRS pixels directly.
 
@@ -129,6 +130,7 @@ def test_real_times_match_matvis_fed_icrs():
     assert np.abs(v0 - 2 * vm).max() / scale > 10 * err
 
 
+@pytest.mark.slow
 def test_problem_in_icrs_samples():
     """build_problem with a frame: parameters are ICRS coefficients; the sampler is exact
     (Cholesky vs CG Wiener filter) and the truth is recovered in the observed strip."""
@@ -273,6 +275,7 @@ def test_times_for_lsts_hit_the_lsts():
         times_for_lsts("2026-03-21", lsts[::-1], 21.4283)
 
 
+@pytest.mark.slow
 def test_config_with_date_builds_an_icrs_problem():
     prob = gcrsky.standard_case(lmax=6, nside=32, n_lst=4, obs_date="2026-03-21")
     assert isinstance(prob.frame, FrameMap)

@@ -44,6 +44,7 @@ CHECKS = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
 def test_notebook_runs(path):
     nb = json.loads(path.read_text())
@@ -62,6 +63,7 @@ def test_notebook_runs(path):
     CHECKS[path.name](ns)
 
 
+@pytest.mark.slow
 def test_readme_python_examples_run():
     """The README's Python blocks run as written (smaller nside/chain for speed)."""
     import re

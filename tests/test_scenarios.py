@@ -72,6 +72,7 @@ def built():
     return probs, cache
 
 
+@pytest.mark.slow
 def test_built_problems_differ_from_standard_exactly_as_table1_says(built):
     probs, _ = built
     std = probs["standard"]
@@ -94,6 +95,7 @@ def test_built_problems_differ_from_standard_exactly_as_table1_says(built):
                 np.testing.assert_array_equal(np.asarray(p.prior.mean), np.asarray(std.prior.mean))
 
 
+@pytest.mark.slow
 def test_response_reused_where_the_instrument_is_shared(built):
     probs, cache = built
     # standard, A1, B1-B8, C2-C5 share one instrument; C1 (lmax 30) and D1 (3 m) have their own
@@ -107,6 +109,7 @@ def test_response_reused_where_the_instrument_is_shared(built):
     np.testing.assert_allclose(np.asarray(fresh.response), np.asarray(probs["C3"].response), rtol=0, atol=0)
 
 
+@pytest.mark.slow
 def test_run_scenario_and_conflicts(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(["run", "--scenario", "B7", "--noise-scale", "5", "--out", str(tmp_path)])
@@ -134,6 +137,7 @@ def small_suite(tmp_path_factory):
     return out, rc
 
 
+@pytest.mark.slow
 def test_small_suite_writes_table_claims_and_every_figure(small_suite):
     out, rc = small_suite
     assert rc == 0

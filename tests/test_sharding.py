@@ -188,6 +188,7 @@ def summary() -> dict:
     return _run_check()
 
 
+@pytest.mark.slow
 def test_thread_pool_sized_for_four_devices(summary):
     # the pool XLA created is the one host_devices_env asked for, > 1 thread per device
     assert summary["pool_expected"] >= POOL_THREADS_PER_DEVICE * summary["devices"]
@@ -196,6 +197,7 @@ def test_thread_pool_sized_for_four_devices(summary):
     assert summary["mesh_warnings"] == []
 
 
+@pytest.mark.slow
 def test_really_sharded_over_four_devices(summary):
     assert summary["devices"] == 4
     assert summary["nbl"] == 45 and summary["nbl_padded"] == 48
@@ -208,12 +210,14 @@ def test_really_sharded_over_four_devices(summary):
     assert summary["draws_devices"] == 4
 
 
+@pytest.mark.slow
 def test_products_match_one_device(summary):
     for name in ("apply", "adjoint", "precision_apply", "wiener_rhs"):
         assert summary[name] < 1e-13, (name, summary[name])
     assert summary["apply_pad_zero"] == 0.0
 
 
+@pytest.mark.slow
 def test_cg_wiener_and_draws_match_one_device(summary):
     assert summary["converged"]
     assert summary["wiener_cg"] < 1e-11

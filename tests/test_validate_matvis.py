@@ -107,6 +107,7 @@ def _compare(key):
     return _RESULTS[key]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("key", CASES, ids=["-".join(map(str, c)) for c in CASES])
 def test_matches_matvis_real_times(key):
     case, r = _compare(key)

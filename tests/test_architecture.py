@@ -1,0 +1,137 @@
+"""The package's shape: layers that import one way, no circles, a lean ``import gcrsky``, a short public API.
+
+The import graph is parsed from the source with ``ast`` (gcrsky.checks.imports); every
+import counts, also those inside functions.  Negative controls feed the checker a
+circle and a core module importing an application, which it must flag, so these
+tests can fail.
+"""
+
+from __future__ import annotations
+
+import importlib
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+import gcrsky
+from gcrsky.checks.imports import (
+    APPS,
+    CORE,
+    LAYERS,
+    find_cycles,
+    floors,
+    import_graph,
+    layer_of,
+    layer_violations,
+    modules_only,
+)
+
+PKG = Path(gcrsky.__file__).parent
+SUBPACKAGES = ("base", "sphere", "instrument", "model", "solvers", "inference", "parallel", "io", "sim", "paper",
+               "checks")
+
+
+@pytest.fixture(scope="module")
+def graph():
+    return import_graph(PKG)
+
+
+def test_every_module_is_in_a_known_layer(graph):
+    layers = {layer_of(m) for m in graph}
+    assert layers <= set(LAYERS) | {"facade"}, layers - set(LAYERS)
+    for sub in SUBPACKAGES:
+        assert (PKG / sub / "__init__.py").is_file()
+    assert not [p.name for p in PKG.glob("*.py") if p.stem not in ("__init__", "__main__", "cli")], (
+        "top-level modules belong in a subpackage"
+    )
+
+
+def test_no_import_circles(graph):
+    assert find_cycles(graph) == []
+
+
+def test_imports_run_one_way(graph):
+    assert layer_violations(graph) == []
+
+
+def test_core_never_imports_an_application(graph):
+    bad = [(m, d) for m, deps in graph.items() if layer_of(m) in CORE for d in deps if layer_of(d) in APPS]
+    assert bad == []
+
+
+def test_checker_flags_a_circle_and_an_upward_import(tmp_path):
+    """Negative control: a toy package with a circle and a core -> app import."""
+    pkg = tmp_path / "gcrsky"
+    for sub in ("model", "sim"):
+        (pkg / sub).mkdir(parents=True)
+        (pkg / sub / "__init__.py").write_text("")
+    (pkg / "__init__.py").write_text("")
+    (pkg / "model" / "a.py").write_text("from . import b\n")
+    (pkg / "model" / "b.py").write_text("def f():\n    from .a import g  # lazy, still an edge\n")
+    (pkg / "model" / "c.py").write_text("from ..sim.x import y\n")
+    (pkg / "sim" / "x.py").write_text("import numpy\ny = 1\n")
+    g = import_graph(pkg)
+    assert find_cycles(g) == [["gcrsky.model.a", "gcrsky.model.b"]]
+    vio = layer_violations(g)
+    assert [(v.importer, v.imported) for v in vio] == [("gcrsky.model.c", "gcrsky.sim"), ("gcrsky.model.c", "gcrsky.sim.x")]
+    assert all("core layer 'model' imports application layer 'sim'" in v.why for v in vio)
+
+
+def test_floors_are_finite_and_the_core_is_below_the_apps(graph):
+    fl = floors(modules_only(graph))
+    assert min(fl.values()) == 0
+    core_top = max(f for m, f in fl.items() if layer_of(m) in CORE)
+    assert fl["gcrsky.cli"] > core_top
+
+
+def test_import_gcrsky_stays_lean():
+    """``import gcrsky`` loads none of the application dependencies (nor healpy, which pulls in matplotlib)."""
+    code = textwrap.dedent(
+        """
+        import sys
+        import gcrsky
+        heavy = ('matplotlib', 'matvis', 'pygdsm', 'pyradiosky', 'healpy', 'tqdm')
+        print(sorted(m for m in heavy if m in sys.modules))
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+KEPT = ("standard_case", "build_problem", "Problem", "LinearSystem", "Prior", "wiener_filter", "sample", "prepare",
+        "draw", "wiener_filter_system", "sample_system", "gcr_init", "gcr_step", "realify", "unrealify",
+        "mode_table", "alm_to_map", "dense_matrix", "compress_problem", "isotropic_prior", "paper_prior",
+        "flat_prior")
+
+
+def test_public_api_is_short_sorted_and_complete():
+    names = gcrsky.__all__
+    assert names == sorted(names, key=lambda s: (not s[0].isupper(), s))
+    assert len(names) <= 40
+    assert set(KEPT) <= set(names)
+    for n in names:
+        assert getattr(gcrsky, n) is not None
+
+
+@pytest.mark.parametrize("sub", SUBPACKAGES)
+def test_subpackage_exports_resolve(sub):
+    mod = importlib.import_module(f"gcrsky.{sub}")
+    assert mod.__doc__ and len(mod.__doc__) > 40, f"gcrsky.{sub} needs a docstring saying what it holds"
+    names = mod.__all__
+    assert len(set(names)) == len(names)
+    for n in names:
+        if sub in ("paper", "checks"):  # submodules, imported on use
+            importlib.import_module(f"gcrsky.{sub}.{n}")
+        else:
+            assert hasattr(mod, n), f"gcrsky.{sub}.__all__ names {n} but it is not defined"
+
+
+def test_missing_extra_names_the_extra(monkeypatch):
+    from gcrsky.base import require
+
+    monkeypatch.setitem(sys.modules, "matvis", None)  # an import of it now fails
+    with pytest.raises(ImportError, match=r"pip install 'gcrsky\[validate\]'"):
+        require("matvis", "validate", "the matvis comparison")
