@@ -29,6 +29,8 @@ fi
 # The notebooks run in a kernel started from this environment: keep XLA's CPU pool single-threaded
 # (see gcrsky/parallel/runtime.py) and matplotlib off-screen; never reach for a network.
 export XLA_FLAGS="${XLA_FLAGS:---xla_cpu_multi_thread_eigen=false}"
+export PJRT_NPROC="${PJRT_NPROC:-8}"   # room for blocked batched LAPACK calls (gcrsky/parallel/runtime.py)
+export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}"
 export MPLBACKEND="${MPLBACKEND:-Agg}"
 export NO_MKDOCS_2_WARNING=1
 

@@ -14,14 +14,25 @@
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 from typing import NamedTuple
 
-# before JAX starts its backend: avoid XLA CPU's Eigen-pool hang (gcrsky/runtime.py)
-if os.environ.get("GCRSKY_FAST_THREADS") != "1" and "xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false").strip()
+
+def _safe_threading():
+    """gcrsky.parallel.runtime.use_safe_cpu_threading, loaded from its file (standard library only) so
+    that it runs before NumPy and JAX load: the Eigen-pool flag, and XLA's CPU pool sized so batched
+    LAPACK cannot deadlock (see that module)."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "gcrsky" / "parallel" / "runtime.py"
+    spec = importlib.util.spec_from_file_location("_gcrsky_runtime", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    mod.use_safe_cpu_threading()
+
+
+_safe_threading()
 
 import jax  # noqa: E402
 

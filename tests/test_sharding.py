@@ -276,9 +276,9 @@ def test_host_devices_env_sizes_the_pool():
     # XLA's rule: PJRT_NPROC, else NPROC, else the cores; never fewer threads than devices
     assert effective_pool_size(4, {"PJRT_NPROC": "2"}) == 4
     assert effective_pool_size(2, {"PJRT_NPROC": "x", "NPROC": "7"}) == 7
-    # one device: only the flags, the pool is left to XLA
+    # one device: the pool too has room for blocked batched LAPACK calls
     one = host_devices_env(1, {})
-    assert "PJRT_NPROC" not in one and "OPENBLAS_NUM_THREADS" not in one
+    assert int(one["PJRT_NPROC"]) == safe_pool_size(1) and one["OPENBLAS_NUM_THREADS"] == "1"
     assert forced_device_count(one["XLA_FLAGS"]) == 1
     assert forced_device_count("") == 1
     with pytest.raises(ValueError, match="positive integer"):
@@ -307,15 +307,18 @@ def test_baseline_mesh_warns_about_an_undersized_pool():
     assert "WARN 1" in res.stdout  # the 4-device mesh warns, the 1-device one does not
 
 
-def test_use_safe_cpu_threading_sizes_the_pool_only_for_forced_devices(monkeypatch):
+def test_use_safe_cpu_threading_sizes_the_pool(monkeypatch):
     from gcrsky.parallel import use_host_devices, use_safe_cpu_threading
 
     for key in ("PJRT_NPROC", "NPROC", "OPENBLAS_NUM_THREADS", "GCRSKY_FAST_THREADS"):
         monkeypatch.delenv(key, raising=False)
     monkeypatch.setenv("XLA_FLAGS", "")
-    assert use_safe_cpu_threading()  # one device: the flag, nothing else (as before)
+    assert use_safe_cpu_threading()  # one device: the flag and a pool with room for blocked LAPACK calls
     assert os.environ["XLA_FLAGS"] == "--xla_cpu_multi_thread_eigen=false"
-    assert "PJRT_NPROC" not in os.environ and "OPENBLAS_NUM_THREADS" not in os.environ
+    assert int(os.environ["PJRT_NPROC"]) == safe_pool_size(1) >= 8
+    assert os.environ["OPENBLAS_NUM_THREADS"] == "1"
+    monkeypatch.delenv("PJRT_NPROC")
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS")
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=4")
     monkeypatch.setenv("GCRSKY_FAST_THREADS", "1")  # opting out of the flag keeps the pool fix
     assert not use_safe_cpu_threading()

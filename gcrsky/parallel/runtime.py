@@ -36,6 +36,14 @@ BlockingCounter::Wait`` (gdb) and no thread in a collective; with a 16-thread po
 many LAPACK calls blocked at once per device.  This is a workaround for jaxlib
 0.10.x's parallel batch path; a jaxlib that runs the batch inline needs none.
 
+One device is not immune: a program with independent batched LAPACK calls runs them
+concurrently too, and the default pool has only the CPU count of threads.  Measured:
+the Laplace Hessian of :func:`gcrsky.fit_hyperparameters` (forward-over-reverse
+through Cholesky solves) hung on this 2-core host, both pool threads in
+``TriMatrixEquationSolver -> ParallelBatchMap -> BlockingCounter::Wait`` (gdb).  So
+:func:`use_safe_cpu_threading` sizes the pool for one device as well:
+:func:`safe_pool_size` is ``max(CPU count, POOL_THREADS_PER_DEVICE * max(N, 2))``.
+
 They also default ``OPENBLAS_NUM_THREADS`` to 1: the pool's LAPACK tasks call
 multi-threaded OpenBLAS concurrently, which on few cores spins in
 ``exec_blas_async_wait`` (4 devices, an 8-thread pool, two replicated batched SVDs
@@ -102,16 +110,14 @@ def forced_device_count(flags: str | None = None) -> int:
 
 
 def safe_pool_size(n_devices: int) -> int:
-    """XLA CPU intra-op pool size that keeps ``n_devices`` forced devices deadlock-free.
+    """XLA CPU intra-op pool size that keeps ``n_devices`` host devices deadlock-free.
 
-    ``max(CPU count, POOL_THREADS_PER_DEVICE * n_devices)`` for ``n_devices > 1``;
-    the CPU count (XLA's own default) for one device.
+    ``max(CPU count, POOL_THREADS_PER_DEVICE * max(n_devices, 2))``: room for that many
+    batched LAPACK calls blocked at once (module docstring); idle threads cost nothing.
     """
     if int(n_devices) != n_devices or n_devices < 1:
         raise ValueError(f"n_devices must be a positive integer, got {n_devices}")
-    if n_devices == 1:
-        return _cpu_count()
-    return max(_cpu_count(), POOL_THREADS_PER_DEVICE * int(n_devices))
+    return max(_cpu_count(), POOL_THREADS_PER_DEVICE * max(int(n_devices), 2))
 
 
 def effective_pool_size(n_devices: int, environ: Mapping[str, str] | None = None) -> int:
@@ -134,8 +140,6 @@ def effective_pool_size(n_devices: int, environ: Mapping[str, str] | None = None
 
 def _pool_env(env: dict[str, str], n_devices: int) -> None:
     """Raise ``PJRT_NPROC`` to :func:`safe_pool_size` and default ``OPENBLAS_NUM_THREADS``."""
-    if n_devices <= 1:
-        return
     want = safe_pool_size(n_devices)
     if effective_pool_size(n_devices, env) < want:  # only raised: a larger pool is kept
         env["PJRT_NPROC"] = str(want)
@@ -148,9 +152,9 @@ def host_devices_env(n_devices: int, environ: Mapping[str, str] | None = None) -
     For a subprocess that runs sharded code on one CPU (``subprocess.run(..., env=...)``).
     ``XLA_FLAGS`` gets ``--xla_force_host_platform_device_count=n_devices`` (replacing any
     earlier count) and :data:`SAFE_XLA_FLAG` (unless ``xla_cpu_multi_thread_eigen`` is
-    already set); for more than one device ``PJRT_NPROC`` is raised to
-    :func:`safe_pool_size` and ``OPENBLAS_NUM_THREADS`` defaults to 1 (module docstring:
-    without them batched LAPACK calls on 4 devices deadlock on a 2-core host).
+    already set); ``PJRT_NPROC`` is raised to :func:`safe_pool_size` and
+    ``OPENBLAS_NUM_THREADS`` defaults to 1 (module docstring: without them batched LAPACK
+    calls deadlock on a 2-core host).
     """
     if int(n_devices) != n_devices or n_devices < 1:
         raise ValueError(f"n_devices must be a positive integer, got {n_devices}")
@@ -197,18 +201,16 @@ def use_safe_cpu_threading() -> bool:
     Must run before the first JAX computation (XLA reads the flags when its backend
     starts).  Set ``GCRSKY_FAST_THREADS=1`` to opt out.  Returns whether the flag is active.
 
-    If ``XLA_FLAGS`` forces more than one host device it also sizes the intra-op pool
-    (``PJRT_NPROC``, ``OPENBLAS_NUM_THREADS``) as :func:`host_devices_env` does, opt-out
-    or not: that one is a deadlock fix, not a speed trade-off.  With one device (the
-    default) nothing but the flag is touched.
+    It also sizes the intra-op pool (``PJRT_NPROC``, ``OPENBLAS_NUM_THREADS``) for the
+    host devices ``XLA_FLAGS`` forces (one by default) as :func:`host_devices_env` does,
+    opt-out or not: that one is a deadlock fix, not a speed trade-off.
+    ``OPENBLAS_NUM_THREADS`` only takes effect if this runs before NumPy is imported.
     """
-    n = forced_device_count()
-    if n > 1:
-        env = dict(os.environ)
-        _pool_env(env, n)
-        for key in ("PJRT_NPROC", "OPENBLAS_NUM_THREADS"):
-            if key in env:
-                os.environ[key] = env[key]
+    env = dict(os.environ)
+    _pool_env(env, forced_device_count())
+    for key in ("PJRT_NPROC", "OPENBLAS_NUM_THREADS"):
+        if key in env:
+            os.environ[key] = env[key]
     if os.environ.get("GCRSKY_FAST_THREADS") == "1":
         return False
     flags = os.environ.get("XLA_FLAGS", "")
