@@ -17,6 +17,7 @@ import pytest
 
 import gcrsky
 from gcrsky.inference import KEY_SCHEME, batch_key, draw, draw_batches, prepare_sampler, wiener_filter_system
+from gcrsky.instrument import antpairs
 from gcrsky.model import (
     assemble_problem,
     build_problem,
@@ -170,6 +171,21 @@ def test_draw_batches_key_scheme(full_day, getkey):
     assert seen == [0, 1]
     with pytest.raises(ValueError, match="batch must be a positive integer"):
         draw_batches(key, prepared, 4, 0)
+
+
+def test_scalar_sigma_means_independent_noise_in_every_sample(small_array, small_response):
+    """A scalar sigma once drew a single noise value for the whole data set (regression)."""
+    lmax, nside, freqs = small_response.lmax, small_response.nside, small_response.freqs_hz
+    geom = observation_geometry(small_array, lmax, lsts_rad=np.linspace(0.0, 1.0, 20))
+    resp = problem_responses(small_array, freqs, geom.lmax_response, nside)
+    zero = jnp.zeros((2, (lmax + 1) ** 2))
+    data, sigma = simulate_data(*resp, geom.lsts_rad, geom.frame, zero, np.asarray(antpairs(10)), sigma=0.5,
+                                key=jax.random.PRNGKey(1))
+    assert np.shape(sigma) == np.shape(data) and np.all(np.asarray(sigma) == 0.5)
+    noise = np.asarray(data)  # the sky is zero: data are noise only, 2 x 20 x 45 complex samples
+    assert np.unique(noise.real).size == noise.size
+    # each component is N(0, sigma^2) (model.draw_noise): 1800 samples, 4 sigma on the std is ~7%
+    assert abs(np.std(noise.real) / 0.5 - 1) < 0.07 and abs(np.std(noise.imag) / 0.5 - 1) < 0.07
 
 
 def test_build_problem_is_its_four_steps(small_array, small_response):

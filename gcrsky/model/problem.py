@@ -249,8 +249,9 @@ def simulate_data(
     if sigma is None:
         autos = np.asarray(apply(VisOperator(auto_response, angles, frame), a_true).real)  # (Nf, Nt, Nant)
         sigma = radiometer_sigma(autos[:, :, pairs[:, 0]], autos[:, :, pairs[:, 1]], dt_s, dnu_hz)
-    sigma = np.asarray(sigma, np.float64) * np.sqrt(noise_scale)
     model = apply(VisOperator(response, angles, frame), a_true)
+    # a scalar or broadcastable sigma still means independent noise in every sample
+    sigma = np.broadcast_to(np.asarray(sigma, np.float64) * np.sqrt(noise_scale), model.shape)
     return model + draw_noise(key, jnp.asarray(sigma)), sigma
 
 
