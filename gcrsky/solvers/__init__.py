@@ -15,9 +15,19 @@ posterior draws), with one typed state per path (:class:`CGState`,
 Module whose ``method`` names the path).  :mod:`gcrsky.inference` dispatches on them.
 """
 
-from .cg import CGState, draw_cg, pcg, prepare_cg, resolve_cg_options, solve_cg, wiener_cg
-from .dense import CholeskyState, EighState, draw_cholesky, draw_eigh, prepare_cholesky, prepare_eigh
-from .info import SolveInfo
+from .cg import CGState, cg_solve, draw_cg, pcg, prepare_cg, resolve_cg_options, solve_cg, wiener_cg
+from .dense import (
+    CholeskyState,
+    EighState,
+    cholesky_logdet,
+    cholesky_solve,
+    draw_cholesky,
+    draw_eigh,
+    eigh_functions,
+    prepare_cholesky,
+    prepare_eigh,
+)
+from .info import Result, SolveInfo, result_names
 from .mmode import MModeState, draw_mmode, mmode_blocks, mmode_check, prepare_mmode
 from .options import (
     DEFAULT_TOL,
@@ -27,6 +37,7 @@ from .options import (
     CholeskyOptions,
     EighOptions,
     MModeOptions,
+    SLQOptions,
     SolverOptions,
     method_of,
     options_for,
@@ -36,6 +47,7 @@ from .preconditioners import (
     MBlockPreconditioner,
     NystromPreconditioner,
     apply_preconditioner,
+    inverse_bound,
     m_block_preconditioner,
     make_preconditioner,
     nystrom_preconditioner,
@@ -58,15 +70,22 @@ __all__ = [
     "MModeOptions",
     "MModeState",
     "NystromPreconditioner",
+    "Result",
+    "SLQOptions",
     "SamplerPlan",
     "SolveInfo",
     "SolverOptions",
     "apply_preconditioner",
+    "cg_solve",
+    "cholesky_logdet",
+    "cholesky_solve",
     "choose_path",
     "draw_cg",
     "draw_cholesky",
     "draw_eigh",
     "draw_mmode",
+    "eigh_functions",
+    "inverse_bound",
     "m_block_preconditioner",
     "make_preconditioner",
     "method_of",
@@ -83,6 +102,7 @@ __all__ = [
     "prepare_mmode",
     "resolve_cg_options",
     "resolve_preconditioner",
+    "result_names",
     "solve_cg",
     "wiener_cg",
 ]

@@ -9,7 +9,13 @@ std.  With the m-block preconditioner (flat priors) the same number is only an
 estimate (measured 100x optimistic on the standard case), so pass a smaller ``tol``
 there.  ``jax.scipy.sparse.linalg.cg`` implements the same recurrence but reports
 neither iterations nor residual, so it is written out here with ``lax.while_loop``
-(tests check the two agree).
+(tests check the two agree; ``CGOptions(engine="jax")`` selects JAX's).
+
+Differentiation: every solve goes through ``jax.lax.custom_linear_solve``
+(:func:`cg_solve`), as ``jax.scipy.sparse.linalg.cg`` does, so ``jax.grad``,
+``jax.jvp`` and ``jax.vmap`` work through the Wiener filter, the draws and the Gibbs
+step with the implicit rule ``dx = P^-1 (db - dP x)``, without differentiating the
+iterations.
 
 Set up once (:func:`prepare_cg`: the preconditioner, optionally the dense P, the
 Wiener filter), then draw as often as needed (:func:`draw_cg`): draw ``i`` of a
@@ -29,35 +35,42 @@ import jax.numpy as jnp
 
 from ..base.dtypes import check_float64
 from ..model.system import LinearSystem, fluctuation_rhs, precision_apply, precision_matrix, wiener_rhs
-from .info import SolveInfo
+from .info import Result, SolveInfo, result_code
 from .options import CGOptions
-from .preconditioners import make_preconditioner, precondition_one, resolve_preconditioner
+from .preconditioners import inverse_bound, make_preconditioner, precondition_one, resolve_preconditioner
 
-__all__ = ["CGState", "draw_cg", "freq_slice", "pcg", "prepare_cg", "resolve_cg_options", "solve_cg", "wiener_cg"]
+__all__ = ["CGState", "cg_solve", "draw_cg", "freq_slice", "pcg", "prepare_cg", "resolve_cg_options", "solve_cg",
+           "wiener_cg"]
 
 
-def pcg(matvec, precond, b, x0, *, tol: float = CGOptions.tol, maxiter: int = CGOptions.maxiter):
-    """Preconditioned CG for one right-hand side (vectors of any shape).
+def pcg(matvec, precond, b, x0, *, tol: float = CGOptions.tol, maxiter: int = CGOptions.maxiter, rtol: float = 0.0):
+    """Preconditioned CG for one right-hand side (vectors of any shape); not differentiable itself.
 
-    The recurrence residual drifts from the true one ``b - P x`` in floating point;
-    when the loop stops, CG is restarted once from the true residual ("residual
-    replacement"), so the reported error is that of the returned ``x`` and meets
-    ``tol`` whenever the iteration budget allows.
+    Stops when ``sqrt(r . M^-1 r) <= max(tol, rtol * sqrt(b . M^-1 b))``: ``tol`` is
+    absolute, in posterior-sigma units for the GCR system; ``rtol`` relative to the
+    right-hand side (used for the cotangent solves of :func:`cg_solve`).  The
+    recurrence residual drifts from the true one ``b - P x`` in floating point; when
+    the loop stops, CG is restarted once from the true residual ("residual
+    replacement"), so the reported error is that of the returned ``x`` and meets the
+    threshold whenever the iteration budget allows.  Use :func:`cg_solve` for a solve
+    that differentiates.
 
     Args:
         matvec: x -> P x (symmetric positive definite).
         precond: r -> M^-1 r (symmetric positive definite).
         b, x0: right-hand side and initial guess.
-        tol: stop when ``sqrt(r . M^-1 r) <= tol`` (posterior-sigma units).
+        tol: absolute threshold on ``sqrt(r . M^-1 r)``.
         maxiter: hard cap on iterations (both passes together).
+        rtol: relative threshold (0: absolute only).
 
     Returns:
         (x, SolveInfo) with scalar info fields.
     """
+    thresh = jnp.maximum(tol, rtol * jnp.sqrt(jnp.abs(jnp.vdot(b, precond(b)).real)))
 
     def cond(s):
         k, x, r, z, p, rz, bad = s
-        return (k < maxiter) & (jnp.sqrt(jnp.abs(rz)) > tol) & (~bad)
+        return (k < maxiter) & (jnp.sqrt(jnp.abs(rz)) > thresh) & (~bad)
 
     def body(s):
         k, x, r, z, p, rz, bad = s
@@ -82,12 +95,61 @@ def pcg(matvec, precond, b, x0, *, tol: float = CGOptions.tol, maxiter: int = CG
 
     k, x, bad1 = run(jnp.asarray(0), x0)
     k, x, bad2 = run(k, x)  # restart from the true residual (exits at once if converged)
-    bad = bad1 | bad2
+    return x, _residual_info(matvec, precond, b, x, k, thresh, bad1 | bad2)
+
+
+def _residual_info(matvec, precond, b, x, k, thresh, broke) -> SolveInfo:
     r = b - matvec(x)
     err = jnp.sqrt(jnp.abs(jnp.vdot(r, precond(r)).real))
     rel = jnp.linalg.norm(r) / jnp.maximum(jnp.linalg.norm(b), jnp.finfo(b.dtype).tiny)
-    ok = (err <= tol) & (~bad) & jnp.isfinite(err)
-    return x, SolveInfo(k, err, rel, ok)
+    finite = jnp.isfinite(err) & jnp.all(jnp.isfinite(x))
+    code = result_code(err <= thresh, finite=finite, broke=broke)
+    return SolveInfo(k, err, rel, code == Result.SUCCESS, code)
+
+
+def cg_solve(matvec, precond, b, x0, options: CGOptions, *, inverse_bound=None):
+    """``P^-1 b`` by preconditioned CG that differentiates implicitly (``jax.lax.custom_linear_solve``).
+
+    The forward solve starts at ``x0`` and stops at ``options.tol`` (absolute,
+    posterior sigma).  Derivatives follow the implicit rule ``dx = P^-1 (db - dP x)``:
+    ``jax.grad`` solves once more with P (from 0, to ``options.tol`` relative to the
+    cotangent), ``jax.jvp`` solves for the tangent with the forward settings; neither
+    differentiates through the iterations, and the preconditioner (``precond``'s
+    closure) is held constant (``stop_gradient``): it changes the path, not the answer.
+    ``P`` may depend on anything ``matvec`` closes over; those leaves get gradients.
+
+    ``inverse_bound``: an upper bound on ``lambda_max(M^-1)``, needed by
+    ``engine="jax"`` (:func:`gcrsky.solvers.preconditioners.inverse_bound`).
+
+    Returns:
+        (x, SolveInfo) of the forward solve (scalar fields; not differentiated).
+    """
+    if options.engine == "jax":
+        if inverse_bound is None:
+            raise ValueError("engine='jax' needs inverse_bound, an upper bound on lambda_max(M^-1)")
+        return _jax_cg(matvec, precond, b, x0, options, inverse_bound)
+
+    def solve(mv, rhs):
+        return pcg(mv, precond, rhs, x0, tol=options.tol, maxiter=options.maxiter)
+
+    def transpose_solve(mv, rhs):
+        return pcg(mv, precond, rhs, jnp.zeros_like(rhs), tol=0.0, maxiter=options.maxiter, rtol=options.tol)
+
+    return jax.lax.custom_linear_solve(matvec, b, solve, transpose_solve, symmetric=True, has_aux=True)
+
+
+def _jax_cg(matvec, precond, b, x0, options: CGOptions, inverse_bound):
+    """``jax.scipy.sparse.linalg.cg`` with our preconditioner; SolveInfo from the true residual.
+
+    JAX stops on the 2-norm, ``||r|| <= atol``.  Since ``r^T M^-1 r <= ||r||^2
+    lambda_max(M^-1)``, ``atol = tol / sqrt(inverse_bound)`` makes its stop imply ours
+    (conservatively: it may iterate longer).  JAX reports no iteration count.
+    """
+    atol = options.tol / jnp.sqrt(jax.lax.stop_gradient(inverse_bound))
+    x, _ = jax.scipy.sparse.linalg.cg(matvec, b, x0, tol=0.0, atol=atol, maxiter=options.maxiter, M=precond)
+    info = _residual_info(matvec, precond, jax.lax.stop_gradient(b), jax.lax.stop_gradient(x), jnp.asarray(-1),
+                          options.tol, jnp.asarray(False))
+    return x, jax.tree_util.tree_map(jax.lax.stop_gradient, info)
 
 
 def freq_slice(system: LinearSystem, f) -> LinearSystem:
@@ -105,11 +167,15 @@ def solve_cg(system: LinearSystem, precision, pc, b, x0, options: CGOptions):
     """Solve ``P x = b`` for b (Nf, n) or (Nf, k, n) batches by preconditioned CG.
 
     vmapped over frequencies (and over the k right-hand sides); every solve keeps its
-    own iteration count.  ``precision``: the dense P (Nf, n, n) or None (matrix-free).
+    own iteration count and differentiates implicitly (:func:`cg_solve`).
+    ``precision``: the dense P (Nf, n, n) or None (matrix-free).  With
+    ``options.throw`` a solve that did not converge raises.
 
     Returns:
         (x like b, SolveInfo with b's batch shape).
     """
+
+    pc = jax.lax.stop_gradient(pc)  # the preconditioner changes the path, not the answer
 
     def one_freq(f, bf, x0f):
         if precision is not None:
@@ -118,12 +184,16 @@ def solve_cg(system: LinearSystem, precision, pc, b, x0, options: CGOptions):
             sys_f = freq_slice(system, f)
             mv = lambda x: precision_apply(sys_f, x[None])[0]  # noqa: E731
         prec = lambda r: precondition_one(pc, f, r)  # noqa: E731
-        solve1 = partial(pcg, mv, prec, tol=options.tol, maxiter=options.maxiter)
+        bound = inverse_bound(pc, f) if options.engine == "jax" else None
+        solve1 = lambda bb, xx: cg_solve(mv, prec, bb, xx, options, inverse_bound=bound)  # noqa: E731
         if bf.ndim == 1:
             return solve1(bf, x0f)
         return jax.vmap(solve1)(bf, x0f)
 
-    return jax.vmap(one_freq)(jnp.arange(b.shape[0]), b, x0)
+    x, info = jax.vmap(one_freq)(jnp.arange(b.shape[0]), b, x0)
+    if options.throw:
+        x = eqx.error_if(x, ~info.converged, "gcrsky CG: a solve did not converge (CGOptions(throw=True))")
+    return x, info
 
 
 def resolve_cg_options(system: LinearSystem, options: CGOptions | None = None) -> CGOptions:

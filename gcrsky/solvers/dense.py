@@ -5,12 +5,25 @@
   :func:`prepare_cholesky` (to ~cond(L) eps relative), so a batch of draws is one
   matrix product.  Draw ``i`` of a batch uses ``jax.random.split(key, ndraws)[i]``,
   as CG does.
-* Eigen: ``P = V diag(lam) V^T``; ``a = a_wf + V_r lam_r^-1/2 z``.  Exact like
-  Cholesky for a proper prior, and the only path that handles a singular P (a flat
-  prior, ``S^-1 = 0``, leaves directions the data do not see): it samples the
-  posterior restricted to the directions with eigenvalue ``> rcond * max``; the
-  others have no information and are pinned at 0 (the minimum-norm solution), and
-  ``EighState.rank`` says how many were kept.
+* Eigen: ``P = V diag(lam) V^T``; ``a = a_wf + (P^+)^1/2 z`` with the symmetric
+  square root ``(P^+)^1/2 = V_r lam_r^-1/2 V_r^T``.  Exact like Cholesky for a proper
+  prior, and the only path that handles a singular P (a flat prior, ``S^-1 = 0``,
+  leaves directions the data do not see): it samples the posterior restricted to the
+  directions with eigenvalue ``> rcond * max``; the others have no information and
+  are pinned at 0 (the minimum-norm solution), and ``EighState.rank`` says how many
+  were kept.
+
+Differentiation.  The Cholesky Wiener filter differentiates implicitly
+(:func:`cholesky_solve`: ``lax.custom_linear_solve`` with the factor as the exact
+solve, so a gradient costs one more pair of triangular solves rather than the
+factor's own derivative, ~4x its cost); its log determinant by
+:func:`cholesky_logdet` (``d log det P = tr(P^-1 dP)``); the draws' ``L^-T``
+natively (JAX's rules for the factor and the triangular solve).  The eigen path's matrix functions ``P^+`` and ``(P^+)^1/2``
+carry their own JVP (:func:`eigh_functions`, the Daleckii-Krein formula), which stays
+finite where eigenvalues are degenerate (e.g. every prior-dominated mode with the same
+floor variance): differentiating ``eigh``'s eigenvectors there gives NaN.  The
+symmetric square root is the one factor that is a smooth function of P, which is why
+the eigen draws use it.  The cut at ``rcond`` is held fixed under differentiation.
 """
 
 from __future__ import annotations
@@ -24,14 +37,17 @@ import jax.numpy as jnp
 
 from ..base.dtypes import check_float64
 from ..model.system import LinearSystem, precision_matrix, wiener_rhs
-from .info import SolveInfo, exact_info
+from .info import SolveInfo, direct_info, exact_info
 from .options import CholeskyOptions, EighOptions
 
 __all__ = [
     "CholeskyState",
     "EighState",
+    "cholesky_logdet",
+    "cholesky_solve",
     "draw_cholesky",
     "draw_eigh",
+    "eigh_functions",
     "prepare_cholesky",
     "prepare_eigh",
     "upper_triangular_product",
@@ -69,7 +85,7 @@ class EighState(eqx.Module):
         a_wf: (Nf, n) Wiener filter (minimum-norm for a singular P).
         wiener: SolveInfo of the Wiener solve, (Nf,) fields.
         precision: dense P (Nf, n, n).
-        sqrt_cov: (Nf, n, n) ``T`` with ``T T^T = P^+`` (``delta = T z``).
+        sqrt_cov: (Nf, n, n) the symmetric ``T = (P^+)^1/2``, ``T T = P^+`` (``delta = T z``).
         rank: (Nf,) number of directions sampled (n unless P is singular).
         options: the :class:`EighOptions` (static).
     """
@@ -85,19 +101,63 @@ class EighState(eqx.Module):
     method: ClassVar[str] = "eigh"
 
 
-@jax.jit
-def _prepare_cholesky(system: LinearSystem) -> CholeskyState:
+def cholesky_solve(P: jax.Array, L: jax.Array, b: jax.Array) -> jax.Array:
+    """``P^-1 b`` for SPD P (..., n, n) with its lower Cholesky factor L, b (..., n).
+
+    Differentiated implicitly, as ``lax.custom_linear_solve`` does: ``dx = P^-1 (db - dP x)``
+    with the same factor (held fixed), to every order; no derivative of the factor.
+    """
+    if P.ndim > 2:
+        return jax.vmap(cholesky_solve)(P, L, b)
+    Lc = jax.lax.stop_gradient(L)
+
+    def solve(_, r):
+        return jax.scipy.linalg.cho_solve((Lc, True), r)
+
+    return jax.lax.custom_linear_solve(lambda x: P @ x, b, solve, symmetric=True)
+
+
+@jax.custom_jvp
+def _logdet_factor(P, L):
+    return 2.0 * jnp.sum(jnp.log(jnp.diagonal(L, axis1=-2, axis2=-1)), axis=-1)
+
+
+@_logdet_factor.defjvp
+def _logdet_factor_jvp(primals, tangents):
+    P, L = primals
+    dP, _ = tangents  # L is a function of P: all of the dependence is in dP
+    eye = jnp.broadcast_to(jnp.eye(L.shape[-1], dtype=L.dtype), L.shape)
+    # P^-1 by two triangular solves (2 n^3; 25% faster than L^-T @ L^-1), from the factor
+    # with its own derivative, so second orders are right
+    p_inv = jax.scipy.linalg.cho_solve((L, True), eye)
+    return _logdet_factor(P, L), jnp.sum(p_inv * dP, axis=(-2, -1))
+
+
+def cholesky_logdet(P: jax.Array, L: jax.Array) -> jax.Array:
+    """``log det P`` (...,) of SPD P (..., n, n) from its lower Cholesky factor L.
+
+    ``2 sum log diag L``; the JVP is ``tr(P^-1 dP)`` with ``P^-1 = L^-T L^-1``, and
+    higher orders differentiate that (pass the factor with its derivative, as
+    ``jnp.linalg.cholesky(P)`` gives it, for Hessians). Measured at n = 2601: a gradient
+    1.15 s against 2.25 s through the factor's own rule.
+    """
+    return _logdet_factor(P, L)
+
+
+@partial(jax.jit, static_argnames=("throw",))
+def _prepare_cholesky(system: LinearSystem, throw: bool = False) -> CholeskyState:
     check_float64(system.op.response, system.inv_noise)
     b = wiener_rhs(system)
-    nf = b.shape[0]
     P = precision_matrix(system)
     L = jnp.linalg.cholesky(P)
     cho = jax.vmap(lambda l, v: jax.scipy.linalg.cho_solve((l, True), v))
-    a_wf = cho(L, b)
-    r = b - jnp.einsum("fij,fj->fi", P, a_wf)
-    err = jnp.sqrt(jnp.abs(jnp.einsum("fi,fi->f", r, cho(L, r))))
-    ok = jnp.all(jnp.isfinite(L), axis=(1, 2))
-    winfo = SolveInfo(jnp.zeros(nf, int), err, jnp.linalg.norm(r, axis=1) / jnp.linalg.norm(b, axis=1), ok)
+    a_wf = cholesky_solve(P, L, b)
+    r = jax.lax.stop_gradient(b - jnp.einsum("fij,fj->fi", P, a_wf))
+    err = jnp.sqrt(jnp.abs(jnp.einsum("fi,fi->f", r, cho(jax.lax.stop_gradient(L), r))))
+    finite = jnp.all(jnp.isfinite(jax.lax.stop_gradient(L)), axis=(1, 2))
+    winfo = direct_info(err, jnp.linalg.norm(r, axis=1) / jnp.linalg.norm(jax.lax.stop_gradient(b), axis=1), finite)
+    if throw:
+        a_wf = eqx.error_if(a_wf, ~winfo.converged, "gcrsky Cholesky: P is not positive definite (non-finite factor)")
     eye = jnp.eye(L.shape[-1], dtype=L.dtype)
     linv = jax.vmap(lambda l: jax.scipy.linalg.solve_triangular(l, eye, lower=True))(L)
     return CholeskyState(system, a_wf, winfo, P, L, jnp.swapaxes(linv, -1, -2))
@@ -110,9 +170,57 @@ def prepare_cholesky(system: LinearSystem, options: CholeskyOptions | None = Non
     directions) gives a non-finite factor, reported as ``wiener.converged = False``;
     use the eigen path there.
     """
-    if options is not None and not isinstance(options, CholeskyOptions):
+    options = CholeskyOptions() if options is None else options
+    if not isinstance(options, CholeskyOptions):
         raise TypeError(f"the Cholesky path takes CholeskyOptions, got {type(options).__name__}")
-    return _prepare_cholesky(system)
+    return _prepare_cholesky(system, options.throw)
+
+
+def _eigh_fns(lam, rcond):
+    keep = lam > rcond * lam[-1]
+    safe = jnp.where(keep, lam, 1.0)
+    f1, d1 = jnp.where(keep, 1.0 / safe, 0.0), jnp.where(keep, -1.0 / safe**2, 0.0)
+    f2, d2 = jnp.where(keep, safe**-0.5, 0.0), jnp.where(keep, -0.5 * safe**-1.5, 0.0)
+    return (f1, d1), (f2, d2)
+
+
+def eigh_functions(P: jax.Array, b: jax.Array, rcond: float):
+    """``(P^+ b, (P^+)^1/2, lam)`` of a symmetric (n, n) P and b (n,); eigenvalues ``<= rcond * max`` cut.
+
+    ``P^+ b`` is formed as ``V (f(lam) * (V^T b))`` (accurate across the spectrum, which
+    spans ~1e13 for a flat prior), ``(P^+)^1/2`` as ``V diag(lam^-1/2) V^T``.
+    Differentiable everywhere the cut does not move, degenerate eigenvalues included:
+    the JVP is the Daleckii-Krein formula ``d f(P) = V (F o (V^T dP V)) V^T`` with
+    ``F_ij = (f(lam_i) - f(lam_j)) / (lam_i - lam_j)``, and ``f'(lam_i)`` where the two
+    are equal to ~1e-10 of the spectrum's scale.
+    """
+    return _eigh_parts(P, b, rcond)[:3]
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(2,))
+def _eigh_parts(P, b, rcond):
+    """:func:`eigh_functions` and the eigenvectors V, for diagnostics only (V's tangent is set to 0)."""
+    lam, V = jnp.linalg.eigh(P)
+    (f1, _), (f2, _) = _eigh_fns(lam, rcond)
+    return V @ (f1 * (V.T @ b)), (V * f2) @ V.T, lam, V
+
+
+@_eigh_parts.defjvp
+def _eigh_parts_jvp(rcond, primals, tangents):
+    (P, b), (dP, db) = primals, tangents
+    lam, V = jnp.linalg.eigh(P)
+    dPv = V.T @ ((dP + dP.T) / 2) @ V
+    diff = lam[:, None] - lam[None, :]
+    close = jnp.abs(diff) <= 1e-10 * jnp.max(jnp.abs(lam))
+    (f1, d1), (f2, d2) = _eigh_fns(lam, rcond)
+
+    def dk(f, fp):  # Daleckii-Krein divided differences
+        return jnp.where(close, 0.5 * (fp[:, None] + fp[None, :]), (f[:, None] - f[None, :]) / jnp.where(close, 1.0, diff))
+
+    vb, vdb = V.T @ b, V.T @ db
+    x, dx = V @ (f1 * vb), V @ ((dk(f1, d1) * dPv) @ vb + f1 * vdb)
+    T, dT = (V * f2) @ V.T, V @ (dk(f2, d2) * dPv) @ V.T
+    return (x, T, lam, V), (dx, dT, jnp.diagonal(dPv), jnp.zeros_like(V))
 
 
 @partial(jax.jit, static_argnames=("options",))
@@ -120,20 +228,21 @@ def _prepare_eigh(system: LinearSystem, options: EighOptions) -> EighState:
     check_float64(system.op.response, system.inv_noise)
     b = wiener_rhs(system)
     P = precision_matrix(system)
-    lam, V = jnp.linalg.eigh(P)  # ascending, (Nf, n), (Nf, n, n)
-    keep = lam > options.rcond * lam[:, -1:]
-    safe = jnp.where(keep, lam, 1.0)
-    inv = jnp.where(keep, 1.0 / safe, 0.0)
-    coef = jnp.einsum("fji,fj->fi", V, b)  # V^T b
-    a_wf = jnp.einsum("fij,fj->fi", V, inv * coef)
-    sqrt_cov = V * jnp.where(keep, 1.0 / jnp.sqrt(safe), 0.0)[:, None, :]
+    a_wf, sqrt_cov, lam, V = jax.vmap(lambda p, bb: _eigh_parts(p, bb, options.rcond))(P, b)
     # residual within the sampled subspace, in posterior-sigma units (P^+ norm)
-    r_coef = jnp.where(keep, coef - jnp.einsum("fji,fjk,fk->fi", V, P, a_wf), 0.0)
+    lam, V = jax.lax.stop_gradient(lam), jax.lax.stop_gradient(V)
+    keep = lam > options.rcond * lam[:, -1:]
+    inv = jnp.where(keep, 1.0 / jnp.where(keep, lam, 1.0), 0.0)
+    r = jax.lax.stop_gradient(b - jnp.einsum("fij,fj->fi", P, a_wf))
+    r_coef = jnp.where(keep, jnp.einsum("fji,fj->fi", V, r), 0.0)  # V^T r within range(P)
     err = jnp.sqrt(jnp.sum(inv * r_coef**2, axis=1))
-    ok = jnp.all(jnp.isfinite(V), axis=(1, 2)) & jnp.isfinite(err)
-    nf = b.shape[0]
-    winfo = SolveInfo(jnp.zeros(nf, int), err, jnp.linalg.norm(r_coef, axis=1) / jnp.linalg.norm(b, axis=1), ok)
-    return EighState(system, a_wf, winfo, P, sqrt_cov, jnp.sum(keep, axis=1), options)
+    finite = jnp.all(jnp.isfinite(jax.lax.stop_gradient(sqrt_cov)), axis=(1, 2)) & jnp.isfinite(err)
+    winfo = direct_info(err, jnp.linalg.norm(r_coef, axis=1) / jnp.linalg.norm(jax.lax.stop_gradient(b), axis=1),
+                        finite)
+    if options.throw:
+        a_wf = eqx.error_if(a_wf, ~winfo.converged, "gcrsky eigh: non-finite eigen-decomposition of P")
+    rank = jnp.sum(keep, axis=1)
+    return EighState(system, a_wf, winfo, P, sqrt_cov, rank, options)
 
 
 def prepare_eigh(system: LinearSystem, options: EighOptions | None = None) -> EighState:
@@ -176,7 +285,7 @@ def draw_cholesky(key: jax.Array, state: CholeskyState, ndraws: int):
 
 @partial(jax.jit, static_argnames=("ndraws",))
 def draw_eigh(key: jax.Array, state: EighState, ndraws: int):
-    """``ndraws`` exact draws ``a_wf + V_r lam_r^-1/2 z``, z drawn as one (Nf, n, ndraws) array.
+    """``ndraws`` exact draws ``a_wf + (P^+)^1/2 z``, z drawn as one (Nf, n, ndraws) array.
 
     Returns:
         as :func:`draw_cholesky`.

@@ -1,4 +1,11 @@
-"""How a solve went: the result type every solver path returns."""
+"""How a solve went: the result type every solver path returns, with a result code.
+
+Codes (:class:`Result`): ``SUCCESS`` (0), ``MAX_ITERATIONS`` (1: CG hit ``maxiter``
+before reaching ``tol``), ``BREAKDOWN`` (2: non-positive curvature ``p^T P p <= 0``,
+i.e. a singular or indefinite P, e.g. a flat prior), ``NONFINITE`` (3: NaN or Inf in
+the residual, the factor or the answer).  ``SolveInfo.converged`` is ``result == 0``.
+:func:`result_names` turns codes into words for messages.
+"""
 
 from __future__ import annotations
 
@@ -6,29 +13,56 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-__all__ = ["SolveInfo", "exact_info"]
+__all__ = ["Result", "SolveInfo", "direct_info", "exact_info", "result_code", "result_names"]
+
+
+class Result:
+    """The result codes of :class:`SolveInfo` (plain ints, usable inside ``jit``)."""
+
+    SUCCESS = 0
+    MAX_ITERATIONS = 1
+    BREAKDOWN = 2
+    NONFINITE = 3
+
+    NAMES = ("success", "max_iterations", "breakdown", "nonfinite")
 
 
 class SolveInfo(NamedTuple):
     """How a solve went (arrays have the batch shape of the solve, e.g. (Nf,) or (Nf, ndraws)).
 
     Attributes:
-        iterations: CG iterations taken (0 for the direct paths).
+        iterations: CG iterations taken (0 for the direct paths; -1 where the engine
+            does not report them, ``CGOptions(engine="jax")``).
         err_sigma: ``sqrt(r^T M^-1 r)`` from the *true* final residual ``b - P x``, in
             posterior-sigma units: an upper bound on the error's P-norm with the
             Nystrom preconditioner, an estimate with m-blocks; for the direct paths
             the same quantity with their exact factor (rounding only).
         rel_residual: ``||b - P x|| / ||b||``.
-        converged: ``err_sigma <= tol`` and no breakdown (non-positive curvature,
-            which signals a singular or indefinite P, e.g. a flat prior); for the
-            direct paths: the factor is finite.
+        converged: ``result == Result.SUCCESS``.
+        result: the :class:`Result` code (int).
     """
 
     iterations: jax.Array
     err_sigma: jax.Array
     rel_residual: jax.Array
     converged: jax.Array
+    result: jax.Array
+
+
+def result_code(ok, *, finite, broke=None) -> jax.Array:
+    """The :class:`Result` code from ``ok`` (tolerance met), ``finite`` and ``broke`` (breakdown)."""
+    code = jnp.where(ok, Result.SUCCESS, Result.MAX_ITERATIONS)
+    if broke is not None:
+        code = jnp.where(broke, Result.BREAKDOWN, code)
+    return jnp.where(finite, code, Result.NONFINITE)
+
+
+def direct_info(err, rel, finite) -> SolveInfo:
+    """Info of a direct (factorised) solve: no iterations; converged iff everything is finite."""
+    code = jnp.where(finite, Result.SUCCESS, Result.NONFINITE)
+    return SolveInfo(jnp.zeros(jnp.shape(err), int), err, rel, code == Result.SUCCESS, code)
 
 
 def exact_info(ok: jax.Array, shape: tuple[int, ...]) -> SolveInfo:
@@ -40,4 +74,11 @@ def exact_info(ok: jax.Array, shape: tuple[int, ...]) -> SolveInfo:
         shape: batch shape, e.g. (Nf, ndraws).
     """
     zeros = jnp.zeros(shape)
-    return SolveInfo(jnp.zeros(shape, int), zeros, zeros, jnp.broadcast_to(ok, shape))
+    ok = jnp.broadcast_to(ok, shape)
+    return SolveInfo(jnp.zeros(shape, int), zeros, zeros, ok, jnp.where(ok, Result.SUCCESS, Result.NONFINITE))
+
+
+def result_names(info: SolveInfo) -> dict[str, int]:
+    """How many solves ended with each result, e.g. ``{"success": 8, "max_iterations": 2}`` (host-side)."""
+    codes = np.asarray(info.result).ravel()
+    return {Result.NAMES[c]: int(np.sum(codes == c)) for c in np.unique(codes)}

@@ -23,6 +23,14 @@ columns of R with order m.  Building all blocks costs ``O(Nf Nbl lmax^3)`` inste
 ``O(Nf Nt Nbl lmax^4)`` for the dense P; factorising them ``O(Nf lmax^4)`` instead of
 ``O(Nf lmax^6)``.
 
+Differentiation.  The Wiener filter differentiates implicitly against the true
+(matrix-free) P (``jax.lax.custom_linear_solve``): its derivative is that of the true
+posterior mean along any change of the system.  The draws and the evidence
+differentiate natively through the block factors, which see the noise only through
+its sum over times: exact along changes that keep the noise stationary (a noise scale,
+any prior or response change), and the m-mode path does not apply anyway once the
+noise varies in time.
+
 Block layout: block m has size ``B = 2 (lmax+1)``; position ``p < lmax+1`` holds
 ``Re a_{l=p, m}``, ``p >= lmax+1`` holds ``Im a_{l=p-lmax-1, m}``.  Entries with
 ``l < m`` and the Im half of ``m = 0`` are padding: identity rows/columns, decoupled,
@@ -43,13 +51,14 @@ from ..base.dtypes import check_float64
 from ..model.operator import n_in
 from ..model.system import LinearSystem, precision_apply, wiener_rhs
 from ..sphere.modes import lmax_from_nparams, mode_table, n_alm
-from .info import SolveInfo, exact_info
+from .info import SolveInfo, direct_info, exact_info
 from .options import MModeOptions
 
 __all__ = [
     "MModeCheck",
     "MModeLayout",
     "MModeState",
+    "block_solve",
     "blocks_to_dense",
     "draw_mmode",
     "is_mmode_diagonal",
@@ -180,8 +189,9 @@ def mmode_blocks(system: LinearSystem) -> jax.Array:
     """The m-blocks of P, (Nf, lmax+1, 2(lmax+1), 2(lmax+1)), identity on padding.
 
     Exact (equal to the dense :func:`gcrsky.model.precision_matrix` restricted to each m)
-    only when :func:`mmode_check` passes; the time-constant noise is read at t = 0 and
-    the angle sum enters as ``Nt``.  Cost ``O(Nf Nbl lmax^3)``; never forms the dense P.
+    only when :func:`mmode_check` passes; the time-constant noise enters as its sum over
+    times (``Nt w``), so a derivative along a noise change that keeps it stationary
+    (e.g. a noise scale) is exact.  Cost ``O(Nf Nbl lmax^3)``; never forms the dense P.
     """
     op = system.op
     if op.frame is not None:
@@ -191,8 +201,7 @@ def mmode_blocks(system: LinearSystem) -> jax.Array:
     lmax = lmax_from_nparams(n)
     lay = mmode_layout(lmax)
     M = lmax + 1
-    nt = op.angles.shape[0]
-    w = system.inv_noise[:, 0, :]  # (Nf, Nbl), constant in time
+    w = jnp.sum(system.inv_noise, axis=1)  # (Nf, Nbl): Nt w for time-constant noise
     G = _gather(R, lay)  # (Nf, Nbl, M, B) complex, zeros on padding
     Rre, Rim = G[..., :M], G[..., M:]
 
@@ -201,8 +210,8 @@ def mmode_blocks(system: LinearSystem) -> jax.Array:
 
     a_rr, a_ii, a_ir = gram(Rre, Rre), gram(Rim, Rim), gram(Rim, Rre)
     half = jnp.where(jnp.arange(M) == 0, 1.0, 0.5)[None, :, None, None]  # m = 0: no averaging
-    C = nt * half * (a_rr + a_ii)  # a_ii = 0 at m = 0
-    D = nt * 0.5 * (a_ir - jnp.swapaxes(a_ir, -1, -2))
+    C = half * (a_rr + a_ii)  # a_ii = 0 at m = 0
+    D = 0.5 * (a_ir - jnp.swapaxes(a_ir, -1, -2))
     P = jnp.concatenate(
         [jnp.concatenate([C, -D], axis=-1), jnp.concatenate([D, C], axis=-1)], axis=-2
     )  # (Nf, M, B, B)
@@ -259,20 +268,30 @@ def _block_solve(chol: jax.Array, g: jax.Array) -> jax.Array:
     return jax.vmap(jax.vmap(lambda l, v: _tri(l, v, "T")))(chol, y)
 
 
-@jax.jit
-def _prepare(system: LinearSystem) -> MModeState:
-    lmax = lmax_from_nparams(system.op.response.shape[2])
-    lay = mmode_layout(lmax)
+def block_solve(chol: jax.Array, b: jax.Array) -> jax.Array:
+    """``P^-1 b`` through the factorised m-blocks: b (Nf, n) -> (Nf, n)."""
+    lay = mmode_layout(chol.shape[1] - 1)
+    return _scatter(_block_solve(chol, _gather(b, lay)[..., None])[..., 0], lay)
+
+
+@partial(jax.jit, static_argnames=("throw",))
+def _prepare(system: LinearSystem, throw: bool = False) -> MModeState:
     L = jnp.linalg.cholesky(mmode_blocks(system))
     b = wiener_rhs(system)  # (Nf, n), matrix-free O(Nt Nbl n)
-    a_wf = _scatter(_block_solve(L, _gather(b, lay)[..., None])[..., 0], lay)
-    r = b - precision_apply(system, a_wf)
-    pr = _scatter(_block_solve(L, _gather(r, lay)[..., None])[..., 0], lay)
-    err = jnp.sqrt(jnp.abs(jnp.sum(r * pr, axis=-1)))
-    ok = jnp.all(jnp.isfinite(L), axis=(1, 2, 3)) & jnp.isfinite(err)
-    nf = b.shape[0]
-    rel = jnp.linalg.norm(r, axis=-1) / jnp.linalg.norm(b, axis=-1)
-    return MModeState(system, a_wf, SolveInfo(jnp.zeros(nf, int), err, rel, ok), L)
+    Lc = jax.lax.stop_gradient(L)
+    # Implicit differentiation against the true (matrix-free) P: the derivative is that of
+    # the true posterior mean, for any change of the system (the blocks' own derivative
+    # would miss what a time-varying noise change adds off the block diagonal).
+    solve = lambda mv, rhs: block_solve(Lc, rhs)  # noqa: E731
+    a_wf = jax.lax.custom_linear_solve(lambda x: precision_apply(system, x), b, solve, symmetric=True)
+    r = jax.lax.stop_gradient(b - precision_apply(system, a_wf))
+    err = jnp.sqrt(jnp.abs(jnp.sum(r * block_solve(Lc, r), axis=-1)))
+    finite = jnp.all(jnp.isfinite(Lc), axis=(1, 2, 3)) & jnp.isfinite(err)
+    rel = jnp.linalg.norm(r, axis=-1) / jnp.linalg.norm(jax.lax.stop_gradient(b), axis=-1)
+    info = direct_info(err, rel, finite)
+    if throw:
+        a_wf = eqx.error_if(a_wf, ~info.converged, "gcrsky m-mode: a block is not positive definite")
+    return MModeState(system, a_wf, info, L)
 
 
 def prepare_mmode(system: LinearSystem, options: MModeOptions | None = None, *, check: bool = True) -> MModeState:
@@ -292,7 +311,7 @@ def prepare_mmode(system: LinearSystem, options: MModeOptions | None = None, *, 
         res = mmode_check(system, atol=options.atol, rtol=options.rtol)
         if not res.ok:
             raise ValueError(f"P is not block-diagonal in m: {res.reason}")
-    return _prepare(system)
+    return _prepare(system, options.throw)
 
 
 @partial(jax.jit, static_argnames=("ndraws",))

@@ -4,10 +4,15 @@ Each path's knobs live in one frozen, hashable dataclass, so they travel through
 ``jax.jit`` as a single static argument, are validated once (a bad value is a
 ``ValueError`` naming it) and cannot drift apart between modules:
 
-- ``"cg"``: :class:`CGOptions`: ``tol``, ``maxiter``, ``dense``, ``preconditioner``, ``rank``, ``pc_dtype``
-- ``"cholesky"``: :class:`CholeskyOptions` (no knobs: the factorisation is exact)
-- ``"eigh"``: :class:`EighOptions`: ``rcond``
-- ``"mmode"``: :class:`MModeOptions`: ``atol``, ``rtol`` of the structural check
+- ``"cg"``: :class:`CGOptions`: ``tol``, ``maxiter``, ``dense``, ``preconditioner``, ``rank``, ``pc_dtype``,
+  ``engine``, ``throw``
+- ``"cholesky"``: :class:`CholeskyOptions`: ``throw`` (the factorisation is exact)
+- ``"eigh"``: :class:`EighOptions`: ``rcond``, ``throw``
+- ``"mmode"``: :class:`MModeOptions`: ``atol``, ``rtol`` of the structural check, ``throw``
+
+``throw=True`` makes a failed solve an error inside ``jit`` (``equinox.error_if``;
+reliable on CPU, where the check runs in the host callback before results are
+returned) instead of a flag in :class:`~gcrsky.solvers.SolveInfo`.
 
 :func:`options_for` gives the default options of a path name and checks that
 options handed in belong to it.
@@ -27,6 +32,7 @@ __all__ = [
     "CholeskyOptions",
     "EighOptions",
     "MModeOptions",
+    "SLQOptions",
     "SolverOptions",
     "method_of",
     "options_for",
@@ -72,6 +78,13 @@ class CGOptions:
         pc_dtype: ``"float64"`` or ``"float32"`` storage of the preconditioner (CG
             itself stays float64; float32 only costs iterations,
             ``benchmarks/float32.py``).
+        engine: ``"gcrsky"`` (this package's CG: iteration counts, the posterior-sigma
+            stopping rule, a residual restart) or ``"jax"``
+            (``jax.scipy.sparse.linalg.cg`` with the same preconditioner; its 2-norm
+            stopping rule is set so that it implies ``tol``, and the
+            :class:`~gcrsky.solvers.SolveInfo` is computed from the true residual of its
+            answer, ``iterations = -1``).  Both differentiate implicitly.
+        throw: raise (through ``equinox.error_if``) when a solve does not converge.
     """
 
     tol: float = DEFAULT_TOL
@@ -80,10 +93,16 @@ class CGOptions:
     preconditioner: Literal["auto", "nystrom", "mblock"] = "auto"
     rank: int = 128
     pc_dtype: Literal["float64", "float32"] = "float64"
+    engine: Literal["gcrsky", "jax"] = "gcrsky"
+    throw: bool = False
 
     method = "cg"
 
     def __post_init__(self):
+        if self.engine not in ("gcrsky", "jax"):
+            raise ValueError(f"engine must be 'gcrsky' or 'jax', got {self.engine!r}")
+        if not isinstance(self.throw, bool):
+            raise ValueError(f"throw must be True or False, got {self.throw!r}")
         _positive("tol", self.tol)
         _positive("maxiter", self.maxiter, integer=True)
         _positive("rank", self.rank, integer=True)
@@ -97,7 +116,14 @@ class CGOptions:
 
 @dataclasses.dataclass(frozen=True)
 class CholeskyOptions:
-    """Dense Cholesky factorisation of P (:mod:`gcrsky.solvers.dense`); exact, no knobs."""
+    """Dense Cholesky factorisation of P (:mod:`gcrsky.solvers.dense`); exact.
+
+    Attributes:
+        throw: raise (through ``equinox.error_if``) when the factor is not finite
+            (P not positive definite).
+    """
+
+    throw: bool = False
 
     method = "cholesky"
 
@@ -109,9 +135,11 @@ class EighOptions:
     Attributes:
         rcond: eigenvalues below ``rcond * max`` are treated as zero (a singular P,
             e.g. a flat prior: those directions are pinned at 0).
+        throw: raise (through ``equinox.error_if``) on a non-finite decomposition.
     """
 
     rcond: float = EIGH_RCOND
+    throw: bool = False
 
     method = "eigh"
 
@@ -128,16 +156,44 @@ class MModeOptions:
         atol: tolerance of ``|mean_t exp(i k t)|`` for uniform full-day coverage.
         rtol: tolerance on the time variation of the inverse noise, relative to its
             maximum.
+        throw: raise (through ``equinox.error_if``) when a block factor is not finite.
     """
 
     atol: float = 1e-10
     rtol: float = 1e-12
+    throw: bool = False
 
     method = "mmode"
 
     def __post_init__(self):
         _positive("atol", self.atol)
         _positive("rtol", self.rtol)
+
+
+@dataclasses.dataclass(frozen=True)
+class SLQOptions:
+    """Stochastic Lanczos quadrature of ``log det P`` on the matrix-free path (matfree).
+
+    ``log det P = sum log S^-1 + log det(M) + log det(M^-1/2 (I + H) M^-1/2)`` with
+    ``I + H`` the prior-whitened precision and ``M`` its rank-k Nystrom approximation
+    (whose log-determinant is exact); only the last, nearly-identity term is
+    estimated, with ``probes`` Rademacher probes and ``lanczos`` Lanczos steps each.
+
+    Attributes:
+        probes: number of random probes (the standard error falls as ``probes^-1/2``).
+        lanczos: Lanczos steps per probe (the quadrature's bias falls exponentially).
+        seed: the probes' PRNG seed (used when no key is passed).
+    """
+
+    probes: int = 32
+    lanczos: int = 24
+    seed: int = 0
+
+    def __post_init__(self):
+        _positive("probes", self.probes, integer=True)
+        _positive("lanczos", self.lanczos, integer=True)
+        if not isinstance(self.seed, int) or isinstance(self.seed, bool):
+            raise ValueError(f"seed must be an integer, got {self.seed!r}")
 
 
 SolverOptions = Union[CGOptions, CholeskyOptions, EighOptions, MModeOptions]

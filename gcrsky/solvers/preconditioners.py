@@ -25,6 +25,7 @@ __all__ = [
     "MBlockPreconditioner",
     "NystromPreconditioner",
     "apply_preconditioner",
+    "inverse_bound",
     "m_block_preconditioner",
     "m_blocks",
     "make_preconditioner",
@@ -234,3 +235,17 @@ def resolve_preconditioner(system: LinearSystem, kind: str = "auto", *, warn: bo
             raise ValueError("the Nystrom preconditioner needs S^-1 > 0 in every mode; use 'mblock' for a flat prior")
         return kind
     return "mblock" if nflat else "nystrom"
+
+
+def inverse_bound(pc, f) -> jax.Array:
+    """An upper bound on ``lambda_max(M_f^-1)`` for frequency ``f`` (traced index allowed).
+
+    Nystrom: ``M^-1 = S^1/2 [U diag(1/(1+lam)) U^T + (I - U U^T)] S^1/2`` and the bracket
+    is at most I, so ``max S_ii``.  m-blocks: ``1 / min_m sigma_min(L_m)^2`` (exact).
+    """
+    if isinstance(pc, NystromPreconditioner):
+        return jnp.max(pc.scale[f].astype(jnp.float64) ** 2)
+    if isinstance(pc, MBlockPreconditioner):
+        s = jnp.linalg.svd(pc.chol[f].astype(jnp.float64), compute_uv=False)  # (M, B)
+        return 1.0 / jnp.min(s[..., -1]) ** 2
+    raise TypeError(f"unknown preconditioner {type(pc).__name__}")
