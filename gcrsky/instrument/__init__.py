@@ -7,7 +7,6 @@
 - ``redundancy``: groups of identical baselines, verified; unique-row responses
 """
 
-
 from .antennas import (
     HERA_HEIGHT_M,
     HERA_LATITUDE_DEG,
@@ -19,6 +18,9 @@ from .antennas import (
     make_array,
 )
 from .beams import (
+    AIRY_X_MAX,
+    JaxAiryBeam,
+    JaxGaussianBeam,
     beam_amplitude,
     beam_fwhm_rad,
     fwhm_airy_rad,
@@ -38,6 +40,7 @@ from .redundancy import (
 )
 from .response import (
     SkyGrid,
+    analytic_response,
     equatorial_to_enu,
     response_matrix,
     sky_grid,
@@ -48,14 +51,18 @@ from .response_sht import (
 )
 
 __all__ = [
+    "AIRY_X_MAX",
     "DEFAULT_RTOL",
     "DEFAULT_TOL_M",
     "HERA_HEIGHT_M",
     "HERA_LATITUDE_DEG",
     "HERA_LONGITUDE_DEG",
     "AntennaArray",
+    "JaxAiryBeam",
+    "JaxGaussianBeam",
     "RedundantGroups",
     "SkyGrid",
+    "analytic_response",
     "antpairs",
     "baseline_vectors",
     "beam_amplitude",

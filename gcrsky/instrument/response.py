@@ -32,7 +32,7 @@ from ..sphere.modes import mode_table, n_params
 from .antennas import AntennaArray, baseline_vectors
 from .beams import beam_amplitude, unique_beams
 
-__all__ = ["SkyGrid", "equatorial_to_enu", "sky_grid", "response_matrix"]
+__all__ = ["SkyGrid", "analytic_response", "equatorial_to_enu", "response_matrix", "sky_grid"]
 
 
 class SkyGrid(NamedTuple):
@@ -272,23 +272,7 @@ def response_matrix(
     weight_pix = np.full(grid.theta.size, grid.weight_sr)
 
     if method == "rings":
-        slot_bytes = 8 * 6 * freqs.size * pairs.shape[0]  # kernels of one slot in a chunk
-        gather, ring_theta = _ring_layout(grid.theta, slot_bytes, 16e6)
-        valid = gather >= 0
-        g = np.where(valid, gather, 0)
-        take = lambda x: np.where(valid.reshape(valid.shape + (1,) * (x.ndim - 1)), x[g], 0.0)  # noqa: E731
-        amp_r = np.moveaxis(np.where(valid, amp[:, :, g], 0.0), (2, 3, 4), (0, 3, 4))  # (Nc, Nf, Nb, rc, J)
-        return _ring_quadrature(
-            int(lmax),
-            jnp.asarray(ring_theta),
-            jnp.asarray(take(grid.phi)),
-            jnp.asarray(take(grid.enu)),
-            jnp.asarray(take(weight_pix)),
-            jnp.asarray(amp_r),
-            jnp.asarray(pa),
-            jnp.asarray(pb),
-            bvec_wl,
-        )
+        return _rings(int(lmax), grid, amp, pa, pb, bvec_wl, weight_pix)
 
     npix = grid.theta.size
     nchunk = -(-npix // chunk)
@@ -311,3 +295,68 @@ def response_matrix(
         jnp.asarray(pb),
         bvec_wl,
     )
+
+
+def _rings(lmax: int, grid: SkyGrid, amp, pa, pb, bvec_wl, weight_pix) -> jax.Array:
+    """The ring quadrature over ``grid``'s pixels; ``amp`` (Nf, Nb, Npix) NumPy or JAX (traced)."""
+    nf, nbl = bvec_wl.shape[:2]
+    slot_bytes = 8 * 6 * nf * nbl  # kernels of one slot in a chunk
+    gather, ring_theta = _ring_layout(grid.theta, slot_bytes, 16e6)
+    valid = gather >= 0
+    g = np.where(valid, gather, 0)
+    take = lambda x: np.where(valid.reshape(valid.shape + (1,) * (x.ndim - 1)), x[g], 0.0)  # noqa: E731
+    xp = np if isinstance(amp, np.ndarray) else jnp
+    amp_r = xp.moveaxis(xp.where(valid, amp[:, :, g], 0.0), (2, 3, 4), (0, 3, 4))  # (Nc, Nf, Nb, rc, J)
+    return _ring_quadrature(
+        int(lmax),
+        jnp.asarray(ring_theta),
+        jnp.asarray(take(grid.phi)),
+        jnp.asarray(take(grid.enu)),
+        jnp.asarray(take(weight_pix)),
+        jnp.asarray(amp_r),
+        jnp.asarray(pa),
+        jnp.asarray(pb),
+        bvec_wl,
+    )
+
+
+def analytic_response(
+    positions_enu_m,
+    latitude_rad: float,
+    pairs: np.ndarray,
+    freqs_hz,
+    lmax: int,
+    nside: int,
+    beam,
+    *,
+    lst_ref_rad: float = 0.0,
+) -> jax.Array:
+    """The response for identical JAX-native beams, differentiable in the beam's parameters.
+
+    The same quadrature as :func:`response_matrix` over every pixel above the horizon
+    (no beam floor: which pixels matter depends on the traced width), with the beam
+    amplitude computed in JAX by ``beam.amplitude(za, freqs)``
+    (:class:`~gcrsky.instrument.JaxGaussianBeam`, :class:`~gcrsky.instrument.JaxAiryBeam`),
+    so ``jax.grad`` / ``jax.jvp`` with respect to e.g. ``beam.diameter_m`` work.
+
+    Args:
+        positions_enu_m: (Nants, 3) ENU metres.
+        latitude_rad: site latitude, radians.
+        pairs: (Nbl, 2) antenna pairs.
+        freqs_hz: (Nf,) Hz.
+        lmax, nside: degree and HEALPix nside (static).
+        beam: a JAX beam (one for every antenna).
+        lst_ref_rad: the reference angle, radians.
+
+    Returns:
+        (Nf, Nbl, (lmax+1)**2) complex, K sr per K; equal to
+        ``response_matrix(..., beam_floor=0)`` with ``beam.to_pyuvdata()`` (to rounding).
+    """
+    freqs = np.atleast_1d(np.asarray(freqs_hz, np.float64))
+    pairs = np.asarray(pairs, np.int64)
+    pos = np.asarray(positions_enu_m, np.float64)
+    grid = sky_grid(nside, float(latitude_rad), lst_ref_rad)
+    amp = beam.amplitude(jnp.asarray(grid.za), jnp.asarray(freqs))[:, None, :]  # (Nf, 1, Np)
+    zeros = np.zeros(pairs.shape[0], np.int64)
+    bvec_wl = jnp.asarray(baseline_vectors(pos, pairs)[None] * (freqs[:, None, None] / SPEED_OF_LIGHT))
+    return _rings(int(lmax), grid, amp, zeros, zeros, bvec_wl, np.full(grid.theta.size, grid.weight_sr))

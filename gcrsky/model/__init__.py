@@ -3,11 +3,13 @@
 - ``operator``: :class:`VisOperator`: ``X`` and its adjoint as jitted functions
 - ``noise``: radiometer noise from the autos, flags as weights, data cleaning
 - ``prior``: Gaussian priors (the paper's, isotropic from C_l, flat)
-- ``system``: :class:`LinearSystem`: precision operator, Wiener and GCR right-hand sides
+- ``system``: :class:`LinearSystem`: precision operator, Wiener and GCR right-hand sides;
+  :func:`check_system`, what is wrong with a hand-edited system
 - ``problem``: :class:`Problem` and :func:`build_problem` (geometry, responses, simulation, assembly)
 - ``compress``: exact redundant-baseline compression of data, systems, problems
+- ``template``: hyperparameter families: the paper's spectral template (one coefficient
+  set for all channels, scaled by ``(nu/nu0)^beta``), noise and prior scales
 """
-
 
 from .compress import (
     compress_problem,
@@ -37,6 +39,8 @@ from .prior import (
     flat_prior,
     isotropic_prior,
     paper_prior,
+    power_law_cl,
+    prior_from_cl,
 )
 from .problem import (
     Geometry,
@@ -49,12 +53,18 @@ from .problem import (
 )
 from .system import (
     LinearSystem,
+    check_system,
     data_apply,
     fluctuation_rhs,
     precision_apply,
     precision_matrix,
     time_terms,
     wiener_rhs,
+)
+from .template import (
+    scale_noise,
+    spectral_template_system,
+    with_prior,
 )
 
 __all__ = [
@@ -67,6 +77,7 @@ __all__ = [
     "apply",
     "assemble_problem",
     "build_problem",
+    "check_system",
     "clean_data",
     "compress_problem",
     "compress_system",
@@ -83,14 +94,19 @@ __all__ = [
     "n_in",
     "observation_geometry",
     "paper_prior",
+    "power_law_cl",
     "precision_apply",
     "precision_matrix",
+    "prior_from_cl",
     "problem_responses",
     "radiometer_sigma",
     "response_at",
+    "scale_noise",
     "simulate_data",
+    "spectral_template_system",
     "time_terms",
     "to_response_frame",
     "weights_from_flags",
     "wiener_rhs",
+    "with_prior",
 ]

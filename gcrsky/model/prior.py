@@ -9,11 +9,12 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ..sphere.modes import lmax_from_nparams, mode_table
 
-__all__ = ["Prior", "paper_prior", "flat_prior", "isotropic_prior"]
+__all__ = ["Prior", "flat_prior", "isotropic_prior", "paper_prior", "power_law_cl", "prior_from_cl"]
 
 
 class Prior(NamedTuple):
@@ -87,3 +88,42 @@ def isotropic_prior(cl, n: int, mean=None) -> Prior:
     var = cl[:, tab.ell] * np.where(tab.m == 0, 1.0, 0.5)[None, :]
     m = np.zeros_like(var) if mean is None else np.asarray(mean, np.float64)
     return Prior(mean=m, inv_var=1.0 / var)
+
+
+def prior_from_cl(cl, mean=None) -> Prior:
+    """The isotropic prior of angular power spectra ``C_l``, in JAX (jittable, differentiable).
+
+    The twin of :func:`isotropic_prior` for traced spectra (hyperparameters):
+    ``Var(a_l0) = C_l``, ``Var(Re a_lm) = Var(Im a_lm) = C_l / 2`` for m > 0.
+
+    Args:
+        cl: (lmax+1,) or (Nf, lmax+1) power spectra, K^2 (positive; not checked under
+            a trace).
+        mean: prior mean (Nf, n) or None (zero).
+
+    Returns:
+        a :class:`Prior` with (Nf, n) arrays (Nf = 1 for a 1-D ``cl``).
+    """
+    cl = jnp.atleast_2d(jnp.asarray(cl))
+    lmax = cl.shape[-1] - 1
+    tab = mode_table(lmax)
+    half = jnp.asarray(np.where(tab.m == 0, 1.0, 0.5))
+    var = cl[:, tab.ell] * half[None, :]
+    m = jnp.zeros_like(var) if mean is None else jnp.broadcast_to(jnp.asarray(mean, var.dtype), var.shape)
+    return Prior(mean=m, inv_var=1.0 / var)
+
+
+def power_law_cl(amplitude, alpha, lmax: int):
+    """The power-law spectrum ``C_l = A (l + 1)^-alpha``, K^2, in JAX.
+
+    Args:
+        amplitude: A (scalar or (Nf,)), K^2.
+        alpha: the slope (scalar or (Nf,)).
+        lmax: maximum degree (static).
+
+    Returns:
+        (lmax+1,) or (Nf, lmax+1).
+    """
+    ell1 = jnp.arange(1, lmax + 2, dtype=jnp.result_type(float))
+    amplitude, alpha = jnp.asarray(amplitude), jnp.asarray(alpha)
+    return amplitude[..., None] * ell1 ** (-alpha[..., None])

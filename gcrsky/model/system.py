@@ -19,12 +19,14 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .operator import VisOperator, adjoint, apply, n_in, response_at
 from .prior import Prior
 
 __all__ = [
     "LinearSystem",
+    "check_system",
     "data_apply",
     "fluctuation_rhs",
     "precision_apply",
@@ -105,3 +107,65 @@ def fluctuation_rhs(key: jax.Array, system: LinearSystem) -> jax.Array:
 def data_apply(system: LinearSystem, a: jax.Array) -> jax.Array:
     """Data part of the precision, ``X^T W X a`` for a (Nf, n)."""
     return adjoint(system.op, system.inv_noise * apply(system.op, a))
+
+
+def check_system(system: LinearSystem) -> LinearSystem:
+    """Check a (possibly hand-edited) system on the host; raise ``ValueError`` naming what is wrong.
+
+    Checks: every floating leaf is float64 / complex128; the shapes agree (response
+    (Nf, Nbl, n_resp), angles (Nt,), data and inv_noise (Nf, Nt, Nbl), prior (Nf, n)
+    with ``n`` what the operator takes); ``inv_noise`` is finite and ``>= 0``; the data
+    are finite wherever ``inv_noise > 0`` (flagged samples may hold anything only if
+    they were cleaned, i.e. are finite: NaN times a zero weight is NaN); the prior's
+    mean is finite and its inverse variance finite and ``>= 0``; angles finite.
+    Traced systems are passed through unchecked (call it outside ``jit``).
+
+    Returns:
+        the system, unchanged.
+    """
+    leaves = jax.tree_util.tree_leaves(system)
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return system
+    for path, x in jax.tree_util.tree_flatten_with_path(system)[0]:
+        dt = np.asarray(x).dtype
+        if dt.kind in "fc" and dt not in (np.float64, np.complex128):
+            raise ValueError(f"system{jax.tree_util.keystr(path)} is {dt}: gcrsky's solves need float64 / "
+                             "complex128 (enable jax_enable_x64 before creating arrays)")
+    op = system.op
+    nf, nbl = op.response.shape[:2]
+    nt = np.shape(op.angles)[0] if np.ndim(op.angles) == 1 else None
+    if nt is None:
+        raise ValueError(f"op.angles must be 1-d (Nt,), got shape {np.shape(op.angles)}")
+    want = (nf, nt, nbl)
+    for name in ("data", "inv_noise"):
+        if tuple(np.shape(getattr(system, name))) != want:
+            raise ValueError(f"{name} has shape {np.shape(getattr(system, name))}, expected (Nf, Nt, Nbl) = {want}")
+    n = n_in(op)
+    for name in ("mean", "inv_var"):
+        if tuple(np.shape(getattr(system.prior, name))) != (nf, n):
+            raise ValueError(f"prior.{name} has shape {np.shape(getattr(system.prior, name))}, expected (Nf, n) = "
+                             f"{(nf, n)}")
+    w = np.asarray(system.inv_noise)
+    bad = ~np.isfinite(w) | (w < 0)
+    if bad.any():
+        f, t, b = np.argwhere(bad)[0]
+        raise ValueError(f"inv_noise must be finite and >= 0 (0 = flagged); {int(bad.sum())} entries are not, "
+                         f"first at (freq {f}, time {t}, baseline {b}): {w[f, t, b]!r}")
+    d = np.asarray(system.data)
+    bad = ~np.isfinite(d)
+    if bad.any():
+        f, t, b = np.argwhere(bad)[0]
+        where = "an unflagged" if w[f, t, b] > 0 else "a flagged"
+        raise ValueError(f"data has {int(bad.sum())} non-finite samples, first {where} one at (freq {f}, time {t}, "
+                         f"baseline {b}): {d[f, t, b]!r}; store flagged samples as 0 "
+                         "(gcrsky.model.clean_data) and flag bad ones")
+    for name in ("mean", "inv_var"):
+        x = np.asarray(getattr(system.prior, name))
+        bad = ~np.isfinite(x) | ((x < 0) if name == "inv_var" else False)
+        if bad.any():
+            f, k = np.argwhere(bad)[0]
+            raise ValueError(f"prior.{name} must be finite{' and >= 0' if name == 'inv_var' else ''}; "
+                             f"{int(bad.sum())} entries are not, first at (freq {f}, parameter {k}): {x[f, k]!r}")
+    if not np.all(np.isfinite(np.asarray(op.angles))):
+        raise ValueError("op.angles must be finite")
+    return system
