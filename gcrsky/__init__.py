@@ -21,13 +21,16 @@ matvis, pygdsm or pyradiosky (nor healpy, which would import matplotlib).
 """
 
 from .inference.api import prepare, sample, wiener_filter
+from .inference.evidence import log_evidence
 from .inference.gibbs import GCRState, gcr_init, gcr_step
+from .inference.hyper import fit_hyperparameters
 from .inference.posterior import draw, prepare_sampler, sample_system, wiener_filter_system
 from .model.compress import compress_problem, compress_system
 from .model.operator import VisOperator, dense_matrix
-from .model.prior import Prior, flat_prior, isotropic_prior, paper_prior
+from .model.prior import Prior, flat_prior, isotropic_prior, paper_prior, power_law_cl, prior_from_cl
 from .model.problem import Problem, build_problem
-from .model.system import LinearSystem
+from .model.system import LinearSystem, check_system
+from .model.template import spectral_template_system
 from .sim.config import Config
 from .sim.standard import standard_case
 from .solvers.info import SolveInfo
@@ -49,21 +52,27 @@ __all__ = [
     "VisOperator",
     "alm_to_map",
     "build_problem",
+    "check_system",
     "compress_problem",
     "compress_system",
     "dense_matrix",
     "draw",
+    "fit_hyperparameters",
     "flat_prior",
     "gcr_init",
     "gcr_step",
     "isotropic_prior",
+    "log_evidence",
     "mode_table",
     "paper_prior",
+    "power_law_cl",
     "prepare",
     "prepare_sampler",
+    "prior_from_cl",
     "realify",
     "sample",
     "sample_system",
+    "spectral_template_system",
     "standard_case",
     "unrealify",
     "wiener_filter",

@@ -4,18 +4,31 @@
 - ``api``: the user tier on a :class:`~gcrsky.model.Problem`: :func:`wiener_filter`, :func:`sample`, :func:`prepare` (path chosen by size, memory checked, unconverged solves logged)
 - ``batches``: :func:`draw_batches`: many draws in fixed batches with a key scheme independent of the total
 - ``gibbs``: :func:`gcr_init` / :func:`gcr_step`: the GCR step as a kernel for a user's Gibbs loop
+- ``evidence``: :func:`log_evidence`, the exact log marginal likelihood (dense, m-mode, or
+  stochastic Lanczos quadrature), differentiable
+- ``hyper``: :func:`fit_hyperparameters`, maximum evidence by BFGS (optimistix) with
+  Laplace error bars
 
-Evidence, hyperparameter fits and C_l steps will live here too.
+Every solve differentiates implicitly (``jax.grad``, ``jax.jvp``, ``vmap``, ``jit``).
+A draw at a fixed key is a differentiable function of the system, but which function
+depends on the path (each path reparameterises the noise differently: CG solves the
+GCR equation, Cholesky multiplies by ``L^-T``, eigh by ``(P^+)^1/2``), so the gradient
+of a fixed-key draw depends on ``method``; the Wiener filter's and the evidence's do
+not.  C_l steps will live here too.
 """
 
 from .api import Method, as_system, prepare, sample, warn_unconverged, wiener_filter
 from .batches import KEY_SCHEME, BatchedDraws, batch_key, draw_batches
+from .evidence import EvidenceInfo, evidence_terms, log_evidence, log_evidence_system
 from .gibbs import GCRState, gcr_init, gcr_step
+from .hyper import FitResult, fit_hyperparameters, objective
 from .posterior import SamplerState, draw, prepare_sampler, sample_system, wiener_filter_system
 
 __all__ = [
     "KEY_SCHEME",
     "BatchedDraws",
+    "EvidenceInfo",
+    "FitResult",
     "GCRState",
     "Method",
     "SamplerState",
@@ -23,8 +36,13 @@ __all__ = [
     "batch_key",
     "draw",
     "draw_batches",
+    "evidence_terms",
+    "fit_hyperparameters",
     "gcr_init",
     "gcr_step",
+    "log_evidence",
+    "log_evidence_system",
+    "objective",
     "prepare",
     "prepare_sampler",
     "sample",

@@ -2,7 +2,9 @@
 
 ``wiener_filter``, ``sample`` and ``prepare`` accept a Problem or its
 :class:`~gcrsky.model.LinearSystem` (e.g. from :func:`gcrsky.model.compress_system`).
-They run host-side: ``method="auto"`` (the default) picks the cheapest exact path
+They run host-side: the system is checked first (:func:`gcrsky.model.check_system`
+names what is wrong with a hand-edited one), ``method="auto"`` (the default) picks
+the cheapest exact path
 that fits in memory (:func:`gcrsky.solvers.choose_path`), an explicit ``method`` is
 checked against the memory first, and unconverged solves are logged as warnings.
 ``tol`` is the CG tolerance in posterior-sigma units; every other knob of a path
@@ -19,7 +21,7 @@ import jax
 import numpy as np
 
 from ..model.problem import Problem
-from ..model.system import LinearSystem
+from ..model.system import LinearSystem, check_system
 from ..solvers.options import SolverOptions
 from ..solvers.plan import choose_path
 from .posterior import SamplerState, draw, prepare_sampler, wiener_filter_system
@@ -124,13 +126,14 @@ def prepare(
     return prepared
 
 
-def as_system(problem: Problem | LinearSystem) -> LinearSystem:
-    """A :class:`Problem`'s linear system, or the system itself."""
-    if isinstance(problem, LinearSystem):
-        return problem
+def as_system(problem: Problem | LinearSystem, *, check: bool = True) -> LinearSystem:
+    """A :class:`Problem`'s linear system, or the system itself, checked by
+    :func:`gcrsky.model.check_system` (host-side; traced systems pass unchecked)."""
     if isinstance(problem, Problem):
-        return problem.system()
-    raise TypeError(f"expected a gcrsky Problem or LinearSystem, got {type(problem).__name__}")
+        problem = problem.system()
+    if not isinstance(problem, LinearSystem):
+        raise TypeError(f"expected a gcrsky Problem or LinearSystem, got {type(problem).__name__}")
+    return check_system(problem) if check else problem
 
 
 def warn_unconverged(info, what: str) -> None:
