@@ -11,6 +11,7 @@ NOTEBOOKS = sorted((pathlib.Path(__file__).parents[1] / "notebooks").glob("*.ipy
 #: holds the notebook's parameters) has run, before every later cell.
 OVERRIDES = {
     "standard_case.ipynb": {"LMAX": 8, "NSIDE": 32, "NSAMPLES": 20},
+    "hyperparameters.ipynb": {"LMAX": 8, "NSIDE": 32, "GRID": 4, "STEPS": 8},
 }
 
 
@@ -37,10 +38,23 @@ def _check_standard_case(ns):
         assert os.path.getsize(os.path.join(ns["FIGDIR"], name)) > 10_000
 
 
+def _check_hyperparameters(ns):
+    import numpy as np
+
+    fit, fit_b = ns["fit"], ns["fit_b"]
+    assert fit.converged and fit_b.converged
+    # the simulated scales (0, 0) lie within 4 Laplace sigma of the fit
+    assert np.all(np.abs(np.asarray(fit.theta)) < 4 * np.asarray(fit.std)), (fit.theta, fit.std)
+    assert abs(ns["d_fit"] - 14.0) < 4 * ns["d_fit"] * float(fit_b.std[0])
+    assert abs(ns["beta_fit"] + 2.5) < 4 * float(fit_b.std[1])
+    assert ns["surface"].shape == (4, 4) and np.all(np.isfinite(ns["surface"]))
+
+
 #: The notebooks' claims, checked on their own numbers (every notebook needs an entry).
 CHECKS = {
     "quickstart.ipynb": _check_quickstart,
     "standard_case.ipynb": _check_standard_case,
+    "hyperparameters.ipynb": _check_hyperparameters,
 }
 
 
@@ -72,7 +86,7 @@ def test_readme_python_examples_run():
 
     readme = (pathlib.Path(__file__).parents[1] / "README.md").read_text()
     blocks = re.findall(r"```python\n(.*?)```", readme, re.S)
-    assert len(blocks) >= 3
+    assert len(blocks) >= 4
     code = "\n".join(blocks).replace("nside=128", "nside=32").replace("split(key, 1000)", "split(key, 20)")
     ns: dict = {}
     exec(compile(code, "README.md", "exec"), ns)
@@ -81,3 +95,4 @@ def test_readme_python_examples_run():
     assert ns["real"].response.shape[-1] == (20 + 4 + 1) ** 2  # ICRS lmax 20 -> CIRS lmax 24
     assert ns["real"].data.shape == (2, 10, 45)
     assert np.all(np.isfinite(np.asarray(ns["chain"])))
+    assert ns["fit"].converged and abs(float(ns["fit"].theta)) < 4 * float(ns["fit"].std[0])
