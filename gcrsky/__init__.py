@@ -21,6 +21,7 @@ matvis, pygdsm or pyradiosky (nor healpy, which would import matplotlib).
 """
 
 from .inference.api import prepare, sample, wiener_filter
+from .inference.cl import cl_hat, sample_cl
 from .inference.evidence import log_evidence
 from .inference.gibbs import GCRState, gcr_init, gcr_step
 from .inference.hyper import fit_hyperparameters
@@ -52,6 +53,7 @@ __all__ = [
     "VisOperator",
     "alm_to_map",
     "build_problem",
+    "cl_hat",
     "check_system",
     "compress_problem",
     "compress_system",
@@ -71,6 +73,7 @@ __all__ = [
     "prior_from_cl",
     "realify",
     "sample",
+    "sample_cl",
     "sample_system",
     "spectral_template_system",
     "standard_case",

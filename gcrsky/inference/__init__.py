@@ -3,7 +3,11 @@
 - ``posterior``: the system tier: :func:`prepare_sampler`, :func:`draw`, :func:`sample_system`, :func:`wiener_filter_system` on a chosen exact path (pure; usable inside ``jit``)
 - ``api``: the user tier on a :class:`~gcrsky.model.Problem`: :func:`wiener_filter`, :func:`sample`, :func:`prepare` (path chosen by size, memory checked, unconverged solves logged)
 - ``batches``: :func:`draw_batches`: many draws in fixed batches with a key scheme independent of the total
-- ``gibbs``: :func:`gcr_init` / :func:`gcr_step`: the GCR step as a kernel for a user's Gibbs loop
+- ``gibbs``: :func:`gcr_init` / :func:`gcr_step`: the GCR step as a kernel for a user's Gibbs loop;
+  :func:`gibbs_setup` / :func:`gibbs_init` / :func:`gibbs_step`: the hierarchical ``(a, C_l)``
+  kernel that reuses the data term
+- ``cl``: :func:`cl_hat`, :func:`sample_cl` (``C_l | a``), :func:`sample_power_law`
+  (``(A, alpha) | a``)
 - ``evidence``: :func:`log_evidence`, the exact log marginal likelihood (dense, m-mode, or
   stochastic Lanczos quadrature), differentiable
 - ``hyper``: :func:`fit_hyperparameters`, maximum evidence by BFGS (optimistix) with
@@ -19,33 +23,55 @@ not.  C_l steps will live here too.
 
 from .api import Method, as_system, prepare, sample, warn_unconverged, wiener_filter
 from .batches import KEY_SCHEME, BatchedDraws, batch_key, draw_batches
+from .cl import CL_PRIORS, cl_hat, power_law_log_marginal, sample_cl, sample_power_law
 from .evidence import EvidenceInfo, evidence_terms, log_evidence, log_evidence_system
-from .gibbs import GCRState, gcr_init, gcr_step
+from .gibbs import (
+    GCRState,
+    GibbsFixed,
+    GibbsInfo,
+    GibbsState,
+    gcr_init,
+    gcr_step,
+    gibbs_init,
+    gibbs_setup,
+    gibbs_step,
+)
 from .hyper import FitResult, fit_hyperparameters, objective
 from .posterior import SamplerState, draw, prepare_sampler, sample_system, wiener_filter_system
 
 __all__ = [
+    "CL_PRIORS",
     "KEY_SCHEME",
     "BatchedDraws",
     "EvidenceInfo",
     "FitResult",
     "GCRState",
+    "GibbsFixed",
+    "GibbsInfo",
+    "GibbsState",
     "Method",
     "SamplerState",
     "as_system",
     "batch_key",
+    "cl_hat",
     "draw",
     "draw_batches",
     "evidence_terms",
     "fit_hyperparameters",
     "gcr_init",
     "gcr_step",
+    "gibbs_init",
+    "gibbs_setup",
+    "gibbs_step",
     "log_evidence",
     "log_evidence_system",
     "objective",
+    "power_law_log_marginal",
     "prepare",
     "prepare_sampler",
     "sample",
+    "sample_cl",
+    "sample_power_law",
     "sample_system",
     "warn_unconverged",
     "wiener_filter",
