@@ -3,7 +3,9 @@
 The core needs only jax, numpy, scipy, healpy, astropy, pyuvdata, equinox and h5py;
 the applications need extras: ``[sim]`` (pyradiosky, pygdsm: truth skies),
 ``[plots]`` (matplotlib: figures), ``[validate]`` (matvis: forward-model checks),
-``[cli]`` (tqdm, plus sim and plots: the ``gcrsky`` command), ``[all]``.
+``[cli]`` (tqdm, plus sim and plots: the ``gcrsky`` command); one core feature needs
+one: ``[nuts]`` (blackjax: collapsed NUTS over hyperparameters,
+:mod:`gcrsky.inference.collapsed`); ``[all]`` has every one.
 """
 
 from __future__ import annotations

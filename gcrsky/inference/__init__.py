@@ -6,6 +6,8 @@
 - ``gibbs``: :func:`gcr_init` / :func:`gcr_step`: the GCR step as a kernel for a user's Gibbs loop;
   :func:`gibbs_setup` / :func:`gibbs_init` / :func:`gibbs_step`: the hierarchical ``(a, C_l)``
   kernel that reuses the data term
+- ``collapsed``: :func:`sample_hyperparameters`: NUTS (blackjax, the ``[nuts]`` extra) on
+  the exact evidence, then :func:`draw_given_hyperparameters`: exact draws of ``a`` per sample
 - ``cl``: :func:`cl_hat`, :func:`sample_cl` (``C_l | a``), :func:`sample_power_law`
   (``(A, alpha) | a``)
 - ``evidence``: :func:`log_evidence`, the exact log marginal likelihood (dense, m-mode, or
@@ -24,6 +26,13 @@ not.  C_l steps will live here too.
 from .api import Method, as_system, prepare, sample, warn_unconverged, wiener_filter
 from .batches import KEY_SCHEME, BatchedDraws, batch_key, draw_batches
 from .cl import CL_PRIORS, cl_hat, power_law_log_marginal, sample_cl, sample_power_law
+from .collapsed import (
+    CollapsedInfo,
+    CollapsedSamples,
+    draw_given_hyperparameters,
+    effective_sample_size,
+    sample_hyperparameters,
+)
 from .evidence import EvidenceInfo, evidence_terms, log_evidence, log_evidence_system
 from .gibbs import (
     GCRState,
@@ -43,6 +52,8 @@ __all__ = [
     "CL_PRIORS",
     "KEY_SCHEME",
     "BatchedDraws",
+    "CollapsedInfo",
+    "CollapsedSamples",
     "EvidenceInfo",
     "FitResult",
     "GCRState",
@@ -56,6 +67,8 @@ __all__ = [
     "cl_hat",
     "draw",
     "draw_batches",
+    "draw_given_hyperparameters",
+    "effective_sample_size",
     "evidence_terms",
     "fit_hyperparameters",
     "gcr_init",
@@ -71,6 +84,7 @@ __all__ = [
     "prepare_sampler",
     "sample",
     "sample_cl",
+    "sample_hyperparameters",
     "sample_power_law",
     "sample_system",
     "warn_unconverged",
