@@ -12,6 +12,7 @@ NOTEBOOKS = sorted((pathlib.Path(__file__).parents[1] / "notebooks").glob("*.ipy
 OVERRIDES = {
     "standard_case.ipynb": {"LMAX": 8, "NSIDE": 32, "NSAMPLES": 20},
     "hyperparameters.ipynb": {"LMAX": 8, "NSIDE": 32, "GRID": 4, "STEPS": 8},
+    "gibbs.ipynb": {"LMAX": 8, "NSIDE": 32, "STEPS": 1500, "NUTS_WARMUP": 150, "NUTS_SAMPLES": 300},
 }
 
 
@@ -50,11 +51,26 @@ def _check_hyperparameters(ns):
     assert ns["surface"].shape == (4, 4) and np.all(np.isfinite(ns["surface"]))
 
 
+def _check_gibbs(ns):
+    import numpy as np
+
+    # the free C_l chain (uniform prior): finite, positive, and its 99% intervals hold the simulated
+    # sky's sigma_l at all but at most one degree (the GSM is not an isotropic Gaussian: see the notebook)
+    assert np.all(np.isfinite(ns["cls"])) and np.all(ns["cls"][:, 1:] > 0)
+    assert ns["inside"].sum() >= len(ns["inside"]) - 1, (ns["inside"], ns["ratio"])
+    # Gibbs and collapsed NUTS agree on (log A, alpha) within 4 combined Monte-Carlo errors
+    for g, n, name in ((ns["g_logA"], ns["n_logA"], "log A"), (ns["g_alpha"], ns["n_alpha"], "alpha")):
+        se = np.sqrt(g.var() / ns["ess_g"][name] + n.var() / ns["ess_n"][name])
+        assert abs(g.mean() - n.mean()) < 4 * se, (name, g.mean(), n.mean(), se)
+    assert ns["draws"].shape[:2] == (20, 1)
+
+
 #: The notebooks' claims, checked on their own numbers (every notebook needs an entry).
 CHECKS = {
     "quickstart.ipynb": _check_quickstart,
     "standard_case.ipynb": _check_standard_case,
     "hyperparameters.ipynb": _check_hyperparameters,
+    "gibbs.ipynb": _check_gibbs,
 }
 
 
@@ -96,3 +112,5 @@ def test_readme_python_examples_run():
     assert ns["real"].data.shape == (2, 10, 45)
     assert np.all(np.isfinite(np.asarray(ns["chain"])))
     assert ns["fit"].converged and abs(float(ns["fit"].theta)) < 4 * float(ns["fit"].std[0])
+    assert ns["cls"].shape == (200, 2, 21) and np.all(np.isfinite(np.asarray(ns["cls"])))
+    assert np.all((np.asarray(ns["alphas"]) > 0) & (np.asarray(ns["alphas"]) < 6))

@@ -18,6 +18,14 @@ Conditionals (``../shared/DESIGN.md`` section 6; Wandelt et al. 2004):
   and uniform are its limits ``(0, 0)`` and ``(-1, 0)``; being proper, it is the one a
   simulation-based calibration can draw ``C_l`` from.
 
+Which prior: the conditionals are proper for every one, but the *posterior* ``p(C_l | d)``
+need not be.  With partial sky coverage the data leave some of a degree's modes
+unconstrained, so ``p(d | C_l)`` stays finite as ``C_l -> 0`` and the Jeffreys prior
+``1/C_l`` makes the posterior improper there: a Gibbs chain drifts to ``C_l = 0``
+(measured on the standard case: to 1e-10 of the sky's ``sigma_l``).  Use the uniform
+prior (proper there as long as the data constrain a few modes per degree) or a proper
+inverse-gamma prior for partial coverage; Jeffreys suits full-sky, well-measured data.
+
 The uniform prior's l = 0 conditional (shape -1/2) is improper: :func:`sample_cl`
 then keeps ``C_0`` at the value the caller passes as ``monopole`` (and refuses to run
 without one).  The monopole of a radio sky is usually its mean, better modelled by the
