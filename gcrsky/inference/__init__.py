@@ -14,6 +14,9 @@
   stochastic Lanczos quadrature), differentiable
 - ``hyper``: :func:`fit_hyperparameters`, maximum evidence by BFGS (optimistix) with
   Laplace error bars
+- ``sources``: point-source fluxes as a linear Gaussian block (:func:`flux_setup`,
+  :func:`flux_step`, :func:`sample_fluxes`) and the two-block (sky, fluxes) Gibbs step
+  :func:`sky_source_step`
 
 Every solve differentiates implicitly (``jax.grad``, ``jax.jvp``, ``vmap``, ``jit``).
 A draw at a fixed key is a differentiable function of the system, but which function
@@ -39,14 +42,28 @@ from .gibbs import (
     GibbsFixed,
     GibbsInfo,
     GibbsState,
+    JointInfo,
     gcr_init,
     gcr_step,
     gibbs_init,
     gibbs_setup,
     gibbs_step,
+    joint_step,
+    sky_step,
 )
 from .hyper import FitResult, fit_hyperparameters, objective
 from .posterior import SamplerState, draw, prepare_sampler, sample_system, wiener_filter_system
+from .sources import (
+    FluxBlock,
+    SkySourceState,
+    flux_posterior,
+    flux_setup,
+    flux_step,
+    sample_fluxes,
+    sky_source_init,
+    sky_source_step,
+    source_visibilities,
+)
 
 __all__ = [
     "CL_PRIORS",
@@ -56,12 +73,15 @@ __all__ = [
     "CollapsedSamples",
     "EvidenceInfo",
     "FitResult",
+    "FluxBlock",
     "GCRState",
     "GibbsFixed",
     "GibbsInfo",
     "GibbsState",
+    "JointInfo",
     "Method",
     "SamplerState",
+    "SkySourceState",
     "as_system",
     "batch_key",
     "cl_hat",
@@ -71,11 +91,15 @@ __all__ = [
     "effective_sample_size",
     "evidence_terms",
     "fit_hyperparameters",
+    "flux_posterior",
+    "flux_setup",
+    "flux_step",
     "gcr_init",
     "gcr_step",
     "gibbs_init",
     "gibbs_setup",
     "gibbs_step",
+    "joint_step",
     "log_evidence",
     "log_evidence_system",
     "objective",
@@ -84,9 +108,14 @@ __all__ = [
     "prepare_sampler",
     "sample",
     "sample_cl",
+    "sample_fluxes",
     "sample_hyperparameters",
     "sample_power_law",
     "sample_system",
+    "sky_source_init",
+    "sky_source_step",
+    "sky_step",
+    "source_visibilities",
     "warn_unconverged",
     "wiener_filter",
     "wiener_filter_system",

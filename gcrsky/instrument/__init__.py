@@ -5,6 +5,7 @@
 - ``response``: the response of every baseline and frequency to every mode at the reference angle: a quadrature over HEALPix rings
 - ``response_sht``: the same by healpy transforms (an independent cross-check)
 - ``redundancy``: groups of identical baselines, verified; unique-row responses
+- ``sources``: the model visibilities of unit-flux point sources at known positions (idealised LSTs or real times)
 """
 
 from .antennas import (
@@ -49,11 +50,19 @@ from .response_sht import (
     realified_projection,
     response_matrix_sht,
 )
+from .sources import (
+    FLUX_UNITS,
+    icrs_to_corotating,
+    point_source_response,
+    problem_source_response,
+    source_enu,
+)
 
 __all__ = [
     "AIRY_X_MAX",
     "DEFAULT_RTOL",
     "DEFAULT_TOL_M",
+    "FLUX_UNITS",
     "HERA_HEIGHT_M",
     "HERA_LATITUDE_DEG",
     "HERA_LONGITUDE_DEG",
@@ -73,13 +82,17 @@ __all__ = [
     "gaussian_beam",
     "groups_for_array",
     "hex_array",
+    "icrs_to_corotating",
     "make_array",
+    "point_source_response",
+    "problem_source_response",
     "realified_projection",
     "redundant_groups",
     "redundant_responses",
     "response_matrix",
     "response_matrix_sht",
     "sky_grid",
+    "source_enu",
     "unique_beams",
     "unique_response",
     "validate_groups",
