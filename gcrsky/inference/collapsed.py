@@ -25,6 +25,11 @@ The pairs ``(a_i, theta_i)`` are then joint posterior samples whose only Monte C
 correlation is the NUTS chain's in ``theta`` (the draws of ``a`` are independent
 given ``theta``); :func:`effective_sample_size` measures it.
 
+The chain's pieces are pure functions too, for use inside ``jit`` / ``vmap`` (e.g. many
+simulated data sets at once, ``tests/test_collapsed_sbc.py``): :func:`flat_log_density`
+(the density above on the flattened ``theta``), :func:`nuts_warmup`, :func:`nuts_sample`
+and :func:`nuts_chain` (both phases, the chain :func:`sample_hyperparameters` runs).
+
 Conventions follow :mod:`gcrsky.inference.hyper`: ``theta`` is any PyTree of float
 arrays, ``make_system: theta -> LinearSystem`` is a pure JAX function (it is traced
 and differentiated), ``log_prior: theta -> scalar`` is the log hyperprior (default
@@ -60,6 +65,10 @@ __all__ = [
     "CollapsedSamples",
     "draw_given_hyperparameters",
     "effective_sample_size",
+    "flat_log_density",
+    "nuts_chain",
+    "nuts_sample",
+    "nuts_warmup",
     "sample_hyperparameters",
 ]
 
@@ -111,6 +120,156 @@ class CollapsedSamples(NamedTuple):
     info: CollapsedInfo
 
 
+def flat_log_density(
+    make_system: Callable,
+    theta0,
+    *,
+    log_prior: Callable | None = None,
+    options: SolverOptions | None = None,
+):
+    """The collapsed log posterior of the flattened ``theta``: ``(flat0, unravel, logdensity)``.
+
+    ``logdensity(flat) = sum_f log p(d_f | theta) + log_prior(theta)`` with
+    ``theta = unravel(flat)`` (:func:`gcrsky.inference.hyper.objective`'s value, written
+    out: module docstring), the density :func:`sample_hyperparameters` runs NUTS on.  It
+    is a pure JAX function: ``make_system`` may close over traced values (e.g. one
+    replicate's data inside a ``vmap``), so a caller can build one per data set inside a
+    traced function and pass it to :func:`nuts_chain`.
+
+    Args:
+        make_system, theta0, log_prior, options: as for :func:`sample_hyperparameters`
+            (``theta0`` only fixes the structure and the start; default path
+            ``CholeskyOptions()``).
+
+    Returns:
+        ``flat0`` (k,) float64, the start; ``unravel: (k,) -> theta``; ``logdensity: (k,) -> scalar``.
+    """
+    options = CholeskyOptions() if options is None else options
+    flat0, unravel = ravel_pytree(theta0)
+    flat0 = jnp.asarray(flat0, jnp.float64)
+    if flat0.ndim != 1 or flat0.size == 0:
+        raise ValueError("theta0 must hold at least one float")
+
+    def logdensity(flat):  # = gcrsky.inference.hyper.objective(...)[0], not imported (module docstring)
+        theta = unravel(flat)
+        lz, _ = log_evidence_system(make_system(theta), options=options)
+        return jnp.sum(lz) + (log_prior(theta) if log_prior is not None else 0.0)
+
+    return flat0, unravel, logdensity
+
+
+def nuts_warmup(
+    key: jax.Array,
+    logdensity: Callable,
+    flat0: jax.Array,
+    *,
+    num_warmup: int,
+    target_accept: float = 0.8,
+    dense_mass: bool = True,
+    max_num_doublings: int = 10,
+):
+    """Window adaptation (blackjax) of NUTS on ``logdensity`` from ``flat0``: pure, jittable, vmappable.
+
+    Returns:
+        ``(state, step_size, inverse_mass_matrix, n_divergent)``: the last warm-up
+        ``HMCState``, the adapted parameters and the number of divergent warm-up steps.
+    """
+    bj = _blackjax()
+    from blackjax.adaptation.base import get_filter_adapt_info_fn
+
+    adapt = bj.window_adaptation(
+        bj.nuts, logdensity, is_mass_matrix_diagonal=not dense_mass, target_acceptance_rate=target_accept,
+        adaptation_info_fn=get_filter_adapt_info_fn(info_keys={"is_divergent"}),
+        max_num_doublings=max_num_doublings,
+    )
+    (state, params), info = adapt.run(key, flat0, num_steps=int(num_warmup))
+    return state, params["step_size"], params["inverse_mass_matrix"], jnp.sum(info.info.is_divergent)
+
+
+def nuts_sample(
+    key: jax.Array,
+    logdensity: Callable,
+    state,
+    step_size,
+    inverse_mass_matrix,
+    *,
+    num_samples: int,
+    max_num_doublings: int = 10,
+):
+    """``num_samples`` NUTS steps from ``state`` in a ``lax.scan``: pure, jittable, vmappable.
+
+    Step ``i`` uses ``jax.random.split(key, num_samples)[i]``.
+
+    Returns:
+        ``(positions (num_samples, k), log_density (num_samples,), NUTSInfo)``.
+    """
+    kernel = _blackjax().nuts(logdensity, step_size, inverse_mass_matrix, max_num_doublings=max_num_doublings)
+
+    def step(s, k):
+        s, info = kernel.step(k, s)
+        return s, (s.position, s.logdensity, info)
+
+    _, out = jax.lax.scan(step, state, jax.random.split(key, int(num_samples)))
+    return out
+
+
+def nuts_chain(
+    key: jax.Array,
+    logdensity: Callable,
+    flat0: jax.Array,
+    *,
+    num_warmup: int,
+    num_samples: int,
+    target_accept: float = 0.8,
+    dense_mass: bool = True,
+    max_num_doublings: int = 10,
+):
+    """One NUTS chain on ``logdensity``: warm-up then samples; pure, jittable, vmappable.
+
+    The chain of :func:`sample_hyperparameters` without its host-side checks and logging:
+    ``key`` is split into the warm-up's and the sampling's keys as there (:func:`nuts_warmup`,
+    then :func:`nuts_sample`), so with ``flat0, unravel, logd = flat_log_density(make_system,
+    theta0, log_prior=..., options=...)``, ``nuts_chain(key, logd, flat0, ...)`` runs the chain
+    of ``sample_hyperparameters(key, make_system, theta0, ...)`` (positions flattened; measured
+    equal bit for bit on the small test problem, though the two are compiled differently).
+    Being pure, it can be vmapped over keys, starts or data sets (a ``logdensity`` built
+    inside the mapped function), e.g. the replicates of a simulation-based calibration
+    (``tests/test_collapsed_sbc.py``).  Under ``vmap`` every NUTS step costs the largest
+    trajectory of the batch (blackjax's tree building is a ``while_loop``): a smaller
+    ``max_num_doublings`` bounds it.
+
+    Args:
+        key: PRNG key.
+        logdensity: ``(k,) -> scalar`` (e.g. :func:`flat_log_density`'s).
+        flat0: (k,) start.
+        num_warmup, num_samples, target_accept, dense_mass, max_num_doublings: as for
+            :func:`sample_hyperparameters`.
+
+    Returns:
+        ``(positions (num_samples, k), log_density (num_samples,), CollapsedInfo)``.
+    """
+    k_warm, k_sample = jax.random.split(key)
+    state, step_size, imm, n_div_warm = nuts_warmup(
+        k_warm, logdensity, flat0, num_warmup=num_warmup, target_accept=target_accept, dense_mass=dense_mass,
+        max_num_doublings=max_num_doublings,
+    )
+    positions, logd, info = nuts_sample(
+        k_sample, logdensity, state, step_size, imm, num_samples=num_samples, max_num_doublings=max_num_doublings,
+    )
+    return positions, logd, _collapsed_info(info, step_size, imm, n_div_warm)
+
+
+def _collapsed_info(info, step_size, imm, n_div_warm) -> CollapsedInfo:
+    return CollapsedInfo(
+        acceptance_rate=info.acceptance_rate,
+        is_divergent=info.is_divergent,
+        num_integration_steps=info.num_integration_steps,
+        step_size=step_size,
+        inverse_mass_matrix=imm,
+        warmup_divergences=n_div_warm,
+    )
+
+
 def _programs(
     make_system: Callable,
     theta0,
@@ -127,42 +286,21 @@ def _programs(
 
     ``warmup(key, flat0) -> (HMCState, step_size, inverse_mass_matrix, n_divergent)`` and
     ``sample(key, state, step_size, inverse_mass_matrix) -> (positions, log_density, NUTSInfo)``
-    are separate so that a benchmark can compile them ahead of time.
+    (:func:`nuts_warmup` and :func:`nuts_sample`, jitted) are separate so that a benchmark
+    can compile them ahead of time.
     """
-    bj = _blackjax()
-    from blackjax.adaptation.base import get_filter_adapt_info_fn
-
-    options = CholeskyOptions() if options is None else options
-    flat0, unravel = ravel_pytree(theta0)
-    flat0 = jnp.asarray(flat0, jnp.float64)
-    if flat0.ndim != 1 or flat0.size == 0:
-        raise ValueError("theta0 must hold at least one float")
-
-    def logdensity(flat):  # = gcrsky.inference.hyper.objective(...)[0], not imported (module docstring)
-        theta = unravel(flat)
-        lz, _ = log_evidence_system(make_system(theta), options=options)
-        return jnp.sum(lz) + (log_prior(theta) if log_prior is not None else 0.0)
+    _blackjax()  # fail early, naming the extra
+    flat0, unravel, logdensity = flat_log_density(make_system, theta0, log_prior=log_prior, options=options)
 
     @jax.jit
     def warmup(key, flat):
-        adapt = bj.window_adaptation(
-            bj.nuts, logdensity, is_mass_matrix_diagonal=not dense_mass, target_acceptance_rate=target_accept,
-            adaptation_info_fn=get_filter_adapt_info_fn(info_keys={"is_divergent"}),
-            max_num_doublings=max_num_doublings,
-        )
-        (state, params), info = adapt.run(key, flat, num_steps=num_warmup)
-        return state, params["step_size"], params["inverse_mass_matrix"], jnp.sum(info.info.is_divergent)
+        return nuts_warmup(key, logdensity, flat, num_warmup=num_warmup, target_accept=target_accept,
+                           dense_mass=dense_mass, max_num_doublings=max_num_doublings)
 
     @jax.jit
     def sample(key, state, step_size, inverse_mass_matrix):
-        kernel = bj.nuts(logdensity, step_size, inverse_mass_matrix, max_num_doublings=max_num_doublings)
-
-        def step(s, k):
-            s, info = kernel.step(k, s)
-            return s, (s.position, s.logdensity, info)
-
-        _, out = jax.lax.scan(step, state, jax.random.split(key, num_samples))
-        return out
+        return nuts_sample(key, logdensity, state, step_size, inverse_mass_matrix, num_samples=num_samples,
+                           max_num_doublings=max_num_doublings)
 
     return flat0, unravel, warmup, sample
 
@@ -239,14 +377,7 @@ def sample_hyperparameters(
     return CollapsedSamples(
         theta=jax.vmap(unravel)(positions),
         log_density=logd,
-        info=CollapsedInfo(
-            acceptance_rate=info.acceptance_rate,
-            is_divergent=info.is_divergent,
-            num_integration_steps=info.num_integration_steps,
-            step_size=step_size,
-            inverse_mass_matrix=imm,
-            warmup_divergences=n_div_warm,
-        ),
+        info=_collapsed_info(info, step_size, imm, n_div_warm),
     )
 
 
