@@ -1,7 +1,8 @@
 """The instrument: antenna arrays, beams, the response to every mode, redundancy.
 
 - ``antennas``: :class:`AntennaArray`, hexagonal layouts, antenna pairs, sites
-- ``beams``: pyuvdata beams evaluated on the sky (unpolarised amplitude)
+- ``beams``: pyuvdata beams evaluated on the sky (unpolarised amplitude), beam files, per-antenna beams
+- ``polarization``: the cross power beam of each visibility product (``"xx"``, ``"yy"``, ``"pI"``, ...) on each pair of beams
 - ``response``: the response of every baseline and frequency to every mode at the reference angle: a quadrature over HEALPix rings
 - ``response_sht``: the same by healpy transforms (an independent cross-check)
 - ``redundancy``: groups of identical baselines, verified; unique-row responses
@@ -22,11 +23,21 @@ from .beams import (
     AIRY_X_MAX,
     JaxAiryBeam,
     JaxGaussianBeam,
+    antenna_beams,
     beam_amplitude,
     beam_fwhm_rad,
+    check_beam_frequencies,
     fwhm_airy_rad,
     gaussian_beam,
+    load_beam,
     unique_beams,
+)
+from .polarization import (
+    PRODUCTS,
+    BaselineKernels,
+    baseline_kernels,
+    cross_power_kernel,
+    normalise_pols,
 )
 from .redundancy import (
     DEFAULT_RTOL,
@@ -66,24 +77,32 @@ __all__ = [
     "HERA_HEIGHT_M",
     "HERA_LATITUDE_DEG",
     "HERA_LONGITUDE_DEG",
+    "PRODUCTS",
     "AntennaArray",
+    "BaselineKernels",
     "JaxAiryBeam",
     "JaxGaussianBeam",
     "RedundantGroups",
     "SkyGrid",
     "analytic_response",
+    "antenna_beams",
     "antpairs",
+    "baseline_kernels",
     "baseline_vectors",
     "beam_amplitude",
     "beam_fwhm_rad",
+    "check_beam_frequencies",
     "check_redundancy",
+    "cross_power_kernel",
     "equatorial_to_enu",
     "fwhm_airy_rad",
     "gaussian_beam",
     "groups_for_array",
     "hex_array",
     "icrs_to_corotating",
+    "load_beam",
     "make_array",
+    "normalise_pols",
     "point_source_response",
     "problem_source_response",
     "realified_projection",

@@ -4,15 +4,23 @@
 is a traced value, so the response (:func:`gcrsky.instrument.analytic_response`)
 differentiates with respect to it.
 
-Beams are pyuvdata beam objects (``GaussianBeam``, ``AiryBeam``, any
-``AnalyticBeam``, ``UVBeam``).  For Stokes-I (unpolarised) work we follow
-matvis: the feed-``x`` power beam ``P_i`` is evaluated and ``A_i = sqrt(P_i)``,
-so identical antennas give ``A_i^* A_j = P``.  Azimuth passed to pyuvdata is
+Beams are pyuvdata beam objects (``GaussianBeam``, ``AiryBeam``, ``ShortDipoleBeam``,
+any ``AnalyticBeam``, ``UVBeam``, ``BeamInterface``), or files that ``UVBeam.from_file``
+reads (:func:`load_beam`; per antenna: :func:`antenna_beams`).  The legacy unpolarised
+response follows matvis' unpolarised mode: the feed-``x`` power beam ``P_i`` is evaluated
+and ``A_i = sqrt(P_i)`` (:func:`beam_amplitude`), so identical antennas give
+``A_i^* A_j = P_xx``, i.e. ``2 V_xx`` of the sum convention.  The polarisation-correct kernels
+of each visibility product (``"xx"``, ``"yy"``, ``"pI"``, ...; different beams on the two
+antennas) are in :mod:`gcrsky.instrument.polarization`.  Azimuth passed to pyuvdata is
 in the UVBeam convention (North of East: Az(E)=0, Az(N)=pi/2), zenith angle in
-radians.
+radians.  A UVBeam is never extrapolated in frequency: a frequency outside its channel
+range is a ``ValueError``.
 """
 
 from __future__ import annotations
+
+import os
+from typing import Mapping, Sequence
 
 import equinox as eqx
 import jax
@@ -23,14 +31,96 @@ from ..base.units import SPEED_OF_LIGHT
 
 __all__ = [
     "AIRY_X_MAX",
+    "FREQ_TOL_HZ",
     "JaxAiryBeam",
     "JaxGaussianBeam",
+    "antenna_beams",
     "beam_amplitude",
     "beam_fwhm_rad",
+    "check_beam_frequencies",
     "fwhm_airy_rad",
     "gaussian_beam",
+    "load_beam",
     "unique_beams",
 ]
+
+
+#: A requested frequency within this distance (Hz) of a UVBeam channel uses that channel as
+#: it is (pyuvdata's ``freq_interp_tol``).
+FREQ_TOL_HZ = 1.0
+
+
+def _resolve(beam):
+    """``(object, kind)``: the pyuvdata beam behind ``beam`` and how it is evaluated.
+
+    kinds: ``"uv_efield"``, ``"uv_power"`` (UVBeam), ``"an_efield"`` (AnalyticBeam with an
+    E-field), ``"an_power"`` (AnalyticBeam defining only its power).
+    """
+    from pyuvdata import BeamInterface, UVBeam
+    from pyuvdata.analytic_beam import AnalyticBeam
+
+    btype = None
+    if isinstance(beam, BeamInterface):
+        btype, beam = beam.beam_type, beam.beam
+    if isinstance(beam, UVBeam):
+        kind = {"efield": "uv_efield", "power": "uv_power"}.get(beam.beam_type)
+        if kind is None:
+            raise NotImplementedError(f"UVBeam of beam_type {beam.beam_type!r}: gcrsky needs an E-field or a power beam")
+        return beam, kind
+    if isinstance(beam, AnalyticBeam):
+        if btype == "power" or not hasattr(beam, "_efield_eval"):
+            return beam, "an_power"
+        return beam, "an_efield"
+    raise TypeError(f"a beam must be a pyuvdata UVBeam, AnalyticBeam or BeamInterface, got {type(beam).__name__}")
+
+
+def _name(obj) -> str:
+    name = type(obj).__name__
+    label = getattr(obj, "model_name", None) or getattr(obj, "telescope_name", None)
+    return f"{name}({label})" if isinstance(label, str) and label else name
+
+
+def _channels(obj) -> np.ndarray:
+    return np.asarray(obj.freq_array, np.float64).ravel()
+
+
+def check_beam_frequencies(beam, freqs_hz) -> None:
+    """Raise ``ValueError`` unless every frequency lies within the beam's channel range.
+
+    Analytic beams accept any frequency.  A UVBeam accepts ``[min, max]`` of its channels
+    (``FREQ_TOL_HZ`` slack); a single-channel beam only its channel.
+
+    Args:
+        beam: pyuvdata beam object.
+        freqs_hz: (Nf,) frequencies, Hz.
+    """
+    from pyuvdata import UVBeam
+
+    obj = _resolve(beam)[0]
+    if not isinstance(obj, UVBeam):
+        return
+    ch = _channels(obj)
+    f = np.atleast_1d(np.asarray(freqs_hz, np.float64))
+    lo, hi = ch.min() - FREQ_TOL_HZ, ch.max() + FREQ_TOL_HZ
+    bad = f[(f < lo) | (f > hi)]
+    if bad.size:
+        raise ValueError(
+            f"frequencies {bad.tolist()} Hz lie outside the frequency range [{ch.min():.6g}, {ch.max():.6g}] Hz of "
+            f"the beam {_name(obj)} ({ch.size} channels); gcrsky does not extrapolate beams in frequency"
+        )
+
+
+def _freq_kind(nchan: int, kind: str | None) -> str:
+    if kind is not None:
+        return kind
+    return "cubic" if nchan >= 4 else "linear"
+
+
+def _interp_kw(obj) -> dict:
+    """Spatial interpolation of a UVBeam: matvis' (``az_za_map_coordinates``) on az/za grids."""
+    if obj.pixel_coordinate_system == "az_za":
+        return dict(interpolation_function="az_za_map_coordinates", check_azza_domain=False)
+    return {}
 
 
 def gaussian_beam(diameter_m: float):
@@ -84,27 +174,141 @@ def beam_amplitude(beam, az_uvbeam_rad: np.ndarray, za_rad: np.ndarray, freqs_hz
 
     Returns:
         (Nfreq, Npix) real, non-negative amplitudes.
+
+    Raises:
+        ValueError: a frequency outside a UVBeam's channel range; a negative power.
     """
     from pyuvdata import BeamInterface
 
+    check_beam_frequencies(beam, freqs_hz)
     bi = beam if isinstance(beam, BeamInterface) else BeamInterface(beam)
     if bi.beam_type == "efield":
-        bi = bi.as_power_beam(include_cross_pols=False)
+        bi = bi.as_power_beam(include_cross_pols=False)  # power on the native grid, then interpolate
+    power = None
     if bi.Npols > 1:
-        bi = bi.with_feeds(["x"])
-    kw = {}
-    if bi._isuvbeam:
-        kw = dict(interpolation_function="az_za_map_coordinates", check_azza_domain=False)
-    power = bi.compute_response(
-        az_array=np.asarray(az_uvbeam_rad, np.float64),
-        za_array=np.asarray(za_rad, np.float64),
-        freq_array=np.asarray(freqs_hz, np.float64),
-        **kw,
-    )
-    power = np.real(np.asarray(power)[0, 0])  # (Nfreq, Npix)
+        try:
+            bi = bi.with_feeds(["x"])
+        except NotImplementedError:  # pyuvdata cannot drop a ShortDipoleBeam's y feed: P_xx from its E-field
+            e = bi.beam.efield_eval(az_array=np.asarray(az_uvbeam_rad, np.float64),
+                                    za_array=np.asarray(za_rad, np.float64),
+                                    freq_array=np.asarray(freqs_hz, np.float64))
+            x = int(np.flatnonzero(np.asarray(bi.beam.feed_array) == "x")[0])
+            power = np.sum(np.abs(e[:, x]) ** 2, axis=0)
+    if power is None:
+        kw = {}
+        if bi._isuvbeam:
+            kw = dict(_interp_kw(bi.beam), freq_interp_kind=_freq_kind(bi.beam.Nfreqs, None))
+        power = bi.compute_response(
+            az_array=np.asarray(az_uvbeam_rad, np.float64),
+            za_array=np.asarray(za_rad, np.float64),
+            freq_array=np.asarray(freqs_hz, np.float64),
+            **kw,
+        )
+        power = np.real(np.asarray(power)[0, 0])  # (Nfreq, Npix)
     if np.any(power < -1e-12 * np.max(np.abs(power))):
         raise ValueError("beam power is negative somewhere; cannot take an unpolarised amplitude")
     return np.sqrt(np.clip(power, 0.0, None))
+
+
+def load_beam(beam, *, peak_normalize: bool = False, **read_kwargs):
+    """A pyuvdata beam object from a beam object or a beam file.
+
+    Args:
+        beam: a pyuvdata ``UVBeam``, ``AnalyticBeam`` (e.g. ``GaussianBeam``, ``AiryBeam``,
+            ``ShortDipoleBeam``) or ``BeamInterface`` (returned as they are), or the path of
+            any file ``UVBeam.from_file`` reads (beamfits, CST text files or their yaml
+            settings file, MWA beam files).
+        peak_normalize: normalise a UVBeam to a peak of 1 per frequency (pyuvdata
+            ``peak_normalize``, on a copy; gcrsky's visibilities scale with the beam's
+            normalisation, which the file keeps as it is by default).
+        **read_kwargs: passed to ``UVBeam.from_file`` (CST files need e.g. ``beam_type``,
+            ``frequency``, ``feed_pol``, ``telescope_name``, ``feed_name``, ...).
+
+    Returns:
+        The beam object (an E-field or power UVBeam, or the analytic beam).
+
+    Raises:
+        TypeError: neither a beam object nor a path; read options with a beam object.
+        ValueError: a UVBeam that is neither an E-field nor a power beam.
+    """
+    from pyuvdata import BeamInterface, UVBeam
+    from pyuvdata.analytic_beam import AnalyticBeam
+
+    if isinstance(beam, (str, os.PathLike)):
+        obj = UVBeam.from_file(os.fspath(beam), **read_kwargs)
+    elif isinstance(beam, (UVBeam, AnalyticBeam, BeamInterface)):
+        if read_kwargs:
+            raise TypeError(f"read options {sorted(read_kwargs)} apply only to beam files, not to a beam object")
+        obj = beam
+    else:
+        raise TypeError(f"a beam must be a pyuvdata beam object or a beam file path, got {type(beam).__name__}")
+    if isinstance(obj, UVBeam):
+        if obj.beam_type not in ("efield", "power"):
+            raise ValueError(f"UVBeam of beam_type {obj.beam_type!r}: gcrsky needs an E-field or a power beam")
+        if peak_normalize:
+            obj = obj.copy() if obj is beam else obj
+            obj.peak_normalize()
+    elif peak_normalize:
+        raise ValueError("peak_normalize applies to UVBeams only")
+    return obj
+
+
+def antenna_beams(beam, antenna_numbers, *, antenna_names=None, **load_kwargs) -> tuple:
+    """One beam object per antenna, from one beam, a list, or a mapping by antenna number or name.
+
+    Identical antennas share one object (gcrsky groups beams by identity:
+    :func:`unique_beams`), so each distinct file path is read once.
+
+    Args:
+        beam: a beam object or file path for every antenna; a sequence of ``Nant`` of them, in
+            the order of ``antenna_numbers``; or a mapping from antenna number (int) or name
+            (str, with ``antenna_names``) to a beam object or path, covering every antenna.
+        antenna_numbers: (Nant,) the array's antenna numbers, in its antenna order.
+        antenna_names: (Nant,) the antennas' names, same order (for a mapping by name).
+        **load_kwargs: passed to :func:`load_beam` for every file.
+
+    Returns:
+        ``Nant``-tuple of pyuvdata beam objects (what :func:`~gcrsky.instrument.make_array` takes).
+
+    Raises:
+        ValueError: a sequence of the wrong length; a mapping missing antennas or naming
+            unknown ones.
+    """
+    numbers = [int(n) for n in np.atleast_1d(np.asarray(antenna_numbers))]
+    names = None if antenna_names is None else [str(n) for n in antenna_names]
+    if names is not None and len(names) != len(numbers):
+        raise ValueError(f"{len(names)} antenna names for {len(numbers)} antenna numbers")
+    loaded: dict = {}
+
+    def get(b):
+        key = ("path", os.path.abspath(os.fspath(b))) if isinstance(b, (str, os.PathLike)) else ("obj", id(b))
+        if key not in loaded:
+            loaded[key] = load_beam(b, **load_kwargs)
+        return loaded[key]
+
+    if isinstance(beam, Mapping):
+        out = []
+        known = set(numbers) | set(names or ())
+        unknown = [k for k in beam if (int(k) if isinstance(k, (int, np.integer)) else str(k)) not in known]
+        if unknown:
+            raise ValueError(f"beam mapping names antennas {unknown} that are not in the array")
+        missing = []
+        for n, num in enumerate(numbers):
+            if num in beam:
+                out.append(get(beam[num]))
+            elif names is not None and names[n] in beam:
+                out.append(get(beam[names[n]]))
+            else:
+                missing.append(num if names is None else f"{num} ({names[n]})")
+        if missing:
+            raise ValueError(f"the beam mapping has no beam for antennas {missing}")
+        return tuple(out)
+    if isinstance(beam, Sequence) and not isinstance(beam, (str, bytes)):
+        if len(beam) != len(numbers):
+            raise ValueError(f"got {len(beam)} beams for {len(numbers)} antennas")
+        return tuple(get(b) for b in beam)
+    one = get(beam)
+    return (one,) * len(numbers)
 
 
 def unique_beams(beams) -> tuple[list, np.ndarray]:

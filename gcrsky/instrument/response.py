@@ -1,13 +1,24 @@
 """Visibility response at the reference rotation angle (a sky quadrature).
 
-``R[f, b, k] = sum_p  w_p A_i(p) A_j(p) exp(+2 pi i b_ij . s_p nu_f / c) f_k(p)``
+``R[f, b, k] = sum_p  w_p K_b(p) exp(+2 pi i b_ij . s_p nu_f / c) f_k(p)``
 over the HEALPix pixels ``p`` above the horizon at the reference local sidereal
 angle, with ``b_ij = x_j - x_i`` (pyuvdata's ant2 - ant1), ``w_p = 4 pi / Npix``
-(steradians), ``s_p`` the ENU unit vector of the pixel, ``A`` the unpolarised
-voltage beams and ``f_k`` the real basis maps.  The fringe sign is matvis' and
-pyuvdata's (``V_ij = <E_i^* E_j>``), and ``V`` is twice matvis' unpolarised
-feed-x visibility (matvis gives each feed I/2); both pinned in
-``tests/test_matvis.py``, see ``docs/conventions.md``.
+(steradians), ``s_p`` the ENU unit vector of the pixel, ``K_b`` the beam kernel of
+row ``b`` and ``f_k`` the real basis maps.  The fringe sign is matvis' and
+pyuvdata's (``V_ij = <E_i^* E_j>``).
+
+The kernel: with ``pols=None`` (the default, unchanged) the unpolarised
+``K = A_i(p) A_j(p)``, ``A = sqrt(P_xx)``, and ``V`` is twice matvis' unpolarised
+feed-x visibility (matvis gives each feed I/2; pinned in ``tests/test_matvis.py``, see
+``docs/conventions.md``).  With ``pols`` (one product per row: ``"xx"``, ``"yy"``,
+``"xy"``, ``"yx"``, ``"pI"``) the polarisation-correct cross power beam of
+:mod:`gcrsky.instrument.polarization`, ``K_ij,pq = sum_a conj(E_i,p^a) E_j,q^a``
+(``(K_xx + K_yy)/2`` for ``"pI"``), complex for different beams on the two antennas:
+I-equivalent visibilities (pyuvdata's "avg" convention: ``"xx"`` = ``2 V_xx``, ``"pI"`` =
+``V_xx + V_yy`` of matvis' polarised run, pinned in ``tests/test_polarized_response.py``).
+The kernels are evaluated once per distinct (beam pair, product), not per baseline;
+a complex kernel ``K = K_r + i K_i`` enters as ``Re = K_r cos phi - K_i sin phi``,
+``Im = K_r sin phi + K_i cos phi`` (the real-kernel case keeps the cheaper real sums).
 A sky in Kelvin gives visibilities in K sr (multiply by ``2 k nu^2 / c^2`` for
 Jy; see :func:`gcrsky.base.kelvin_sr_to_jy`).
 
@@ -30,7 +41,8 @@ from ..base.units import SPEED_OF_LIGHT
 from ..sphere.harmonics import legendre_table, real_basis
 from ..sphere.modes import mode_table, n_params
 from .antennas import AntennaArray, baseline_vectors
-from .beams import beam_amplitude, unique_beams
+from .beams import unique_beams
+from .polarization import baseline_kernels, normalise_pols
 
 __all__ = ["SkyGrid", "analytic_response", "equatorial_to_enu", "response_matrix", "sky_grid"]
 
@@ -109,30 +121,42 @@ def _sky_grid(nside: int, latitude_rad: float, lst_rad: float) -> SkyGrid:
     return grid
 
 
+def _fringe_kernel(kern_r, kern_i, kidx, w, phase):
+    """``(Re, Im)`` of ``K w exp(i phase)`` per row: ``K = kern_r[:, kidx] (+ i kern_i[:, kidx])``.
+
+    ``kern_i`` None: a real kernel (``K_i = 0``), two products instead of six.
+    """
+    beam = kern_r[:, kidx] * w  # (Nf, Nbl, ...)
+    c, s = jnp.cos(phase), jnp.sin(phase)
+    if kern_i is None:
+        return beam * c, beam * s
+    beam_i = kern_i[:, kidx] * w
+    return beam * c - beam_i * s, beam * s + beam_i * c
+
+
 @partial(jax.jit, static_argnums=(0, 1))
-def _quadrature(lmax, chunk, theta, phi, enu, weight, amp, pair_a, pair_b, bvec_wl):
+def _quadrature(lmax, chunk, theta, phi, enu, weight, kern_r, kern_i, kidx, bvec_wl):
     """Accumulate R over pixel chunks.  Inputs padded to a multiple of ``chunk``.
 
-    theta, phi, weight: (Nc, chunk); enu: (Nc, chunk, 3); amp: (Nc, Nf, Nbeam, chunk);
-    pair_a/pair_b: (Nbl,) beam indices; bvec_wl: (Nf, Nbl, 3) baselines in wavelengths.
+    theta, phi, weight: (Nc, chunk); enu: (Nc, chunk, 3); kern_r, kern_i: (Nc, Nf, Nk, chunk)
+    real and imaginary kernels (kern_i None for a real kernel); kidx: (Nbl,) kernel of each
+    row; bvec_wl: (Nf, Nbl, 3) baselines in wavelengths.
     """
     nf, nbl = bvec_wl.shape[:2]
     n = n_params(lmax)
 
     def body(acc, xs):
-        th, ph, s, w, A = xs
+        th, ph, s, w, Kr, Ki = xs
         F = real_basis(lmax, th, ph)  # (chunk, n)
         phase = 2 * jnp.pi * jnp.einsum("fbd,pd->fbp", bvec_wl, s)  # +: matvis/pyuvdata sign
-        beam = A[:, pair_a, :] * A[:, pair_b, :] * w[None, None, :]  # (Nf, Nbl, chunk)
-        kr = beam * jnp.cos(phase)
-        ki = beam * jnp.sin(phase)
+        kr, ki = _fringe_kernel(Kr, Ki, kidx, w[None, None, :], phase)  # (Nf, Nbl, chunk)
         acc_r, acc_i = acc
         acc_r = acc_r + jnp.einsum("fbp,pk->fbk", kr, F)
         acc_i = acc_i + jnp.einsum("fbp,pk->fbk", ki, F)
         return (acc_r, acc_i), None
 
     zero = jnp.zeros((nf, nbl, n), theta.dtype)
-    (rr, ri), _ = jax.lax.scan(body, (zero, zero), (theta, phi, enu, weight, amp))
+    (rr, ri), _ = jax.lax.scan(body, (zero, zero), (theta, phi, enu, weight, kern_r, kern_i))
     return rr + 1j * ri
 
 
@@ -163,28 +187,28 @@ def _ring_layout(theta: np.ndarray, max_bytes_row: int, budget_bytes: float):
 
 
 @partial(jax.jit, static_argnums=(0,))
-def _ring_quadrature(lmax, ring_theta, phi, enu, weight, amp, pair_a, pair_b, bvec_wl):
+def _ring_quadrature(lmax, ring_theta, phi, enu, weight, kern_r, kern_i, kidx, bvec_wl):
     """The quadrature of :func:`_quadrature` factored through HEALPix rings.
 
     For a pixel ``p`` on ring ``r`` the basis map is ``f_k(p) = c_k Pbar_lm(cos theta_r)
     trig_k(m phi_p)``, so ``R[k] = c_k sum_r Pbar_lm(theta_r) sum_{p in r} K_p trig_k(m phi_p)``
-    with the kernel ``K_p = w_p A_i A_j exp(+2 pi i b.s_p / lambda)``.  The inner sums cost
+    with the kernel ``K_p = w_p K_b(p) exp(+2 pi i b.s_p / lambda)``.  The inner sums cost
     O(Npix (lmax+1)) per baseline instead of the direct O(Npix (lmax+1)^2); the outer sums
     O(Nrings (lmax+1)^2).  The same terms over the same pixels: equal to rounding.
 
     ring_theta: (Nc, rc); phi, weight: (Nc, rc, J) (weight 0 on padding slots);
-    enu: (Nc, rc, J, 3); amp: (Nc, Nf, Nbeam, rc, J); pair_a/pair_b: (Nbl,) beam
-    indices; bvec_wl: (Nf, Nbl, 3) baselines in wavelengths.
+    enu: (Nc, rc, J, 3); kern_r, kern_i: (Nc, Nf, Nk, rc, J) real and imaginary beam
+    kernels (kern_i None for a real kernel); kidx: (Nbl,) kernel of each row;
+    bvec_wl: (Nf, Nbl, 3) baselines in wavelengths.
     """
     nf, nbl = bvec_wl.shape[:2]
     L = lmax + 1
     mvec = jnp.arange(L)
 
     def body(acc, xs):
-        th, ph, s, w, A = xs
+        th, ph, s, w, Kr, Ki = xs
         phase = 2 * jnp.pi * jnp.einsum("fbd,rjd->fbrj", bvec_wl, s)  # +: matvis/pyuvdata sign
-        beam = A[:, pair_a] * A[:, pair_b] * w[None, None]  # (Nf, Nbl, rc, J)
-        kern = jnp.stack([beam * jnp.cos(phase), beam * jnp.sin(phase)], axis=1)  # (Nf, 2, Nbl, rc, J)
+        kern = jnp.stack(_fringe_kernel(Kr, Ki, kidx, w[None, None], phase), axis=1)  # (Nf, 2, Nbl, rc, J)
         mphi = ph[..., None] * mvec  # (rc, J, L)
         trig = jnp.stack([jnp.cos(mphi), jnp.sin(mphi)], axis=2)  # (rc, J, 2, L)
         # per-ring Fourier sums of the real and imaginary kernels: (Nf, 2, Nbl, rc, 2, L)
@@ -194,7 +218,7 @@ def _ring_quadrature(lmax, ring_theta, phi, enu, weight, amp, pair_a, pair_b, bv
         return acc + (t[:, 0] + 1j * t[:, 1]), None
 
     zero = jnp.zeros((nf, nbl, 2, L, L), jnp.result_type(bvec_wl.dtype, 1j))
-    acc, _ = jax.lax.scan(body, zero, (ring_theta, phi, enu, weight, amp))
+    acc, _ = jax.lax.scan(body, zero, (ring_theta, phi, enu, weight, kern_r, kern_i))
     tc, ts = acc[:, :, 0], acc[:, :, 1]
     tab = mode_table(lmax)
     ell, m = jnp.asarray(tab.ell), jnp.asarray(tab.m)
@@ -213,13 +237,14 @@ def response_matrix(
     chunk: int = 4096,
     method: str = "rings",
     beam_floor: float = 1e-16,
+    pols=None,
 ) -> jax.Array:
     """Complex response of each baseline and frequency to each realified mode.
 
     Args:
         array: the :class:`~gcrsky.instrument.AntennaArray` (positions, latitude, beams).
         pairs: (Nbl, 2) antenna index pairs (i, j); autos (i, i) allowed.
-        freqs_hz: (Nf,) frequencies, Hz.
+        freqs_hz: (Nf,) frequencies, Hz (within every UVBeam's channel range).
         lmax: maximum degree (static).
         nside: HEALPix nside of the quadrature grid.
         lst_ref_rad: local sidereal angle of the reference grid, radians.
@@ -229,11 +254,21 @@ def response_matrix(
             O(Nf Nbl Npix lmax + Nf Nbl Nrings lmax^2); ``"direct"``: every basis map
             on every pixel, O(Nf Nbl Npix lmax^2).  The same terms summed in another
             order (they agree to ~1e-14 relative; ``tests/test_response.py``).
-        beam_floor: pixels where every beam product ``A_i A_j`` (all frequencies and
-            pairs) is at most ``beam_floor`` times its peak are left out of the sum.
+        beam_floor: pixels where every beam kernel ``|K|`` (all frequencies and
+            rows) is at most ``beam_floor`` times its peak are left out of the sum.
             The default 1e-16 drops only terms below float64 rounding of the result
             (a 14 m Gaussian dish at 100 MHz keeps the 45 degrees around zenith:
             29% of the visible pixels); 0 keeps every pixel above the horizon.
+        pols: ``None`` (default): the unpolarised kernel ``A_i A_j``, ``A = sqrt(P_xx)``:
+            ``2 V_xx`` of matvis' sum convention, exact for identical antennas (for
+            different beams it is ``sqrt(P_i P_j)``, exact only for proportional E-fields;
+            ask for ``"xx"`` for the exact cross kernel).  Or the visibility product of
+            each row, a sequence of ``Nbl`` names from ``("xx", "yy", "xy", "yx", "pI")``
+            (one name: every row): the cross power beams of
+            :mod:`gcrsky.instrument.polarization` (I-equivalent, pyuvdata's "avg"
+            convention).  A joint ``("xx", "yy")`` fit is the rows ``pairs`` with ``"xx"``
+            stacked on the rows ``pairs`` with ``"yy"``.  Autocorrelations (i, i) follow
+            the same rules (``"pI"``: ``(P_xx + P_yy)/2``).
 
     Returns:
         (Nf, Nbl, (lmax+1)**2) complex128 response in K sr per unit coefficient (K).
@@ -249,30 +284,32 @@ def response_matrix(
         raise ValueError(f"method must be 'rings' or 'direct', got {method!r}")
     if not (0.0 <= beam_floor < 1.0):
         raise ValueError(f"beam_floor must be in [0, 1), got {beam_floor!r}")
+    pols = normalise_pols(pols, pairs.shape[0])
     out_bytes = 16.0 * freqs.size * pairs.shape[0] * n_params(lmax)
+    grid = sky_grid(nside, array.latitude_rad, lst_ref_rad)
+    bidx = unique_beams(array.beams)[1]
+    nkern = len(set(zip(bidx[pairs[:, 0]].tolist(), bidx[pairs[:, 1]].tolist(), pols or (None,) * len(pairs))))
     check_memory(
-        2 * out_bytes + 16e6,  # the result, its accumulator and one chunk of kernels
+        2 * out_bytes + 16e6 + 32.0 * freqs.size * nkern * grid.theta.size,  # result, accumulator, chunk, kernels
         f"the response ({freqs.size} freqs x {pairs.shape[0]} baselines x {n_params(lmax)} modes, complex128)",
         "build only the distinct baselines of a redundant array (gcrsky.redundant_responses) or fewer "
         "frequencies per call",
     )
-    grid = sky_grid(nside, array.latitude_rad, lst_ref_rad)
 
-    uniq, beam_idx = unique_beams(array.beams)  # amplitude maps once per distinct beam
-    amp = np.stack([beam_amplitude(b, grid.az_uvbeam, grid.za, freqs) for b in uniq], axis=1)  # (Nf, Nb, Np)
-    pa, pb = beam_idx[pairs[:, 0]], beam_idx[pairs[:, 1]]
+    kern = baseline_kernels(array.beams, pairs, grid.az_uvbeam, grid.za, freqs, pols)  # once per (beam pair, product)
+    K, kidx = kern.kernels, kern.index  # (Nf, Nk, Np), (Nbl,)
     if beam_floor > 0:
-        used = np.unique(np.stack([pa, pb], 1), axis=0)
-        prod = np.max([amp[:, i] * amp[:, j] for i, j in used], axis=(0, 1))  # (Np,)
-        keep = prod > beam_floor * prod.max()
+        peak = np.max(np.abs(K), axis=(0, 1))  # (Np,)
+        keep = peak > beam_floor * peak.max()
         grid = grid._replace(**{f: getattr(grid, f)[keep] for f in ("pix", "theta", "phi", "enu", "az_uvbeam", "za")})
-        amp = amp[:, :, keep]
+        K = K[:, :, keep]
+    kern_r, kern_i = (K, None) if np.isrealobj(K) else (np.ascontiguousarray(K.real), np.ascontiguousarray(K.imag))
     bvec = baseline_vectors(array.positions_enu_m, pairs)
     bvec_wl = jnp.asarray(bvec[None, :, :] * (freqs[:, None, None] / SPEED_OF_LIGHT))
     weight_pix = np.full(grid.theta.size, grid.weight_sr)
 
     if method == "rings":
-        return _rings(int(lmax), grid, amp, pa, pb, bvec_wl, weight_pix)
+        return _rings(int(lmax), grid, kern_r, kern_i, kidx, bvec_wl, weight_pix)
 
     npix = grid.theta.size
     nchunk = -(-npix // chunk)
@@ -283,6 +320,11 @@ def response_matrix(
         widths[axis] = (0, pad)
         return np.pad(x, widths)
 
+    def chunked(k):
+        if k is None:
+            return None
+        return jnp.asarray(padded(k, axis=2).reshape(freqs.size, k.shape[1], nchunk, chunk).transpose(2, 0, 1, 3))
+
     return _quadrature(
         int(lmax),
         int(chunk),
@@ -290,32 +332,41 @@ def response_matrix(
         jnp.asarray(padded(grid.phi).reshape(nchunk, chunk)),
         jnp.asarray(padded(grid.enu).reshape(nchunk, chunk, 3)),
         jnp.asarray(padded(weight_pix).reshape(nchunk, chunk)),
-        jnp.asarray(padded(amp, axis=2).reshape(freqs.size, len(uniq), nchunk, chunk).transpose(2, 0, 1, 3)),
-        jnp.asarray(pa),
-        jnp.asarray(pb),
+        chunked(kern_r),
+        chunked(kern_i),
+        jnp.asarray(kidx),
         bvec_wl,
     )
 
 
-def _rings(lmax: int, grid: SkyGrid, amp, pa, pb, bvec_wl, weight_pix) -> jax.Array:
-    """The ring quadrature over ``grid``'s pixels; ``amp`` (Nf, Nb, Npix) NumPy or JAX (traced)."""
+def _rings(lmax: int, grid: SkyGrid, kern_r, kern_i, kidx, bvec_wl, weight_pix) -> jax.Array:
+    """The ring quadrature over ``grid``'s pixels.
+
+    ``kern_r``, ``kern_i``: (Nf, Nk, Npix) real and imaginary kernels, NumPy or JAX (traced);
+    ``kern_i`` None for a real kernel.  ``kidx``: (Nbl,) kernel of each row.
+    """
     nf, nbl = bvec_wl.shape[:2]
     slot_bytes = 8 * 6 * nf * nbl  # kernels of one slot in a chunk
     gather, ring_theta = _ring_layout(grid.theta, slot_bytes, 16e6)
     valid = gather >= 0
     g = np.where(valid, gather, 0)
     take = lambda x: np.where(valid.reshape(valid.shape + (1,) * (x.ndim - 1)), x[g], 0.0)  # noqa: E731
-    xp = np if isinstance(amp, np.ndarray) else jnp
-    amp_r = xp.moveaxis(xp.where(valid, amp[:, :, g], 0.0), (2, 3, 4), (0, 3, 4))  # (Nc, Nf, Nb, rc, J)
+
+    def ringed(k):  # (Nf, Nk, Npix) -> (Nc, Nf, Nk, rc, J)
+        if k is None:
+            return None
+        xp = np if isinstance(k, np.ndarray) else jnp
+        return jnp.asarray(xp.moveaxis(xp.where(valid, k[:, :, g], 0.0), (2, 3, 4), (0, 3, 4)))
+
     return _ring_quadrature(
         int(lmax),
         jnp.asarray(ring_theta),
         jnp.asarray(take(grid.phi)),
         jnp.asarray(take(grid.enu)),
         jnp.asarray(take(weight_pix)),
-        jnp.asarray(amp_r),
-        jnp.asarray(pa),
-        jnp.asarray(pb),
+        ringed(kern_r),
+        ringed(kern_i),
+        jnp.asarray(kidx),
         bvec_wl,
     )
 
@@ -359,4 +410,4 @@ def analytic_response(
     amp = beam.amplitude(jnp.asarray(grid.za), jnp.asarray(freqs))[:, None, :]  # (Nf, 1, Np)
     zeros = np.zeros(pairs.shape[0], np.int64)
     bvec_wl = jnp.asarray(baseline_vectors(pos, pairs)[None] * (freqs[:, None, None] / SPEED_OF_LIGHT))
-    return _rings(int(lmax), grid, amp, zeros, zeros, bvec_wl, np.full(grid.theta.size, grid.weight_sr))
+    return _rings(int(lmax), grid, amp * amp, None, zeros, bvec_wl, np.full(grid.theta.size, grid.weight_sr))

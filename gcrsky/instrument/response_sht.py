@@ -8,8 +8,9 @@
 over the same HEALPix pixels (RING order, strictly above the horizon, Up > 0, at
 ``lst_ref_rad``; :func:`gcrsky.instrument.sky_grid`), the same weight
 ``w_p = 4 pi / Npix`` (steradians), the same ENU conversion
-(:func:`gcrsky.instrument.equatorial_to_enu`), the same beams
-(:func:`gcrsky.instrument.beam_amplitude`, ``A = sqrt(P_xx)``, azimuth North of
+(:func:`gcrsky.instrument.equatorial_to_enu`), the same beam kernels
+(:func:`gcrsky.instrument.baseline_kernels`: ``A_i A_j`` with ``A = sqrt(P_xx)`` by
+default, or the polarisation products ``pols`` as in ``response_matrix``; azimuth North of
 East), the same baseline sign (``b_ij = x_j - x_i``, fringe ``exp(+2 pi i b.s/lambda)``)
 and the same realified basis ``f_k`` (:mod:`gcrsky.sphere.modes`: ``m = 0 -> Y_l0``,
 Re part ``m > 0 -> 2 Re Y_lm``, Im part ``m > 0 -> -2 Im Y_lm``).  Only the
@@ -17,7 +18,8 @@ order of the sums differs, so the two agree to floating-point rounding (tested t
 ~1e-12 relative in ``tests/test_response_sht.py``).
 
 Method.  For each frequency and baseline the kernel map
-``M_p = A_i(p) A_j(p) exp(+2 pi i b.s_p / lambda)`` (zero below the horizon) is
+``M_p = K_b(p) exp(+2 pi i b.s_p / lambda)`` (zero below the horizon; ``K_b = A_i A_j`` or
+the row's complex cross power beam ``K_r + i K_i``) is
 split into the real maps ``Re M`` and ``Im M``, each transformed with
 ``healpy.map2alm(iter=0, use_weights=False, use_pixel_weights=False)``, which is
 the plain pixel sum ``a_lm = (4 pi / Npix) sum_p M_p conj(Y_lm(p))``.  For a real
@@ -58,7 +60,7 @@ import numpy as np
 from ..base.units import SPEED_OF_LIGHT
 from ..sphere.modes import mode_table, n_params, realify
 from .antennas import AntennaArray, baseline_vectors
-from .beams import beam_amplitude, unique_beams
+from .polarization import baseline_kernels, normalise_pols
 from .response import sky_grid
 
 __all__ = ["realified_projection", "response_matrix_sht"]
@@ -87,6 +89,7 @@ def response_matrix_sht(
     lst_ref_rad: float = 0.0,
     *,
     chunk: int = 16,
+    pols=None,
 ) -> jax.Array:
     """Same response as :func:`gcrsky.instrument.response_matrix`, built with healpy SHTs.
 
@@ -102,6 +105,8 @@ def response_matrix_sht(
         chunk: baselines transformed per batch; memory is
             ``~2 * chunk * 12 nside^2 * 8`` bytes for the maps (50 MB at nside 128,
             chunk 16) plus the output.
+        pols: the visibility product of each row (``None``: the unpolarised ``A_i A_j``), as
+            for :func:`gcrsky.instrument.response_matrix`.
 
     Returns:
         (Nf, Nbl, (lmax+1)**2) complex response in K sr per unit coefficient (K),
@@ -130,15 +135,15 @@ def response_matrix_sht(
     nant = array.positions_enu_m.shape[0]
     if pairs.ndim != 2 or pairs.shape[1] != 2 or pairs.min() < 0 or pairs.max() >= nant:
         raise ValueError(f"pairs must be (Nbl, 2) antenna indices in [0, {nant}), got shape {pairs.shape}")
+    pols = normalise_pols(pols, pairs.shape[0])
 
     grid = sky_grid(nside, array.latitude_rad, lst_ref_rad)
     npix_full = hp.nside2npix(nside)
     if not np.isclose(grid.weight_sr, 4 * np.pi / npix_full):  # healpy's implicit weight
         raise AssertionError("sky_grid weight is not 4 pi / Npix; the SHT scaling would be wrong")
 
-    uniq, beam_idx = unique_beams(array.beams)
-    amp = np.stack([beam_amplitude(b, grid.az_uvbeam, grid.za, freqs) for b in uniq], axis=1)  # (Nf, Nb, Np)
-    ia, ib = beam_idx[pairs[:, 0]], beam_idx[pairs[:, 1]]
+    kern = baseline_kernels(array.beams, pairs, grid.az_uvbeam, grid.za, freqs, pols)  # (Nf, Nk, Np)
+    K, kidx = kern.kernels, kern.index
     bvec = baseline_vectors(np.asarray(array.positions_enu_m, np.float64), pairs)  # (Nbl, 3) m
 
     nbl = pairs.shape[0]
@@ -148,11 +153,15 @@ def response_matrix_sht(
         for b0 in range(0, nbl, chunk):
             sl = slice(b0, min(b0 + chunk, nbl))
             nb = sl.stop - sl.start
-            beam = amp[f, ia[sl]] * amp[f, ib[sl]]  # (nb, Np)
+            beam = K[f, kidx[sl]]  # (nb, Np)
             phase = (2 * np.pi * nu / SPEED_OF_LIGHT) * (bvec[sl] @ grid.enu.T)  # +: matvis/pyuvdata sign
             m = maps[: 2 * nb]
-            m[:nb, grid.pix] = beam * np.cos(phase)
-            m[nb:, grid.pix] = beam * np.sin(phase)
+            if np.isrealobj(beam):
+                m[:nb, grid.pix] = beam * np.cos(phase)
+                m[nb:, grid.pix] = beam * np.sin(phase)
+            else:
+                m[:nb, grid.pix] = beam.real * np.cos(phase) - beam.imag * np.sin(phase)
+                m[nb:, grid.pix] = beam.real * np.sin(phase) + beam.imag * np.cos(phase)
             alm = np.atleast_2d(
                 hp.map2alm(m, lmax=lmax, mmax=lmax, iter=0, pol=False, use_weights=False, use_pixel_weights=False)
             )
