@@ -3,6 +3,7 @@
 - ``operator``: :class:`VisOperator`: ``X`` and its adjoint as jitted functions
 - ``noise``: radiometer noise from the autos, flags as weights, data cleaning
 - ``prior``: Gaussian priors (the paper's, isotropic from C_l, flat)
+- ``skyprior``: a prior for real data: the GSM's angular power spectrum (a shipped table)
 - ``system``: :class:`LinearSystem`: precision operator, Wiener and GCR right-hand sides;
   :func:`check_system`, what is wrong with a hand-edited system
 - ``problem``: :class:`Problem` and :func:`build_problem` (geometry, responses, simulation, assembly)
@@ -51,6 +52,7 @@ from .problem import (
     problem_responses,
     simulate_data,
 )
+from .skyprior import GSM_CL_FIT_RANGE, gsm_cl, gsm_cl_source, gsm_prior
 from .system import (
     LinearSystem,
     check_system,
@@ -68,6 +70,7 @@ from .template import (
 )
 
 __all__ = [
+    "GSM_CL_FIT_RANGE",
     "Geometry",
     "LinearSystem",
     "Prior",
@@ -88,6 +91,9 @@ __all__ = [
     "flat_prior",
     "fluctuation_rhs",
     "frame_shape",
+    "gsm_cl",
+    "gsm_cl_source",
+    "gsm_prior",
     "from_response_frame",
     "inverse_variance",
     "isotropic_prior",

@@ -99,16 +99,38 @@ def compress_system(
     return LinearSystem(op, data_g, iv_g, system.prior)
 
 
-def _problem_groups(problem, array, tol_m) -> RedundantGroups:
+def _pairs_groups(problem, array, pairs, tol_m) -> RedundantGroups:
     if array is not None:
-        return groups_for_array(array, np.asarray(problem.antpairs), tol_m=tol_m)
+        return groups_for_array(array, pairs, tol_m=tol_m)
     if problem.antpos_enu_m is None or problem.beam_ids is None:
         raise ValueError(
             "this Problem does not record its antenna layout (antpos_enu_m, beam_ids): pass array= (the "
             "gcrsky.instrument.AntennaArray it was built from) or groups="
         )
-    return redundant_groups(problem.antpos_enu_m, np.asarray(problem.antpairs),
-                            beam_ids=np.asarray(problem.beam_ids), tol_m=tol_m)
+    return redundant_groups(problem.antpos_enu_m, pairs, beam_ids=np.asarray(problem.beam_ids), tol_m=tol_m)
+
+
+def _problem_groups(problem, array, tol_m) -> RedundantGroups:
+    """Redundant groups of the problem's rows; rows of different feed products never share a group."""
+    pairs = np.asarray(problem.antpairs)
+    if problem.pols is None or len(set(problem.pols)) == 1:
+        return _pairs_groups(problem, array, pairs, tol_m)
+    pols = np.asarray(problem.pols)
+    group_of = np.empty(pairs.shape[0], np.int64)
+    reps, vecs, offs = [], [], []
+    for p in dict.fromkeys(problem.pols):  # in order of first appearance
+        rows = np.flatnonzero(pols == p)
+        g = _pairs_groups(problem, array, pairs[rows], tol_m)
+        group_of[rows] = g.group_of + len(reps)
+        reps.extend(rows[g.representative].tolist())
+        vecs.append(g.vectors_m)
+        offs.append(g.max_offset_m)
+    order = np.argsort(np.asarray(reps), kind="stable")  # representatives in row order
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    rep = np.asarray(reps)[order]
+    return RedundantGroups(rank[group_of], rep, np.bincount(rank[group_of], minlength=rep.size).astype(np.int64),
+                           pairs.copy(), np.concatenate(vecs)[order], np.concatenate(offs)[order])
 
 
 def compress_problem(
@@ -163,8 +185,12 @@ def compress_problem(
     iv_g, iv_full = np.asarray(iv_g), np.asarray(iv_full)
     kept = iv_g > 0
     sigma_g = np.where(kept, 1.0 / np.sqrt(np.where(kept, iv_g, 1.0)), 1.0 / np.sqrt(iv_full))
+    pols = None if problem.pols is None else tuple(problem.pols[int(r)] for r in groups.representative)
+    if pols is not None and any(problem.pols[b] != pols[g] for b, g in enumerate(np.asarray(groups.group_of))):
+        raise ValueError("a redundant group mixes feed products (problem.pols): group each product apart")
     return dataclasses.replace(
         problem,
+        pols=pols,
         antpairs=groups.representative_antpairs.copy(),
         response=jnp.take(problem.response, rep, axis=1),
         data=data_g,

@@ -65,7 +65,10 @@ class Problem(eqx.Module):
         parameters' frame (e.g. ICRS) to it (dense (n_resp, n) or a
         :class:`gcrsky.sphere.FrameMap`), with the response at the map's output degree;
         antpos_enu_m (Nant, 3) ENU metres and beam_ids (Nant,) (antennas with the same
-        id share one beam object), or None when not recorded.
+        id share one beam object), or None when not recorded; pols: None (every row the
+        unpolarised ``A_i A_j`` model of a simulation) or a tuple with the feed product
+        each row of ``antpairs`` models (``"xx"``, ``"yy"``, ``"pI"``; I-equivalent
+        visibilities: :mod:`gcrsky.io.uvdata`).
     """
 
     freqs_hz: jax.Array
@@ -86,6 +89,7 @@ class Problem(eqx.Module):
     sky_note: str = eqx.field(static=True, default="")
     antpos_enu_m: Optional[np.ndarray] = None
     beam_ids: Optional[np.ndarray] = None
+    pols: Optional[tuple] = eqx.field(static=True, default=None)
 
     @property
     def n(self) -> int:
@@ -272,6 +276,8 @@ def assemble_problem(
     lst_ref_rad: float = 0.0,
     config=None,
     sky_note: str = "",
+    pairs=None,
+    pols=None,
 ) -> Problem:
     """The :class:`Problem` from its parts: weights from flags, data cleaned, prior checked.
 
@@ -279,11 +285,17 @@ def assemble_problem(
     ``weights`` (in [0, 1]) set the per-sample weights (0 under a flag); flagged data
     may hold anything, NaN and Inf included, and are stored as 0; an unflagged
     non-finite sample is an error naming its (freq, time, baseline) and antennas.
-    The prior defaults to flat.
+    The prior defaults to flat.  ``pairs`` (Nbl, 2): the antenna pairs of the rows
+    (default every ``i < j``); ``pols``: the feed product of each row (see
+    :class:`Problem`).
     """
     freqs = np.atleast_1d(np.asarray(freqs_hz, np.float64))
     nant = array.positions_enu_m.shape[0]
-    pairs = antpairs(nant)
+    pairs = antpairs(nant) if pairs is None else np.asarray(pairs, np.int64)
+    if pols is not None:
+        pols = tuple(str(p) for p in pols)
+        if len(pols) != pairs.shape[0]:
+            raise ValueError(f"pols names {len(pols)} rows but there are {pairs.shape[0]} pairs")
     n = n_params(lmax)
     shape = (freqs.size, geometry.lsts_rad.size, pairs.shape[0])
     data = np.asarray(data)
@@ -322,6 +334,7 @@ def assemble_problem(
         sky_note=sky_note,
         antpos_enu_m=np.array(array.positions_enu_m, np.float64),
         beam_ids=unique_beams(array.beams)[1],
+        pols=pols,
     )
 
 

@@ -39,7 +39,7 @@ import numpy as np
 from ..base.extras import require
 from ..sphere.modes import n_params, realify, unrealify
 
-__all__ = ["SkyTruth", "sky_truth", "gsm2016_available"]
+__all__ = ["SkyTruth", "gsm2016_available", "gsm_cl_table", "sky_truth", "write_gsm_cl_table"]
 
 logger = logging.getLogger(__name__)
 
@@ -510,3 +510,40 @@ def sky_truth(freqs_hz, lmax: int, *, source: str = "auto", extend_seed: int = 2
     except ValueError as err:
         raise ValueError(f"{err} (fell back to the pyradiosky map because {reason})") from err
     return truth._replace(note=f"FALLBACK from GSM2016: {reason}. " + truth.note)
+
+
+def gsm_cl_table(lmax: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """Angular power spectra of pyradiosky's shipped GSM map at its own channels.
+
+    The source of the table :func:`gcrsky.model.gsm_cl` interpolates (``gcrsky/model/gsm_cl.json``,
+    regenerated with ``python -c "from gcrsky.sim.sky import write_gsm_cl_table; write_gsm_cl_table()"``):
+    ``healpy.alm2cl`` of the map's coefficients (``map2alm(iter=3)``, monopole ``sqrt(4 pi)`` x
+    the pixel mean, as the truth sky uses) up to ``lmax`` (at most ``2 nside`` = 16).
+
+    Returns:
+        ``(freqs_hz (nchan,), cl (nchan, lmax+1) K^2)``.
+    """
+    import healpy as hp
+
+    freqs, maps, nside, _ = _load_pyradiosky_gsm()
+    if lmax > 2 * nside:
+        raise ValueError(f"the shipped map (nside {nside}) carries l <= {2 * nside}, asked for {lmax}")
+    return np.array(freqs), np.stack([hp.alm2cl(_map_to_alm(m, lmax)) for m in maps])
+
+
+def write_gsm_cl_table(path=None) -> str:
+    """Write :func:`gsm_cl_table` to the package's ``gcrsky/model/gsm_cl.json`` (or ``path``)."""
+    import json
+    from pathlib import Path
+
+    freqs, cl = gsm_cl_table()
+    path = Path(path) if path is not None else Path(__file__).parents[1] / "model" / "gsm_cl.json"
+    doc = {
+        "source": f"pyradiosky {_pyradiosky_gsm_path().rsplit('/', 1)[-1]} (nside 8, ICRS, K): healpy alm2cl of "
+                  "map2alm(iter=3), gcrsky.sim.sky.gsm_cl_table",
+        "units": "K^2",
+        "freqs_hz": [float(f) for f in freqs],
+        "cl": [[float(x) for x in row] for row in cl],
+    }
+    path.write_text(json.dumps(doc, indent=1) + "\n")
+    return str(path)
