@@ -43,7 +43,8 @@ def _finite_numbers(x, path="summary"):
 def test_run_writes_everything(small_run):
     out, rc = small_run
     assert rc == 0
-    for name in ("results.h5", "summary.json", "fig3_alm_residuals.png", "fig4_sky_maps.png", "fig5_beam_region.png"):
+    for name in ("results.h5", "summary.json", "fig3_alm_residuals.png", "fig4_sky_maps.png", "fig5_beam_region.png",
+                 "posterior_mean.fits", "posterior_std.fits", "posterior_mean_alm.fits", "posterior_mean.skyh5"):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
 
 
@@ -143,15 +144,15 @@ def test_no_command_is_an_error(capsys):
 @pytest.mark.slow
 def test_nan_draws_exit_nonzero(monkeypatch, tmp_path, capsys):
     """Non-finite draws: results are still written, the exit status is 1, with a message."""
-    import gcrsky.inference.batches
+    import gcrsky.paper.pipeline
 
-    real = gcrsky.inference.batches.draw
+    real = gcrsky.paper.pipeline.draw  # the pipeline draws batch by batch (draw_batch)
 
     def poisoned(*a, **k):
         d, info = real(*a, **k)
         return d.at[0, 0, 0].set(np.nan), info
 
-    monkeypatch.setattr(gcrsky.inference.batches, "draw", poisoned)
+    monkeypatch.setattr(gcrsky.paper.pipeline, "draw", poisoned)
     rc = cli.main(["run", "--out", str(tmp_path), "--nsamples", "4", "--no-plots", *SMALL])
     assert rc == 1
     assert "NaN" in capsys.readouterr().err
