@@ -2,15 +2,32 @@
 
 ``gcrsky run`` reproduces the paper's standard case (or a scenario of its Table 1,
 ``--scenario NAME``, or a variant through options mirroring :class:`gcrsky.Config`):
-simulate, Wiener-filter, draw GCR samples, and write ``results.h5``,
-``summary.json`` and the paper's per-run figures (Figs. 3-7: mode z-scores, sky
-maps, beam region, beam-centre slice, correlation matrix and corner plot).
+simulate, Wiener-filter, draw GCR samples, and write ``results.h5`` (draws
+appended batch by batch), the standard products ``posterior_mean.fits`` /
+``posterior_std.fits`` (HEALPix maps), ``posterior_mean_alm.fits`` (healpy alm) and
+``posterior_mean.skyh5`` (pyradiosky), ``summary.json`` and the paper's per-run
+figures (Figs. 3-7: mode z-scores, sky maps, beam region, beam-centre slice,
+correlation matrix and corner plot); see :mod:`gcrsky.paper.pipeline`.
+
+An output directory that already holds a run's files is refused unless
+``--overwrite`` (delete them, start again) or ``--resume`` (continue the run recorded
+in its ``results.h5`` from its first missing batch, ending with exactly the draws of
+an uninterrupted run; the options must equal the recorded ones, else it refuses and
+names the differing settings; a complete run only gets its missing files rewritten)
+is given.  ``--resume`` into a directory without a run starts a new one.
 
 ``gcrsky scenarios [NAME ...]`` runs the whole suite (or a subset) into
 ``--out/NAME/``, reusing the response between scenarios with the same
 instrument, and writes ``results.md`` / ``results.csv`` (one row per scenario),
 ``claims.md`` (the paper's qualitative claims, checked with these numbers),
-``suite.json`` and the overlaid slice figures (Figs. 6 and 8).
+``suite.json`` and the overlaid slice figures (Figs. 6 and 8).  A scenario
+directory that already holds a run's files is refused, before anything runs,
+unless ``--overwrite`` is given (the suite-level tables and figures are derived and
+always rewritten).  There is no ``--resume`` for the suite (its tables need every
+scenario in one process); a killed scenario is continued with ``gcrsky run --scenario
+NAME --resume --out OUT/NAME`` and the suite's ``--nside``, ``--nsamples``, ``--seed``
+and ``--batch`` (the same settings), then ``gcrsky scenarios --overwrite`` rebuilds the
+tables (re-running every scenario).
 
 Reproducibility: the simulated data and the prior mean depend on ``--data-seed``
 (``Config.seed``); the draws on ``--seed`` and ``--batch``.  Draws are made in
@@ -22,9 +39,12 @@ gives the first 20 draws of ``--nsamples 200``), and one compiled program serves
 every batch.  Changing ``--batch`` changes the draws (not their distribution).
 
 Exit status: 0 on success, also when some solves did not converge (a warning is
-printed and ``summary.json`` records it: check ``solver.all_converged``); 1 if the
-draws contain non-finite values (results are still written for diagnosis); 2 for
-bad arguments (argparse).
+printed and ``summary.json`` records it: check ``solver.all_converged``), and for a
+``--resume`` of a run that was already complete; 1 if the draws contain non-finite
+values (results are still written for diagnosis); 2 for bad arguments (argparse);
+3 when the output directory holds results that the command refuses to touch
+(neither ``--resume`` nor ``--overwrite``) or ``--resume`` cannot continue
+(different settings or inputs, unreadable ``results.h5``).
 """
 
 from __future__ import annotations
@@ -45,6 +65,8 @@ DEFAULT_OUT = os.path.join("runs", "standard")
 DEFAULT_SUITE_OUT = os.path.join("runs", "paper")
 DEFAULT_NSAMPLES = 200
 DEFAULT_BATCH = 50
+#: Exit status when the output directory's results are not ours to touch (module doc).
+EXIT_REFUSED = 3
 
 
 # ---------------------------------------------------------------- argument types
@@ -112,7 +134,8 @@ def build_parser() -> argparse.ArgumentParser:
         "run",
         help="simulate the paper's standard case (or a variant), sample the posterior, write results",
         description="Simulate the standard case (options override its configuration), compute the "
-        "Wiener filter, draw GCR samples and write results.h5, summary.json and figures to --out.",
+        "Wiener filter, draw GCR samples and write results.h5, the posterior mean / std products (FITS, "
+        "healpy alm, pyradiosky skyh5), summary.json and figures to --out.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     r.add_argument("--scenario", default=None, metavar="NAME",
@@ -133,8 +156,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="last LST (sidereal hours, >= --lst-start; to wrap through 0 h use e.g. 22 to 26)")
     r.add_argument("--n-lst", type=_int_at_least(1, "n-lst"), default=d.n_lst,
                    help="number of LSTs, evenly spaced from start to stop inclusive")
-    r.add_argument("--dish-diameter", type=_positive_float("dish-diameter"), default=d.dish_diameter,
-                   help="dish diameter in metres (Gaussian beam, Airy-matched FWHM)")
+    r.add_argument("--dish-diameter", type=_positive_float("dish-diameter"), default=None,
+                   help=f"dish diameter in metres (Gaussian beam, Airy-matched FWHM; default {d.dish_diameter:g} "
+                   "for simulations; with --data, the beam if no --beam)")
     r.add_argument("--noise-scale", type=_positive_float("noise-scale"), default=d.noise_scale,
                    help="factor on the noise variance")
     r.add_argument("--prior-scale", type=_positive_float("prior-scale"), default=d.prior_scale,
@@ -156,6 +180,33 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     r.add_argument("--no-progress", action="store_true", help="no progress bars")
     r.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)")
+    dg = r.add_argument_group(
+        "your own data", "sample the sky of a visibility file (any file pyuvdata reads) instead of simulating: "
+        "--data FILE with --beam FILE or --dish-diameter D; --lmax, --nside, --prior-scale, --method, --tol and the "
+        "draw options apply, the simulation's options do not")
+    _add_data_options(dg, with_data=True)
+    ex = r.add_mutually_exclusive_group()
+    ex.add_argument("--resume", action="store_true",
+                    help="continue the run recorded in --out (killed or complete) from its first missing batch; "
+                    "the options must equal the recorded ones; missing products are rewritten")
+    ex.add_argument("--overwrite", action="store_true",
+                    help="delete the run files already in --out (results.h5, summary.json, products, figures) and "
+                    "start again")
+
+    ins = sub.add_parser(
+        "inspect",
+        help="print what 'gcrsky run --data FILE' would use (antennas, baselines, LSTs, products, units, flags, "
+        "noise, memory) without solving",
+        description="Read a visibility file's selection and report what the ingest would use, without building "
+        "the response or solving.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    ins.add_argument("file", help="visibility file (UVH5, or UVFITS / MS where pyuvdata's readers are installed)")
+    ins.add_argument("--lmax", type=_int_at_least(1, "lmax"), default=d.lmax, help="maximum degree l (for the sizes)")
+    ins.add_argument("--nside", type=_nside, default=d.nside, help="HEALPix nside (for the sizes)")
+    ins.add_argument("--json", action="store_true", help="print the report as JSON")
+    ins.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)")
+    _add_data_options(ins, with_data=False)
 
     sc = sub.add_parser(
         "scenarios",
@@ -176,7 +227,60 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--no-plots", action="store_true", help="skip all PNG figures")
     sc.add_argument("--no-progress", action="store_true", help="no progress bars")
     sc.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)")
+    sc.add_argument("--overwrite", action="store_true",
+                    help="replace the run files already in the scenarios' directories (else they are refused)")
     return p
+
+
+def _csv(what: str, conv):
+    def parse(s: str):
+        try:
+            return [conv(x) for x in s.split(",") if x.strip()]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what} must be a comma-separated list, got {s!r}") from None
+
+    return parse
+
+
+def _antenna(x: str):
+    x = x.strip()
+    return int(x) if x.lstrip("-").isdigit() else x
+
+
+def _add_data_options(g, *, with_data: bool) -> None:
+    """The options of a run on a visibility file (``run --data``) and of ``inspect``."""
+    if with_data:
+        g.add_argument("--data", default=None, metavar="FILE", help="visibility file (UVH5; UVFITS, MS where "
+                       "pyuvdata's readers are installed)")
+        g.add_argument("--beam", default=None, metavar="FILE",
+                       help="beam file UVBeam reads (beamfits, CST, MWA; E-field or power), the same for every antenna")
+        g.add_argument("--prior", default="gsm", metavar="gsm|flat|FILE",
+                       help="prior: gsm (isotropic, zero mean, the GSM's C_l at the data's frequencies, times "
+                       "--prior-scale), flat, a C_l file (.npy, or text: l then C_l per frequency) or a HEALPix map "
+                       "/ alm FITS file (the prior mean; variance the GSM's C_l)")
+        g.add_argument("--noise", choices=("autos", "diff"), default="autos",
+                       help="noise: radiometer equation on the file's autos, or time-adjacent differences")
+        g.add_argument("--no-compress", action="store_true", help="keep every baseline (no redundant compression)")
+    g.add_argument("--pol", default="pI", metavar="pI|xx|yy|xx,yy",
+                   help="modelled product: pseudo-Stokes I (xx + yy), one feed product, or xx and yy jointly")
+    g.add_argument("--freq-range", nargs=2, type=_positive_float("freq-range"), default=None, metavar=("LO", "HI"),
+                   help="keep channels in [LO, HI] MHz")
+    g.add_argument("--chans", type=_csv("chans", int), default=None, metavar="I,J,...", help="channel indices to keep")
+    g.add_argument("--lst-range", nargs=2, type=_finite_float("lst-range"), default=None, metavar=("START", "STOP"),
+                   help="keep integrations with LST in [START, STOP] hours (START > STOP wraps through 0 h)")
+    g.add_argument("--antennas", type=_csv("antennas", _antenna), default=None, metavar="A,B,...",
+                   help="antenna numbers or names to keep")
+
+
+def _data_kwargs(args) -> dict:
+    """from_uvdata / inspect_uvdata selection keywords from the parsed options."""
+    return dict(
+        freq_chans=args.chans,
+        freq_range_hz=None if args.freq_range is None else tuple(1e6 * x for x in args.freq_range),
+        lst_range_hours=None if args.lst_range is None else tuple(args.lst_range),
+        antennas=args.antennas,
+        pol=tuple(args.pol.split(",")) if "," in args.pol else args.pol,
+    )
 
 
 # ---------------------------------------------------------------- terminal
@@ -236,7 +340,8 @@ def _run_settings(args):
 
     fields = dict(
         lmax=args.lmax, nside=args.nside, n_lst=args.n_lst, lst_range_hours=(args.lst_start, args.lst_stop),
-        dish_diameter=args.dish_diameter, noise_scale=args.noise_scale, prior_scale=args.prior_scale,
+        dish_diameter=Config().dish_diameter if args.dish_diameter is None else args.dish_diameter,
+        noise_scale=args.noise_scale, prior_scale=args.prior_scale,
         flat_prior=args.flat_prior, zero_prior_mean=args.zero_prior_mean, seed=args.data_seed, obs_date=args.date,
     )
     if args.scenario is None:
@@ -254,36 +359,212 @@ def _run_settings(args):
     return {**mine, **user}, args.nsamples or sc.nsamples, args.method or sc.method, sc.name, args.tol or sc.tol
 
 
+#: The command-line option behind each recorded run setting (for --resume's messages).
+_OPTION_OF = {
+    "config.lmax": "--lmax", "config.nside": "--nside", "config.n_lst": "--n-lst",
+    "config.lst_range_hours": "--lst-start/--lst-stop", "config.dish_diameter": "--dish-diameter",
+    "config.noise_scale": "--noise-scale", "config.prior_scale": "--prior-scale", "config.flat_prior": "--flat-prior",
+    "config.zero_prior_mean": "--zero-prior-mean", "config.seed": "--data-seed", "config.obs_date": "--date",
+    "nsamples": "--nsamples", "seed": "--seed", "batch": "--batch", "method": "--method", "tol": "--tol",
+    "scenario": "--scenario",
+}
+
+
+def _refusal_message(e, *, resume: bool) -> str:
+    """The message of a refused run (:class:`~gcrsky.paper.pipeline.RunExistsError` / ``ResumeError``)."""
+    from .paper.pipeline import ResumeError
+
+    if isinstance(e, ResumeError) and e.differences:
+        what = ", ".join(f"{_OPTION_OF.get(k, k)} (recorded {a!r}, now {b!r})" for k, a, b in e.differences)
+        return (f"gcrsky: --resume: the run in {e.out} was made with other settings: {what}. Give the recorded "
+                f"options to resume it, or --overwrite to start again (or choose another --out).")
+    if isinstance(e, ResumeError):
+        return f"gcrsky: --resume: {e}. --overwrite starts again (or choose another --out)."
+    if resume:
+        return f"gcrsky: --resume: {e} (--overwrite)."
+    return (f"gcrsky: {e.out} already holds results of a run ({', '.join(e.files)}); pass --resume to continue "
+            f"that run or --overwrite to replace it (or choose another --out).")
+
+
 def _run(args) -> int:
     _setup_jax()
-    from .paper.pipeline import run_problem
+    from .paper.pipeline import ResumeError, RunExistsError, check_output, run_problem, run_settings
     from .sim.config import Config
     from .sim.standard import problem_from_config
 
     fields, nsamples, method, scen, tol = _run_settings(args)
     out = Path(args.out)
+    existing = "resume" if args.resume else ("overwrite" if args.overwrite else "refuse")
+    config = Config(**fields).validate()
+    # refuse (or resume) before the problem is built: the check needs only the settings
+    settings = run_settings(config, nsamples=nsamples, seed=args.seed, batch=args.batch, method=method, tol=tol,
+                            scenario=scen)
+    try:
+        state = check_output(out, settings, existing)
+    except (RunExistsError, ResumeError) as e:
+        print(_refusal_message(e, resume=args.resume), file=sys.stderr)
+        return EXIT_REFUSED
+    if args.resume:
+        if state is None:
+            print(f"gcrsky: --resume: no run in {out} to resume; starting a new one")
+        elif state.draws_done:
+            print(f"gcrsky: --resume: the run in {out} has all its {state.ndraws_complete} draws"
+                  + (" and is complete; writing any missing files" if state.complete else "; finishing it"))
+        else:
+            print(f"gcrsky: --resume: continuing the run in {out} at batch {state.batches_complete} of "
+                  f"{state.n_batches} ({state.ndraws_complete} of {state.nsamples} draws done)")
     out.mkdir(parents=True, exist_ok=True)
     disable_bars = True if args.no_progress else None  # tqdm's None: bars only on a terminal
     t0 = time.perf_counter()
-    prob = problem_from_config(Config(**fields).validate())
+    prob = problem_from_config(config)
     build_s = time.perf_counter() - t0
     plots = not args.no_plots
     bar = _StageBar(["wiener", "draws", "maps"] + (["plots"] if plots else []) + ["write"], disable_bars)
     try:
-        summary, _ = run_problem(
+        summary, products = run_problem(
             prob, out, nsamples=nsamples, seed=args.seed, batch=args.batch, method=method, plots=plots,
             build_s=build_s, argv=getattr(args, "_argv", None), scenario_name=scen, tol=tol,
-            on_stage=bar, progress=_batch_bar(disable_bars),
+            on_stage=bar, progress=_batch_bar(disable_bars), existing=existing,
         )
+    except (RunExistsError, ResumeError) as e:  # e.g. the inputs differ from the recorded ones
+        print(_refusal_message(e, resume=args.resume), file=sys.stderr)
+        return EXIT_REFUSED
     finally:
         bar.close()
-    _print_summary(summary, out)
+    if products["already_complete"]:
+        missing = products["written"]
+        print(f"gcrsky: the run in {out} was already complete; "
+              + (f"rewrote the missing {', '.join(missing)}" if missing else "no file was missing"))
+    _print_summary(summary, out, products["written"])
     for w in summary["warnings"]:
         print(w, file=sys.stderr)
     if not summary["draws_finite"]:
         print("gcrsky: the draws contain NaN/inf; exiting with status 1 (results written for diagnosis).",
               file=sys.stderr)
         return 1
+    return 0
+
+
+#: ``gcrsky run`` options of a simulation that a run on a file does not use (dest, option).
+_SIM_ONLY = (("scenario", "--scenario"), ("lst_start", "--lst-start"), ("lst_stop", "--lst-stop"),
+             ("n_lst", "--n-lst"), ("noise_scale", "--noise-scale"), ("flat_prior", "--flat-prior"),
+             ("zero_prior_mean", "--zero-prior-mean"), ("date", "--date"), ("data_seed", "--data-seed"))
+
+
+def _check_data_options(parser, args) -> None:
+    """A run on a file takes its beam from --beam or --dish-diameter and refuses the simulation's options."""
+    defaults = build_parser().parse_args(["run"])
+    used = [opt for dest, opt in _SIM_ONLY if getattr(args, dest) != getattr(defaults, dest)]
+    if used:
+        parser.error(f"{', '.join(used)} describe a simulation; with --data the file says what was observed")
+    if (args.beam is None) == (args.dish_diameter is None):
+        parser.error("with --data give the beam: --beam FILE (any file UVBeam reads) or --dish-diameter D (a "
+                     "Gaussian beam of that dish), one of them")
+    if args.prior not in ("gsm", "flat") and not Path(args.prior).exists():
+        parser.error(f"--prior {args.prior!r}: neither 'gsm', 'flat' nor an existing file")
+    if not Path(args.data).exists():
+        parser.error(f"--data {args.data!r}: no such file")
+
+
+def _file_digest(path) -> str:
+    """SHA-256 of a file (what a resumed run on a file must find unchanged)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _run_data(args) -> int:
+    """``gcrsky run --data FILE``: the posterior of a visibility file's sky (no truth: no truth metrics)."""
+    _setup_jax()
+    from .io.uvdata import from_uvdata
+    from .paper.pipeline import ResumeError, RunExistsError, existing_run_files, run_problem
+
+    out = Path(args.out)
+    existing = "resume" if args.resume else ("overwrite" if args.overwrite else "refuse")
+    nsamples, method, tol = args.nsamples or DEFAULT_NSAMPLES, args.method or "auto", args.tol or 1e-6
+    kw = _data_kwargs(args)
+    extra = {"data_file": str(Path(args.data).resolve()), "data_sha256": _file_digest(args.data),
+             "beam": args.beam, "dish_diameter": args.dish_diameter, "prior": args.prior,
+             "prior_scale": args.prior_scale, "noise": args.noise, "compress": not args.no_compress,
+             "lmax": args.lmax, "nside": args.nside,
+             "selection": {k: (list(v) if isinstance(v, tuple) else v) for k, v in kw.items()}}
+    if existing == "refuse":  # refuse before reading the file; --resume is checked once the problem is built
+        # (its recorded settings include what the file said: conventions, selection, beam, prior)
+        taken = existing_run_files(out)
+        if taken:
+            print(_refusal_message(RunExistsError(out, taken), resume=False), file=sys.stderr)
+            return EXIT_REFUSED
+    disable_bars = True if args.no_progress else None
+    t0 = time.perf_counter()
+    beam = None
+    if args.beam is not None:
+        from .instrument.beams import load_beam
+
+        beam = load_beam(args.beam)
+    prob = from_uvdata(args.data, lmax=args.lmax, nside=args.nside, beam=beam, dish_diameter_m=args.dish_diameter,
+                       prior=args.prior, prior_scale=args.prior_scale, noise=args.noise,
+                       compress=not args.no_compress, **kw)
+    build_s = time.perf_counter() - t0
+    cfg = prob.config
+    print(f"gcrsky: {args.data}: {len(cfg.conventions['antenna_numbers'])} antennas, {prob.data.shape[2]} rows "
+          f"({'compressed' if cfg.compressed else 'all baselines'}), {prob.data.shape[1]} times, "
+          f"{prob.data.shape[0]} channels, {cfg.pol}; prior: {cfg.prior}")
+    plots = not args.no_plots
+    bar = _StageBar(["wiener", "draws", "maps"] + (["plots"] if plots else []) + ["write"], disable_bars)
+    try:
+        summary, products = run_problem(
+            prob, out, nsamples=nsamples, seed=args.seed, batch=args.batch, method=method, plots=plots,
+            build_s=build_s, argv=getattr(args, "_argv", None), tol=tol, on_stage=bar,
+            progress=_batch_bar(disable_bars), existing=existing, extra_settings=extra,
+        )
+    except (RunExistsError, ResumeError) as e:
+        print(_refusal_message(e, resume=args.resume), file=sys.stderr)
+        return EXIT_REFUSED
+    finally:
+        bar.close()
+    if products["already_complete"]:
+        print(f"gcrsky: the run in {out} was already complete")
+    _print_summary(summary, out, products["written"])
+    for w in summary["warnings"]:
+        print(w, file=sys.stderr)
+    return 0 if summary["draws_finite"] else 1
+
+
+def _inspect(args) -> int:
+    """``gcrsky inspect FILE``: what a run on the file would use."""
+    import json
+
+    from .base.memory import format_bytes
+    from .io.uvdata import inspect_uvdata
+
+    info = inspect_uvdata(args.file, lmax=args.lmax, nside=args.nside, **_data_kwargs(args))
+    if args.json:
+        print(json.dumps(info, indent=1))
+        return 0
+    c = info["conventions"]
+    lines = [
+        f"gcrsky inspect {info['source']}",
+        f"  antennas      {info['n_antennas']}: {', '.join(str(a) for a in info['antennas'][:20])}"
+        + (" ..." if info["n_antennas"] > 20 else ""),
+        f"  baselines     {info['n_baselines']} ({info['n_unique_baselines']} unique by separation)",
+        f"  times         {info['n_times']}, LST {info['lst_range_hours'][0]:.3f} - {info['lst_range_hours'][1]:.3f} h",
+        f"  channels      {info['n_channels']}, {info['freq_range_hz'][0] / 1e6:.4f} - "
+        f"{info['freq_range_hz'][1] / 1e6:.4f} MHz, width {info['channel_width_hz'] / 1e3:.3g} kHz",
+        f"  products      file {', '.join(info['file_polarizations'])}; modelled {', '.join(info['modelled_products'])}",
+        f"  conventions   {c['vis_units']}, pol_convention {c['pol_convention']}, {c['phase']}",
+        f"  flagged       {100 * info['flagged_fraction']:.2f}% of the samples used",
+        "  noise         " + (f"radiometer (autos): median sigma {info['noise_sigma_median_k_sr']:.4g} K sr per component"
+                               if info["has_autos"] else "no autocorrelations: use --noise diff"),
+        f"  memory        read {format_bytes(info['read_bytes'])}; dense P at lmax {args.lmax}: "
+        f"{format_bytes(info['dense_precision_bytes'])}; response {format_bytes(info.get('response_bytes', 0))}",
+        f"  site          lat {info['site_lat_lon_deg'][0]:.4f} deg, lon {info['site_lat_lon_deg'][1]:.4f} deg",
+    ]
+    lines += [f"  note          {n}" for n in info["notes"]]
+    print("\n".join(lines))
     return 0
 
 
@@ -299,6 +580,19 @@ def _scenarios(args) -> int:
 
     names = suite_names(args.names)
     _setup_jax()
+    from .paper.pipeline import existing_run_files, remove_run_files
+
+    taken = {n: existing_run_files(Path(args.out) / n) for n in names}
+    taken = {n: f for n, f in taken.items() if f}
+    if taken and not args.overwrite:
+        what = "; ".join(f"{Path(args.out) / n}: {', '.join(f)}" for n, f in taken.items())
+        print(f"gcrsky: scenario directories already hold results ({what}); pass --overwrite to replace them "
+              f"(or choose another --out; to continue one killed scenario: gcrsky run --scenario NAME --resume "
+              f"--out {Path(args.out) / 'NAME'} with the suite's --nside, --nsamples, --seed and --batch).",
+              file=sys.stderr)
+        return EXIT_REFUSED
+    for n in taken:
+        remove_run_files(Path(args.out) / n)
     from tqdm.auto import tqdm
 
     disable_bars = True if args.no_progress else None
@@ -327,29 +621,41 @@ def _scenarios(args) -> int:
     return 0
 
 
-def _print_summary(s: dict, out: Path) -> None:
-    m = s["metrics"]
+def _print_summary(s: dict, out: Path, written=None) -> None:
     t = s["timings_s"]
     sv = s["solver"]
     pct = lambda x: "nan" if x is None or not math.isfinite(x) else f"{100 * x:.2f}%"  # noqa: E731
-    lines = [
-        f"gcrsky run -> {out}",
-        f"  sky: {s['sky_note'].split('. ')[0][:160]}",
-        f"  {s['run']['nsamples']} draws ({sv['method']}), lmax {s['config']['lmax']}, nside {s['config']['nside']}, "
-        f"{len(s['per_frequency'])} channels",
-        f"  at {m['freq_hz'] / 1e6:g} MHz (FWHM {m['fwhm_deg']:.2f} deg, centre dec {s['region']['centre_dec_deg']:.3f}):",
-        f"    median |mean-truth|/truth  centre ring {pct(m['frac_diff_centre_median'])}  "
-        f"(90th pct {pct(m['frac_diff_centre_p90'])}, within 5%: {pct(m['frac_diff_centre_within_5pct'])})",
-        f"                               +-1 FWHM    {pct(m['frac_diff_fwhm_median'])}  "
-        f"(90th pct {pct(m['frac_diff_fwhm_p90'])}, within 10%: {pct(m['frac_diff_fwhm_within_10pct'])})",
-        f"    per-mode z: rms {m['mode_z']['rms']:.2f}, |z|<=2 for {pct(m['mode_z']['within_2'])}",
+    cfg = s.get("config") or {}
+    lines = [f"gcrsky run -> {out}"]
+    if s.get("sky_note"):
+        lines.append(f"  sky: {s['sky_note'].split('. ')[0][:160]}")
+    lines.append(
+        f"  {s['run']['nsamples']} draws ({sv['method']})"
+        + (f", lmax {cfg['lmax']}, nside {cfg['nside']}" if cfg else "") + f", {len(s['per_frequency'])} channels"
+    )
+    m = s["metrics"]
+    if m.get("frac_diff_centre_median") is not None or "frac_diff_centre_p90" in m:
+        lines += [
+            f"  at {m['freq_hz'] / 1e6:g} MHz (FWHM {m['fwhm_deg']:.2f} deg, centre dec "
+            f"{s['region']['centre_dec_deg']:.3f}):",
+            f"    median |mean-truth|/truth  centre ring {pct(m['frac_diff_centre_median'])}  "
+            f"(90th pct {pct(m['frac_diff_centre_p90'])}, within 5%: {pct(m['frac_diff_centre_within_5pct'])})",
+            f"                               +-1 FWHM    {pct(m['frac_diff_fwhm_median'])}  "
+            f"(90th pct {pct(m['frac_diff_fwhm_p90'])}, within 10%: {pct(m['frac_diff_fwhm_within_10pct'])})",
+        ]
+    if "mode_z" in m:
+        lines.append(f"    per-mode z: rms {m['mode_z']['rms']:.2f}, |z|<=2 for {pct(m['mode_z']['within_2'])}")
+    worst = [x for x in (sv["wiener"]["err_sigma_max"], sv["draws"]["err_sigma_max"]) if x is not None]
+    lines += [
         f"  solver: Wiener {sv['wiener']['iterations_max']} it max; draws {sv['draws']['iterations_mean']:.0f} it mean / "
-        f"{sv['draws']['iterations_max']} max; worst err {max(sv['wiener']['err_sigma_max'], sv['draws']['err_sigma_max']):.2g} "
+        f"{sv['draws']['iterations_max']} max; worst err {max(worst) if worst else float('nan'):.2g} "
         f"sigma; all converged: {sv['all_converged']}",
         f"  time: build {t['build']:.1f} s, wiener {t['wiener']:.1f} s, draws {t['draws']:.1f} s (compile included), "
         f"maps {t['maps']:.1f} s" + (f", plots {t['plots']:.1f} s" if "plots" in t else ""),
-        "  wrote results.h5, summary.json" + (", " + ", ".join(s["figures"].values()) if s["figures"] else ""),
     ]
+    if written is None:
+        written = ["results.h5", "summary.json", *s.get("figures", {}).values()]
+    lines.append("  wrote " + (", ".join(written) if written else "nothing (every file was there)"))
     print("\n".join(lines))
 
 
@@ -378,6 +684,22 @@ def main(argv=None) -> int:
             parser.error(str(e))
         with logging_redirect_tqdm():
             return _scenarios(args)
+    if args.command == "inspect":
+        try:
+            return _inspect(args)
+        except (ValueError, FileNotFoundError) as e:
+            print(f"gcrsky inspect: {e}", file=sys.stderr)
+            return 2
+    if args.command == "run" and args.data is not None:
+        _check_data_options(parser, args)
+        from tqdm.contrib.logging import logging_redirect_tqdm
+
+        with logging_redirect_tqdm():
+            try:
+                return _run_data(args)
+            except (ValueError, FileNotFoundError) as e:  # the file or the options: a message, not a traceback
+                print(f"gcrsky run --data: {e}", file=sys.stderr)
+                return 2
     if args.command == "run":
         if args.lst_stop < args.lst_start:
             parser.error(

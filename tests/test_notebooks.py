@@ -119,8 +119,8 @@ def test_notebook_runs(path):
 
 
 @pytest.mark.slow
-def test_readme_python_examples_run():
-    """The README's Python blocks run as written (smaller nside/chain for speed)."""
+def test_readme_python_examples_run(tmp_path, monkeypatch):
+    """The README's Python blocks run as written (smaller nside/chain for speed; files into a temporary directory)."""
     import re
 
     import numpy as np
@@ -129,8 +129,13 @@ def test_readme_python_examples_run():
     blocks = re.findall(r"```python\n(.*?)```", readme, re.S)
     assert len(blocks) >= 4
     code = "\n".join(blocks).replace("nside=128", "nside=32").replace("split(key, 1000)", "split(key, 20)")
+    monkeypatch.chdir(tmp_path)
     ns: dict = {}
     exec(compile(code, "README.md", "exec"), ns)
+    from pyuvdata import UVData
+
+    uvd = UVData.from_file(str(tmp_path / "obs.uvh5"))  # the "your own data" example's file
+    assert uvd.Nants_data == 10 and uvd.Ntimes == 10 and uvd.vis_units == "Jy"
     assert ns["draws"].shape == (2, 200, 441)
     assert ns["chain"].shape == (20, 2, 441)
     assert ns["real"].response.shape[-1] == (20 + 4 + 1) ** 2  # ICRS lmax 20 -> CIRS lmax 24

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import logging
 import warnings
-from dataclasses import dataclass
 
 import healpy as hp
 import numpy as np
@@ -48,10 +47,11 @@ from astropy.time import Time  # noqa: E402
 from astropy.utils import iers  # noqa: E402
 from matvis.core.coords import CoordinateRotation  # noqa: E402
 from pyuvdata import BeamInterface, UVBeam  # noqa: E402
-from pyuvdata.analytic_beam import AiryBeam, AnalyticBeam, ShortDipoleBeam, diameter_to_sigma  # noqa: E402
+from pyuvdata.analytic_beam import AiryBeam, ShortDipoleBeam  # noqa: E402
 
 from gcrsky.base import kelvin_sr_to_jy  # noqa: E402
 from gcrsky.checks.matvis import hera_dipole_power_beam, matvis_hera_beam_path  # noqa: E402
+from gcrsky.checks.uvsim import DipoleGaussianBeam  # noqa: E402
 from gcrsky.instrument import (  # noqa: E402
     HERA_LATITUDE_DEG,
     antenna_beams,
@@ -241,28 +241,6 @@ def test_per_antenna_hera_and_gaussian_match_matvis(sky, hera):
     assert _err(_gcrsky(a, beams, None, HERA_FREQS), 2 * vm[..., 0, 0], mixed) > 0.3
 
 
-@dataclass(kw_only=True, eq=False)
-class DipoleGaussianBeam(AnalyticBeam):
-    """A Gaussian dish (pyuvdata ``GaussianBeam(diameter)``'s power) with a short dipole's polarisation.
-
-    A physical E-field (x East, y North): smooth through zenith, unlike pyuvdata's unpolarised
-    ``sqrt(P/2)`` on both (azimuth, zenith angle) unit vectors.
-    """
-
-    diameter: float = 14.0
-    basis_vector_type = "az_za"
-
-    def validate(self):
-        self.feed_array = np.asarray(["x", "y"] if self.feed_array is None else self.feed_array)
-
-    def _efield_eval(self, *, az_grid, za_grid, f_grid):
-        data = self._get_empty_data_array(az_grid.shape)
-        amp = np.exp(-(za_grid**2) / (2 * diameter_to_sigma(self.diameter, f_grid) ** 2))
-        data[0, 0], data[0, 1] = -np.sin(az_grid) * amp, np.cos(az_grid) * amp
-        data[1, 0], data[1, 1] = np.cos(za_grid) * np.cos(az_grid) * amp, np.cos(za_grid) * np.sin(az_grid) * amp
-        return data
-
-
 DPHI_GENERIC = 0.7  # rad: not a symmetry of the HEALPix grid (DPHI = pi/2 is: there both codes sum the same pixels)
 
 
@@ -334,7 +312,7 @@ def test_simulated_file_cross_feed_products_are_pyuvdata_ordered():
     rng = np.random.default_rng(3)
     a = rng.normal(size=n_params(lmax))
     a[0] = 5.0
-    kw = dict(nside_matvis=16, noise_seed=None, vis_units="K str")
+    kw = {"nside_matvis": 16, "noise_seed": None, "vis_units": "K str"}
     args = (hex_array(), site(*HERA_SITE), Time(["2025-03-21T20:00:00"]), [120e6])
     mixed = simulate_uvdata(*args, [east, north], a, lmax, beam_idx=np.arange(NANT) % 2, pols=("xy", "yx"), **kw)
     ref = simulate_uvdata(*args, east, a, lmax, pols=("xx", "yy"), **kw)

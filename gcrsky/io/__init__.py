@@ -1,11 +1,68 @@
-"""Reading and writing: run products (``results.h5``, JSON summaries).
+"""Reading and writing: run products (``results.h5``, JSON, HEALPix FITS, pyradiosky skyh5).
 
-- ``results``: :func:`write_results_h5` (draws, Wiener filter and the problem's
-  inputs in one HDF5 file), :func:`write_json` (strict JSON).
+- ``results``: ``results.h5`` written batch by batch so that a killed run can be
+  continued (:func:`create_results_h5`, :func:`append_batch`,
+  :func:`finalize_results_h5`, :func:`read_results_state`, :func:`read_draws`; or
+  :func:`write_results_h5` in one go), :func:`write_json` (strict JSON);
+- ``fits``: HEALPix RING maps (:func:`write_healpix_fits`, ``healpy.write_map``) and
+  complex healpy-ordered alm (:func:`write_alm_fits`, ``healpy.write_alm``), one
+  channel per column / HDU;
+- ``skymodel``: a pyradiosky ``SkyModel`` of HEALPix maps as ``skyh5``
+  (:func:`write_skyh5`; the ``[sim]`` extra);
+- ``atomic``: every file is written to a temporary name beside the target and
+  renamed over it (:func:`atomic_path`), so a kill never leaves a half-written file.
 
-Visibility files in (UVH5 through pyuvdata) and HEALPix FITS out will live here too.
+- ``uvdata``: real observations in: :func:`from_uvdata` (a
+  :class:`~gcrsky.model.Problem` from any file pyuvdata reads, conventions pinned) and
+  :func:`inspect_uvdata` (what it would use, without solving).
 """
 
-from .results import clean_json, json_default, write_json, write_results_h5
+from .atomic import atomic_path, atomic_write_text, is_temporary
+from .fits import FRAMES, freq_column_names, write_alm_fits, write_healpix_fits
+from .results import (
+    ResultsState,
+    StoredDraws,
+    append_batch,
+    clean_json,
+    create_results_h5,
+    finalize_results_h5,
+    inputs_fingerprint,
+    json_default,
+    read_draws,
+    read_results_state,
+    settings_json,
+    write_json,
+    write_results_h5,
+)
+from .skymodel import healpix_skymodel, write_skyh5
+from .uvdata import POLS, DataConfig, from_uvdata, inspect_uvdata, read_uvdata
 
-__all__ = ["clean_json", "json_default", "write_json", "write_results_h5"]
+__all__ = [
+    "FRAMES",
+    "POLS",
+    "DataConfig",
+    "ResultsState",
+    "StoredDraws",
+    "append_batch",
+    "atomic_path",
+    "atomic_write_text",
+    "clean_json",
+    "create_results_h5",
+    "finalize_results_h5",
+    "freq_column_names",
+    "from_uvdata",
+    "healpix_skymodel",
+    "inputs_fingerprint",
+    "inspect_uvdata",
+    "is_temporary",
+    "json_default",
+    "read_draws",
+    "read_results_state",
+    "read_uvdata",
+    "settings_json",
+    "write_alm_fits",
+    "write_healpix_fits",
+    "write_json",
+    "write_results_h5",
+    "write_skyh5",
+]

@@ -17,6 +17,7 @@ import numpy as np
 __all__ = [
     "plot_alm_residuals",
     "plot_sky_maps",
+    "plot_posterior_maps",
     "plot_beam_region",
     "plot_frac_slices",
     "plot_correlation_matrix",
@@ -196,6 +197,44 @@ def plot_sky_maps(
                     ax.projplot(th, ph, "-", color="lime", lw=1.0)
     if title:
         fig.suptitle(title, y=1.0)
+    return _finish(fig, path)
+
+
+def plot_posterior_maps(mean_map, std_map, path, *, region: tuple | None = None, title: str | None = None,
+                        unit: str = "K") -> str:
+    """Two Mollview panels, posterior mean and posterior std, for a run without a truth (real data).
+
+    Args:
+        mean_map, std_map: RING maps ``(12 nside^2,)`` in ``unit``.
+        path: output PNG path.
+        region: optional ``(centre_dec_deg, fwhm_deg, ra_range_deg)``, outlined on both panels.
+        title: optional figure title.
+    """
+    import warnings
+
+    import healpy as hp
+
+    plt = _plt()
+    mean_map, std_map = (np.asarray(a, np.float64) for a in (mean_map, std_map))
+    fig = plt.figure(figsize=(13, 4.6))
+    pos = mean_map[mean_map > 0]
+    log_ok = pos.size == mean_map.size
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"The set_(over|under|bad) function will be deprecated")
+        common = dict(fig=fig.number, cbar=True, hold=False, notext=False)
+        lo, hi = np.percentile(mean_map, [0.5, 99.5])
+        hp.mollview(mean_map, sub=(1, 2, 1), title="posterior mean", unit=unit, cmap="inferno", format="%.4g",
+                    norm="log" if log_ok else None, min=lo, max=hi, **common)
+        hp.mollview(std_map, sub=(1, 2, 2), title="posterior std", unit=unit, cmap="viridis", min=0.0,
+                    max=np.percentile(std_map, 99.5), format="%.4g", **common)
+    for ax in fig.axes:
+        if isinstance(ax, hp.projaxes.SphericalProjAxes):
+            ax.graticule(dpar=30, dmer=30, color="0.6", alpha=0.6)
+            if region is not None:
+                for th, ph in _band_outline(*region):
+                    ax.projplot(th, ph, "-", color="lime", lw=1.0)
+    if title:
+        fig.suptitle(title, y=1.02)
     return _finish(fig, path)
 
 

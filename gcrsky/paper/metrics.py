@@ -48,6 +48,7 @@ __all__ = [
     "BeamRegion",
     "beam_region_masks",
     "summary_metrics",
+    "std_metrics",
     "mode_z_scores",
     "z_score_stats",
 ]
@@ -288,6 +289,25 @@ def summary_metrics(
         z = z[np.isfinite(z)]
         out["zmap_fwhm_rms"] = float(np.sqrt(np.mean(z**2))) if z.size else float("nan")
         out["zmap_fwhm_max_abs"] = float(np.max(np.abs(z))) if z.size else float("nan")
+    return out
+
+
+def std_metrics(std_map, centre_dec_deg: float, fwhm_deg: float, ra_range_deg: Sequence[float]) -> dict:
+    """Where the data constrain the sky, without a truth: the posterior standard deviation by region.
+
+    ``std_centre_median`` / ``std_fwhm_median`` / ``std_sky_median``: the median per-pixel
+    posterior std (K) on the beam-centre ring and within +-1 FWHM over the observed RA range
+    (:func:`beam_region_masks`), and over the whole sky; ``std_fwhm_over_sky``: their
+    ratio (well below 1 where the observed strip is constrained by the data).
+    """
+    std_map = np.asarray(std_map, np.float64)
+    reg = beam_region_masks(hp.npix2nside(std_map.size), centre_dec_deg, fwhm_deg, ra_range_deg)
+    out = {
+        "std_centre_median": float(np.median(std_map[reg.centre])) if reg.centre.any() else float("nan"),
+        "std_fwhm_median": float(np.median(std_map[reg.fwhm])) if reg.fwhm.any() else float("nan"),
+        "std_sky_median": float(np.median(std_map)),
+    }
+    out["std_fwhm_over_sky"] = out["std_fwhm_median"] / out["std_sky_median"]
     return out
 
 
