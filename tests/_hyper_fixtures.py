@@ -5,9 +5,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy import stats
 
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
-from gcrsky.model import build_problem, isotropic_prior, precision_matrix, wiener_rhs
+from gcrsky.model import build_problem, dense_matrix, isotropic_prior, precision_matrix, wiener_rhs
 from gcrsky.solvers import CGOptions, CholeskyOptions, EighOptions, MModeOptions
 
 LMAX, NSIDE = 4, 16
@@ -69,3 +70,19 @@ def dense_wiener_derivative(system, t):
 def central(f, t, h=1e-5):
     """Central differences of a scalar function of a 1-d array."""
     return np.array([(f(t + h * e) - f(t - h * e)) / (2 * h) for e in np.eye(t.size)])
+
+
+def numpy_log_evidence(system):
+    """scipy's multivariate normal log density of the realified unflagged data."""
+    X = np.asarray(dense_matrix(system.op))  # (Nf, Nt, Nbl, n)
+    out = []
+    for f in range(X.shape[0]):
+        W = np.asarray(system.inv_noise[f])
+        m = W > 0
+        Xf = X[f][m]
+        Xr = np.concatenate([Xf.real, Xf.imag])
+        d = np.asarray(system.data[f])[m]
+        cov = Xr @ np.diag(1.0 / np.asarray(system.prior.inv_var[f])) @ Xr.T + np.diag(np.concatenate([1 / W[m]] * 2))
+        out.append(stats.multivariate_normal(Xr @ np.asarray(system.prior.mean[f]), cov).logpdf(
+            np.concatenate([d.real, d.imag])))
+    return np.array(out)

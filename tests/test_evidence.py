@@ -13,8 +13,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _hyper_fixtures import LMAX, NSIDE, PATHS, THETA, central, scaled, small_problem
-from scipy import optimize, stats
+from _hyper_fixtures import LMAX, NSIDE, PATHS, THETA, central, numpy_log_evidence, scaled, small_problem
+from scipy import optimize
 
 import gcrsky
 from gcrsky.inference import log_evidence_system
@@ -27,7 +27,7 @@ from gcrsky.instrument import (
     hex_array,
     make_array,
 )
-from gcrsky.model import build_problem, dense_matrix, isotropic_prior, precision_matrix, wiener_rhs
+from gcrsky.model import build_problem, isotropic_prior, precision_matrix, wiener_rhs
 from gcrsky.solvers import CGOptions, CholeskyOptions, MModeOptions, Result, SLQOptions
 
 
@@ -37,22 +37,6 @@ def base():
 
 
 # ---------------------------------------------------------------- the log evidence
-
-
-def numpy_log_evidence(system):
-    """scipy's multivariate normal log density of the realified unflagged data."""
-    X = np.asarray(dense_matrix(system.op))  # (Nf, Nt, Nbl, n)
-    out = []
-    for f in range(X.shape[0]):
-        W = np.asarray(system.inv_noise[f])
-        m = W > 0
-        Xf = X[f][m]
-        Xr = np.concatenate([Xf.real, Xf.imag])
-        d = np.asarray(system.data[f])[m]
-        cov = Xr @ np.diag(1.0 / np.asarray(system.prior.inv_var[f])) @ Xr.T + np.diag(np.concatenate([1 / W[m]] * 2))
-        out.append(stats.multivariate_normal(Xr @ np.asarray(system.prior.mean[f]), cov).logpdf(
-            np.concatenate([d.real, d.imag])))
-    return np.array(out)
 
 
 @pytest.fixture(scope="module")

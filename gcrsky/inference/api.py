@@ -28,7 +28,7 @@ from .posterior import SamplerState, draw, prepare_sampler, wiener_filter_system
 
 __all__ = ["Method", "prepare", "sample", "wiener_filter"]
 
-Method = Literal["auto", "cg", "cholesky", "eigh", "mmode"]
+Method = Literal["auto", "cg", "cholesky", "eigh", "mmode", "dataspace"]
 
 
 def wiener_filter(
@@ -78,7 +78,10 @@ def sample(
             (exact factorisation of the dense P), ``"eigh"`` (eigen-decomposition of the
             dense P; exact too, and the only one that handles a singular P, e.g. a
             flat prior, by sampling the directions the data constrain and pinning the
-            others at 0) or ``"cg"`` (preconditioned CG, vmapped over draws).
+            others at 0), ``"dataspace"`` (exact, through the ``N_d x N_d`` matrix
+            ``I + W^1/2 X S X^T W^1/2``: the cheap direct path when there are fewer real
+            data values than parameters; a proper prior only) or ``"cg"``
+            (preconditioned CG, vmapped over draws).
         tol: CG tolerance in posterior-sigma units (P-norm of the error); default
             :data:`gcrsky.solvers.DEFAULT_TOL`.
         options: a path's options (:class:`~gcrsky.solvers.CGOptions`, ...: dense or
@@ -116,8 +119,8 @@ def prepare(
 
     Returns:
         the path's state (:class:`~gcrsky.solvers.CGState`,
-        :class:`~gcrsky.solvers.CholeskyState`, :class:`~gcrsky.solvers.EighState` or
-        :class:`~gcrsky.solvers.MModeState`).
+        :class:`~gcrsky.solvers.CholeskyState`, :class:`~gcrsky.solvers.EighState`,
+        :class:`~gcrsky.solvers.MModeState` or :class:`~gcrsky.solvers.DataSpaceState`).
     """
     system = as_system(problem)
     opts = choose_path(system, method, options=options, tol=tol, ndraws=int(ndraws), memory_budget=memory_budget)

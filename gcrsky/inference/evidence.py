@@ -28,13 +28,18 @@ the prior tightens and cancel catastrophically (measured: a prior-variance scale
 - ``"eigh"``: ``sum log lam`` of it (gradients stay finite at degenerate eigenvalues);
 - ``"mmode"``: ``log det P`` over the m-blocks (uniform full-day coverage) plus
   ``log det S``;
+- ``"dataspace"``: in data space, exactly: ``log p(d) = -1/2 [r~^T D^-1 r~ + log det D
+  + log det N + N_d log 2 pi]`` with ``r~ = W^1/2 r`` and ``D = I + W^1/2 X S X^T W^1/2``
+  over the unflagged samples (``r~^T D^-1 r~ = r^T W r - b'^T (a_wf - a0)`` by Woodbury,
+  ``log det D = log det(I + H)`` by Sylvester), evaluated as written, without the
+  subtraction (:func:`gcrsky.solvers.dataspace_evidence_parts`);
 - ``"cg"``: stochastic Lanczos quadrature (matfree) of the Nystrom-preconditioned
   whitened precision (:class:`~gcrsky.solvers.SLQOptions`), with a standard error from
   the probes; ``a_wf`` by CG.
 
 Every term differentiates, to second order on the exact paths (the fit's Laplace
-Hessian): the solves implicitly, the Cholesky log determinant by
-``tr(P^-1 dP)`` (:func:`~gcrsky.solvers.cholesky_logdet`), the eigen and m-mode ones
+Hessian): the solves implicitly, the Cholesky log determinants by
+``tr(P^-1 dP)`` / ``tr(D^-1 dD)`` (:func:`~gcrsky.solvers.cholesky_logdet`), the eigen and m-mode ones
 through their factorisations, SLQ through matfree's Lanczos adjoint (the
 preconditioner held fixed), so
 ``jax.grad(lambda t: log_evidence(make_system(t)).sum())`` works on every path.  A
@@ -46,6 +51,7 @@ from __future__ import annotations
 import dataclasses
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -53,6 +59,7 @@ import numpy as np
 from ..model.operator import adjoint, apply
 from ..model.system import LinearSystem, data_apply, precision_matrix
 from ..solvers.cg import freq_slice, prepare_cg
+from ..solvers.dataspace import dataspace_evidence_parts
 from ..solvers.dense import _eigh_parts, cholesky_logdet, cholesky_solve
 from ..solvers.info import SolveInfo, direct_info
 from ..solvers.mmode import prepare_mmode
@@ -80,9 +87,12 @@ class EvidenceInfo(NamedTuple):
     Attributes:
         stderr: standard error of ``log p(d)`` (0 on the exact paths; the SLQ probes'
             standard error on ``"cg"``).
-        logdet_whitened: ``log det(I + H) = log det S + log det P``.
-        quadratic: ``b'^T P^-1 b'`` with ``b' = X^T W (d - X a0)``.
-        solve: :class:`~gcrsky.solvers.SolveInfo` of the Wiener solve.
+        logdet_whitened: ``log det(I + H) = log det S + log det P`` (``= log det D`` on
+            the data-space path).
+        quadratic: ``b'^T P^-1 b'`` with ``b' = X^T W (d - X a0)`` (on the data-space
+            path ``r^T W r - r~^T D^-1 r~``, for information: the value does not use it).
+        solve: :class:`~gcrsky.solvers.SolveInfo` of the Wiener solve (of the
+            factorisation of D on the data-space path: no Wiener filter is formed).
     """
 
     stderr: jax.Array
@@ -198,7 +208,7 @@ def log_evidence_system(
     Args:
         system: the linear system (every prior direction proper, ``inv_var > 0``).
         options: the path's options (:mod:`gcrsky.solvers.options`); ``CGOptions``
-            means SLQ for ``log det P``.
+            means SLQ for ``log det P``, ``DataSpaceOptions`` the exact data-space form.
         slq: SLQ settings (``"cg"`` only); default :class:`~gcrsky.solvers.SLQOptions`.
         key: PRNG key of the SLQ probes (default ``PRNGKey(slq.seed)``): a fixed key
             makes the estimate a deterministic, differentiable function of the system.
@@ -206,6 +216,14 @@ def log_evidence_system(
     terms = evidence_terms(system)
     b_res = terms["b_res"]
     method = method_of(options)
+    if method == "dataspace":
+        q, logdet, finite = dataspace_evidence_parts(system, options.time_chunk)
+        zeros = jnp.zeros(q.shape)
+        info = direct_info(zeros, zeros, finite)
+        if options.throw:
+            q = eqx.error_if(q, ~finite, "gcrsky data space: D is not positive definite (a flat prior direction?)")
+        value = -0.5 * (q + logdet + terms["logdet_n"] + terms["n_data"] * LOG_2PI)
+        return value, EvidenceInfo(zeros, logdet, terms["rWr"] - q, info)
     if method == "cholesky":
         quad, logdet, sem, info = _dense_cholesky(system, b_res)
     elif method == "eigh":
@@ -252,8 +270,10 @@ def log_evidence(
         problem: a :class:`~gcrsky.model.Problem` or :class:`~gcrsky.model.LinearSystem`.
         method: ``"auto"`` (on concrete arrays: m-mode where P is block-diagonal in m,
             else dense Cholesky where P fits, else matrix-free SLQ, as
-            :func:`gcrsky.solvers.choose_path`; under a trace: Cholesky), ``"cholesky"``,
-            ``"eigh"``, ``"mmode"`` or ``"cg"`` (SLQ).
+            :func:`gcrsky.solvers.choose_path`, which also picks ``"dataspace"`` where
+            there are fewer data than parameters and it is cheaper; under a trace:
+            Cholesky), ``"cholesky"``, ``"eigh"``, ``"mmode"``, ``"dataspace"`` or
+            ``"cg"`` (SLQ).
         options: the path's options (select the path when ``method="auto"``).
         slq: SLQ settings for ``"cg"``.
         key: PRNG key of the SLQ probes.

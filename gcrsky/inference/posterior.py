@@ -7,11 +7,12 @@ path yourself; :mod:`gcrsky.inference.api` chooses it by size for a
 * :func:`prepare_sampler` sets a path up once (factor / preconditioner and the
   Wiener filter) and returns its typed state (:class:`~gcrsky.solvers.CGState`,
   :class:`~gcrsky.solvers.CholeskyState`, :class:`~gcrsky.solvers.EighState`,
-  :class:`~gcrsky.solvers.MModeState`); :func:`draw` takes any of them.
+  :class:`~gcrsky.solvers.MModeState`, :class:`~gcrsky.solvers.DataSpaceState`);
+  :func:`draw` takes any of them.
 * :func:`sample_system` is both in one call; :func:`wiener_filter_system` the mean.
 
 Every path returns ``a_wf + delta`` with ``Cov(delta) = P^-1`` exactly.  Draw ``i``
-of a CG or Cholesky batch uses ``jax.random.split(key, ndraws)[i]`` (the eigen and
+of a CG, Cholesky or data-space batch uses ``jax.random.split(key, ndraws)[i]`` (the eigen and
 m-mode paths draw their normals as one array from ``key``): a fixed key
 reproduces the draws, and different paths give different (equally exact) draws.
 """
@@ -24,6 +25,7 @@ import jax
 
 from ..model.system import LinearSystem
 from ..solvers.cg import CGState, draw_cg, prepare_cg, wiener_cg
+from ..solvers.dataspace import DataSpaceState, draw_dataspace, prepare_dataspace
 from ..solvers.dense import CholeskyState, EighState, draw_cholesky, draw_eigh, prepare_cholesky, prepare_eigh
 from ..solvers.mmode import MModeState, draw_mmode, prepare_mmode
 from ..solvers.options import CGOptions, SolverOptions, method_of, options_for
@@ -31,10 +33,12 @@ from ..solvers.options import CGOptions, SolverOptions, method_of, options_for
 __all__ = ["SamplerState", "draw", "prepare_sampler", "sample_system", "wiener_filter_system"]
 
 #: The state of any prepared exact path (its ``method`` attribute names the path).
-SamplerState = Union[CGState, CholeskyState, EighState, MModeState]
+SamplerState = Union[CGState, CholeskyState, EighState, MModeState, DataSpaceState]
 
-_PREPARE = {"cg": prepare_cg, "cholesky": prepare_cholesky, "eigh": prepare_eigh, "mmode": prepare_mmode}
-_DRAW = {CGState: draw_cg, CholeskyState: draw_cholesky, EighState: draw_eigh, MModeState: draw_mmode}
+_PREPARE = {"cg": prepare_cg, "cholesky": prepare_cholesky, "eigh": prepare_eigh, "mmode": prepare_mmode,
+            "dataspace": prepare_dataspace}
+_DRAW = {CGState: draw_cg, CholeskyState: draw_cholesky, EighState: draw_eigh, MModeState: draw_mmode,
+         DataSpaceState: draw_dataspace}
 
 
 def _options(method: str | None, options: SolverOptions | None, tol: float | None) -> SolverOptions:
@@ -55,9 +59,10 @@ def prepare_sampler(
     Args:
         system: the linear system.
         method: ``"cg"`` (the default when neither ``method`` nor ``options`` is
-            given), ``"cholesky"``, ``"eigh"`` or ``"mmode"``.  ``"mmode"`` is exact
-            only when :func:`gcrsky.solvers.mmode_check` passes; it is checked on
-            concrete arrays (under a trace, check beforehand).
+            given), ``"cholesky"``, ``"eigh"``, ``"mmode"`` or ``"dataspace"``.  ``"mmode"``
+            is exact only when :func:`gcrsky.solvers.mmode_check` passes; it is checked on
+            concrete arrays (under a trace, check beforehand).  ``"dataspace"`` needs a
+            proper prior (refused on concrete arrays otherwise).
         options: the path's options (:mod:`gcrsky.solvers.options`); implies the path.
         tol: CG tolerance in posterior-sigma units (overrides ``options.tol``).
 
@@ -100,6 +105,9 @@ def sample_system(
     * eigh: ``delta = V_r Lambda_r^-1/2 z``; for a singular P see
       :mod:`gcrsky.solvers.dense`.
     * mmode: ``delta = L_m^-T z`` block by block.
+    * dataspace: ``delta = delta_u - S X^T W^1/2 D^-1 (W^1/2 X delta_u + z)`` with
+      ``delta_u ~ N(0, S)``, ``z ~ N(0, I)`` and ``D = I + W^1/2 X S X^T W^1/2``
+      (Hoffman & Ribak; :mod:`gcrsky.solvers.dataspace`).
 
     For many batches, call :func:`prepare_sampler` once and :func:`draw` per batch.
 

@@ -6,16 +6,28 @@
 - ``cg``: preconditioned CG (matrix-free or dense P): :func:`prepare_cg`, :func:`draw_cg`, :func:`wiener_cg`
 - ``dense``: dense Cholesky and eigen-decomposition
 - ``mmode``: block-by-block solves for uniform full-day coverage
+- ``dataspace``: everything through the ``N_d x N_d`` matrix ``I + W^1/2 X S X^T W^1/2``
+  (fewer data than parameters): :func:`prepare_dataspace`, :func:`draw_dataspace`
 - ``plan``: :func:`plan_sampler` / :func:`choose_path`: the cheapest exact path that fits in memory
 
 Every path is a pair ``prepare_*(system, options) -> State`` (set up once: factor or
 preconditioner and the Wiener filter) and ``draw_*(key, state, ndraws)`` (exact
 posterior draws), with one typed state per path (:class:`CGState`,
-:class:`CholeskyState`, :class:`EighState`, :class:`MModeState`, each an equinox
+:class:`CholeskyState`, :class:`EighState`, :class:`MModeState`,
+:class:`DataSpaceState`, each an equinox
 Module whose ``method`` names the path).  :mod:`gcrsky.inference` dispatches on them.
 """
 
 from .cg import CGState, cg_solve, draw_cg, pcg, prepare_cg, resolve_cg_options, solve_cg, wiener_cg
+from .dataspace import (
+    DataSpaceState,
+    data_size,
+    dataspace_evidence_parts,
+    dataspace_matrix,
+    dataspace_memory_bytes,
+    draw_dataspace,
+    prepare_dataspace,
+)
 from .dense import (
     CholeskyState,
     EighState,
@@ -35,6 +47,7 @@ from .options import (
     METHODS,
     CGOptions,
     CholeskyOptions,
+    DataSpaceOptions,
     EighOptions,
     MModeOptions,
     SLQOptions,
@@ -64,6 +77,8 @@ __all__ = [
     "CGState",
     "CholeskyOptions",
     "CholeskyState",
+    "DataSpaceOptions",
+    "DataSpaceState",
     "EighOptions",
     "EighState",
     "MBlockPreconditioner",
@@ -80,8 +95,13 @@ __all__ = [
     "cholesky_logdet",
     "cholesky_solve",
     "choose_path",
+    "data_size",
+    "dataspace_evidence_parts",
+    "dataspace_matrix",
+    "dataspace_memory_bytes",
     "draw_cg",
     "draw_cholesky",
+    "draw_dataspace",
     "draw_eigh",
     "draw_mmode",
     "eigh_functions",
@@ -98,6 +118,7 @@ __all__ = [
     "plan_sampler",
     "prepare_cg",
     "prepare_cholesky",
+    "prepare_dataspace",
     "prepare_eigh",
     "prepare_mmode",
     "resolve_cg_options",

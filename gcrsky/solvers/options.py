@@ -9,6 +9,7 @@ Each path's knobs live in one frozen, hashable dataclass, so they travel through
 - ``"cholesky"``: :class:`CholeskyOptions`: ``throw`` (the factorisation is exact)
 - ``"eigh"``: :class:`EighOptions`: ``rcond``, ``throw``
 - ``"mmode"``: :class:`MModeOptions`: ``atol``, ``rtol`` of the structural check, ``throw``
+- ``"dataspace"``: :class:`DataSpaceOptions`: ``time_chunk``, ``throw`` (the factorisation is exact)
 
 ``throw=True`` makes a failed solve an error inside ``jit`` (``equinox.error_if``;
 reliable on CPU, where the check runs in the host callback before results are
@@ -30,6 +31,7 @@ __all__ = [
     "METHODS",
     "CGOptions",
     "CholeskyOptions",
+    "DataSpaceOptions",
     "EighOptions",
     "MModeOptions",
     "SLQOptions",
@@ -48,7 +50,7 @@ DEFAULT_TOL = 1e-6
 EIGH_RCOND = 1e-12
 
 #: The exact paths, by name.
-METHODS = ("cg", "cholesky", "eigh", "mmode")
+METHODS = ("cg", "cholesky", "eigh", "mmode", "dataspace")
 
 
 def _positive(name: str, value, *, integer: bool = False) -> None:
@@ -171,6 +173,33 @@ class MModeOptions:
 
 
 @dataclasses.dataclass(frozen=True)
+class DataSpaceOptions:
+    """The exact data-space path (:mod:`gcrsky.solvers.dataspace`): everything through the
+    ``N_d x N_d`` matrix ``D = I + W^1/2 X S X^T W^1/2``, for ``N_d < n`` (partial coverage
+    at high lmax).  Needs a proper prior (``S^-1 > 0`` everywhere).
+
+    Attributes:
+        time_chunk: times per block when D is built (blocks ``Y_c S Y_c'^T`` of
+            ``2 Nbl time_chunk`` rows); None: as many as keep a block's rows under
+            64 MiB (:func:`gcrsky.solvers.dataspace.time_chunk`).  Changes only speed
+            and memory.
+        throw: raise (through ``equinox.error_if``) when the factor of ``D`` or the
+            Wiener filter is not finite (e.g. a flat prior direction under a trace).
+    """
+
+    time_chunk: int | None = None
+    throw: bool = False
+
+    method = "dataspace"
+
+    def __post_init__(self):
+        if not isinstance(self.throw, bool):
+            raise ValueError(f"throw must be True or False, got {self.throw!r}")
+        if self.time_chunk is not None:
+            _positive("time_chunk", self.time_chunk, integer=True)
+
+
+@dataclasses.dataclass(frozen=True)
 class SLQOptions:
     """Stochastic Lanczos quadrature of ``log det P`` on the matrix-free path (matfree).
 
@@ -196,16 +225,18 @@ class SLQOptions:
             raise ValueError(f"seed must be an integer, got {self.seed!r}")
 
 
-SolverOptions = Union[CGOptions, CholeskyOptions, EighOptions, MModeOptions]
+SolverOptions = Union[CGOptions, CholeskyOptions, EighOptions, MModeOptions, DataSpaceOptions]
 
-_BY_METHOD = {"cg": CGOptions, "cholesky": CholeskyOptions, "eigh": EighOptions, "mmode": MModeOptions}
+_BY_METHOD = {"cg": CGOptions, "cholesky": CholeskyOptions, "eigh": EighOptions, "mmode": MModeOptions,
+              "dataspace": DataSpaceOptions}
 
 
 def method_of(options: SolverOptions) -> str:
-    """The path name (``"cg"``, ``"cholesky"``, ``"eigh"``, ``"mmode"``) of an options object."""
+    """The path name (``"cg"``, ``"cholesky"``, ``"eigh"``, ``"mmode"``, ``"dataspace"``) of an options object."""
     if type(options) not in _BY_METHOD.values():
         raise TypeError(
-            f"options must be CGOptions, CholeskyOptions, EighOptions or MModeOptions, got {type(options).__name__}"
+            "options must be CGOptions, CholeskyOptions, EighOptions, MModeOptions or DataSpaceOptions, got "
+            f"{type(options).__name__}"
         )
     return options.method
 
@@ -214,7 +245,7 @@ def options_for(method: str, options: SolverOptions | None = None, *, tol: float
     """The options of path ``method``: ``options`` checked against it, or the defaults.
 
     Args:
-        method: ``"cg"``, ``"cholesky"``, ``"eigh"`` or ``"mmode"``.
+        method: ``"cg"``, ``"cholesky"``, ``"eigh"``, ``"mmode"`` or ``"dataspace"``.
         options: options for that path, or None for its defaults.
         tol: if given, the CG tolerance (replaces ``options.tol``); ignored by the
             direct paths, which are exact.

@@ -17,15 +17,24 @@ Paths (all exact; they differ only in cost):
   three times that with its factor and ``L^-T``), then each draw is a product with
   ``L^-T`` (``2 n^2`` flop).
 * ``"eigh"``: like Cholesky, for a singular P (a flat prior, ``S^-1 = 0`` somewhere).
+* ``"dataspace"``: through the ``N_d x N_d`` matrix ``D = I + W^1/2 X S X^T W^1/2``
+  (:mod:`gcrsky.solvers.dataspace`; ``N_d = 2 Nt Nbl`` real data values per channel):
+  ``~4 Nf N_d^2 n`` flop to build D (products of per-time response blocks), ``Nf N_d^3 / 3`` to
+  factorise it, ``8 Nf N_d^2`` bytes for D and again for its factor; each draw is one
+  matrix-free product with X and one with ``X^T`` plus two triangular solves.  A proper
+  prior only.
 * ``"cg"`` matrix-free: never forms P; ``16 Nf Nt Nbl n`` flop per product, a rank-128
   Nystrom preconditioner (``8 Nf n 128`` bytes) for a proper prior, m-blocks for a
   flat one.
 
 Rule of :func:`plan_sampler` (``method="auto"`` in :func:`gcrsky.prepare` /
-:func:`gcrsky.sample`): m-mode when its check passes; else dense (Cholesky, or the
-eigen sampler for a flat prior) when the dense P and its factor fit in
-:data:`DENSE_MEMORY_FRACTION` of the available memory and ``n <= DENSE_MAX_N``; else
-matrix-free CG.  The crossovers are measured in ``benchmarks/scale.py``: at lmax 50
+:func:`gcrsky.sample`): m-mode when its check passes; else, of the direct paths that
+apply and fit -- dense (Cholesky, or the eigen sampler for a flat prior) when the dense
+P and its factor fit in :data:`DENSE_MEMORY_FRACTION` of the available memory and
+``n <= DENSE_MAX_N``; data space for a proper prior when ``N_d < n``,
+``N_d <= DATASPACE_MAX_ND`` and D and its factor fit in the same fraction -- the one
+with the smaller estimated cost of set-up plus :data:`PLAN_DRAWS` draws
+(:func:`path_cost_flop`); else matrix-free CG.  The crossovers are measured in ``benchmarks/scale.py``: at lmax 50
 (n = 2601) Cholesky set-up is 2-9 s and a draw 2-3 ms against 40-600 ms per draw for
 matrix-free CG, so dense wins wherever it fits; ``DENSE_MAX_N`` = 12000 keeps the
 ``n^3 / 3`` factorisation under ~1 min on two cores.
@@ -42,15 +51,28 @@ import numpy as np
 from ..base.memory import available_memory_bytes, check_memory, format_bytes
 from ..model.operator import n_in
 from ..model.system import LinearSystem
+from .dataspace import check_proper_prior, dataspace_memory_bytes
 from .mmode import mmode_check
-from .options import CGOptions, CholeskyOptions, EighOptions, MModeOptions, SolverOptions, method_of, options_for
+from .options import (
+    CGOptions,
+    CholeskyOptions,
+    DataSpaceOptions,
+    EighOptions,
+    MModeOptions,
+    SolverOptions,
+    method_of,
+    options_for,
+)
 from .preconditioners import resolve_preconditioner
 
 __all__ = [
+    "DATASPACE_MAX_ND",
     "DENSE_MAX_N",
+    "PLAN_DRAWS",
     "DENSE_MEMORY_FRACTION",
     "SamplerPlan",
     "choose_path",
+    "path_cost_flop",
     "path_memory_bytes",
     "plan_sampler",
 ]
@@ -61,6 +83,11 @@ log = logging.getLogger(__name__)
 DENSE_MAX_N = 12000
 #: Fraction of the available memory the dense P and its factor may take under "auto".
 DENSE_MEMORY_FRACTION = 0.5
+#: Largest number of real data values per channel for which ``method="auto"`` forms and
+#: factorises the data-space matrix D (the same ~1 min factorisation bound as ``DENSE_MAX_N``).
+DATASPACE_MAX_ND = 12000
+#: Draws the planner's cost comparison assumes (set-up plus this many draws).
+PLAN_DRAWS = 200
 
 
 class SamplerPlan(NamedTuple):
@@ -79,7 +106,7 @@ class SamplerPlan(NamedTuple):
 
     @property
     def method(self) -> str:
-        """``"mmode"``, ``"cholesky"``, ``"eigh"`` or ``"cg"``."""
+        """``"mmode"``, ``"cholesky"``, ``"eigh"``, ``"dataspace"`` or ``"cg"``."""
         return method_of(self.options)
 
 
@@ -104,10 +131,32 @@ def path_memory_bytes(
         return 2.0 * 8 * nf * (lmax + 1) * (2 * lmax + 2) ** 2 + vec
     if method in ("cholesky", "eigh"):  # P, factor and L^-T (Cholesky) / P and eigenvectors, sqrt_cov (eigh)
         return 3.0 * 8 * nf * n * n + 8.0 * nf * max(1, ndraws) * n
+    if method == "dataspace":  # D, its factor, the assembly's transients, per-time responses, per-draw vectors
+        return dataspace_memory_bytes(system, ndraws)
     if method == "cg":
         sketch = max(3.0 * 8 * nf * n * min(n, rank), 8.0 * nf * (lmax + 1) * (2 * lmax + 2) ** 2)
         return (8.0 * nf * n * n if dense else 0.0) + sketch + vec
     raise ValueError(f"unknown method {method!r}")
+
+
+def path_cost_flop(system: LinearSystem, method: str, *, ndraws: int = PLAN_DRAWS) -> float:
+    """Estimated floating-point operations of a direct path's set-up plus ``ndraws`` draws (all channels).
+
+    Rough but of the right order (the planner compares them): ``"cholesky"`` / ``"eigh"``:
+    P from the per-time responses (``8 Nf Nt Nbl n^2``) and its factor (``Nf n^3 / 3``), then
+    ``2 n^2`` per draw; ``"dataspace"``: D (``4 Nf N_d^2 n`` with ``N_d = 2 Nt Nbl``) and its
+    factor (``Nf N_d^3 / 3``), then per draw the products with X and ``X^T``
+    (``16 Nf Nt Nbl n`` plus ``~8 Nf Nt (lmax+1)^3`` for the rotations) and two triangular
+    solves (``2 Nf N_d^2``).
+    """
+    nf, nt, nbl, n = _sizes(system)
+    if method in ("cholesky", "eigh"):
+        return 8.0 * nf * nt * nbl * n * n + nf * n**3 / 3.0 + ndraws * 2.0 * nf * n * n
+    if method == "dataspace":
+        nd = 2.0 * nt * nbl
+        rot = 8.0 * nf * nt * (np.sqrt(n)) ** 3
+        return 4.0 * nf * nd * nd * n + nf * nd**3 / 3.0 + ndraws * (16.0 * nf * nt * nbl * n + rot + 2.0 * nf * nd * nd)
+    raise ValueError(f"no cost model for method {method!r} (direct paths only: 'cholesky', 'eigh', 'dataspace')")
 
 
 def plan_sampler(system: LinearSystem, *, ndraws: int = 1, budget: float | None = None) -> SamplerPlan:
@@ -131,11 +180,27 @@ def plan_sampler(system: LinearSystem, *, ndraws: int = 1, budget: float | None 
         if mem <= avail:
             return SamplerPlan(MModeOptions(), mem, "uniform full-day coverage, stationary noise: P is block-diagonal in m")
     dense_mem = path_memory_bytes(system, "cholesky", ndraws=ndraws)
-    if n <= DENSE_MAX_N and dense_mem <= DENSE_MEMORY_FRACTION * avail:
+    ds_mem = path_memory_bytes(system, "dataspace", ndraws=ndraws)
+    nd = 2 * nt * nbl
+    dense_ok = n <= DENSE_MAX_N and dense_mem <= DENSE_MEMORY_FRACTION * avail
+    ds_ok = (not flat) and nd < n and nd <= DATASPACE_MAX_ND and ds_mem <= DENSE_MEMORY_FRACTION * avail
+    if ds_ok and (not dense_ok or path_cost_flop(system, "dataspace") < path_cost_flop(system, "cholesky")):
+        why = (f"N_d = {nd} real data values per channel < n = {n}: data space (D + factor "
+               f"{format_bytes(ds_mem)}; est. {path_cost_flop(system, 'dataspace'):.2g} flop for set-up + "
+               f"{PLAN_DRAWS} draws")
+        why += (f" against {path_cost_flop(system, 'cholesky'):.2g} dense)" if dense_ok else
+                f"; the dense P + factor would need {format_bytes(dense_mem)} (n = {n}))")
+        if not chk.ok:
+            why += f"; not m-mode: {chk.reason}"
+        return SamplerPlan(DataSpaceOptions(), ds_mem, why)
+    if dense_ok:
         why = (f"n = {n} <= {DENSE_MAX_N} and the dense P + factor ({format_bytes(dense_mem)}) fit in "
                f"{DENSE_MEMORY_FRACTION:.0%} of {format_bytes(avail)}")
         if flat:
             why += "; flat prior: eigen sampler (P may be singular)"
+        elif ds_ok:
+            why += (f"; cheaper than data space (N_d = {nd}: est. {path_cost_flop(system, 'cholesky'):.2g} against "
+                    f"{path_cost_flop(system, 'dataspace'):.2g} flop for set-up + {PLAN_DRAWS} draws)")
         if not chk.ok:
             why += f"; not m-mode: {chk.reason}"
         return SamplerPlan(EighOptions() if flat else CholeskyOptions(), dense_mem, why)
@@ -143,8 +208,9 @@ def plan_sampler(system: LinearSystem, *, ndraws: int = 1, budget: float | None 
     mem = path_memory_bytes(system, "cg", dense=False, ndraws=ndraws)
     check_memory(mem, f"matrix-free CG ({ndraws} draws per batch, n = {n}, Nf = {nf})",
                  "draw in smaller batches (ndraws) or shard the baselines (gcrsky.parallel)", budget=avail)
-    why = (f"dense P + factor would need {format_bytes(dense_mem)} (n = {n}); matrix-free CG, "
-           f"{pc} preconditioner")
+    why = (f"dense P + factor would need {format_bytes(dense_mem)} (n = {n}); "
+           + ("flat prior (no data space)" if flat else f"data space N_d = {nd} (D + factor {format_bytes(ds_mem)})")
+           + f"; matrix-free CG, {pc} preconditioner")
     return SamplerPlan(CGOptions(dense=False, preconditioner=pc), mem, why)
 
 
@@ -160,8 +226,8 @@ def choose_path(
     """Resolve a user's ``method`` / ``options`` / ``tol`` into one path's options (host-side).
 
     * ``method="auto"`` without options follows :func:`plan_sampler` (m-mode, else
-      dense Cholesky/eigen where P fits, else matrix-free CG) and logs its choice at
-      INFO.
+      the cheaper of dense Cholesky/eigen and data space where they fit, else
+      matrix-free CG) and logs its choice and the reason at INFO.
     * Options alone (``method="auto"``) select their path; ``method`` and options of
       another path are an error.
     * An explicit path is used as given, after checking that its large arrays fit
@@ -175,7 +241,7 @@ def choose_path(
 
     Args:
         system: the linear system (concrete arrays).
-        method: ``"auto"``, ``"cg"``, ``"cholesky"``, ``"eigh"`` or ``"mmode"``.
+        method: ``"auto"``, ``"cg"``, ``"cholesky"``, ``"eigh"``, ``"mmode"`` or ``"dataspace"``.
         options: options of one path (:mod:`gcrsky.solvers.options`).
         tol: CG tolerance in posterior-sigma units.
         ndraws: draws per batch (sizes the memory check).
@@ -193,6 +259,8 @@ def choose_path(
             chk = mmode_check(system, atol=chosen.atol, rtol=chosen.rtol)
             if not chk.ok:
                 raise ValueError(f"method='mmode' needs P block-diagonal in m, but {chk.reason}; use method='auto'")
+        if method == "dataspace":
+            check_proper_prior(system)
         dense = chosen.dense if isinstance(chosen, CGOptions) else True
         rank = chosen.rank if isinstance(chosen, CGOptions) else CGOptions.rank
         need = path_memory_bytes(system, method, dense=dense, ndraws=ndraws, rank=rank)

@@ -1,0 +1,366 @@
+"""The data-space exact path: everything through the ``N_d x N_d`` matrix (DESIGN section 10).
+
+With ``n = (lmax+1)^2`` parameters and ``N_d = 2 Nt Nbl`` real data values per channel
+(the real and imaginary parts of every sample, after any redundant compression),
+partial coverage at high lmax has ``N_d`` far below ``n`` (a 37-antenna hexagon
+compressed to 63 baselines, 10 LSTs: ``N_d = 1260`` against ``n = 40401`` at lmax 200).
+There the posterior is cheapest in data space.  With ``W`` the per-component inverse
+noise (the system's ``inv_noise``; 0 where flagged), ``Y = W^1/2 X`` the whitened
+realified operator and ``S`` the prior covariance (``1 / inv_var``):
+
+* ``D = I + Y S Y^T`` (``N_d x N_d``, SPD, eigenvalues >= 1: well conditioned; a
+  flagged sample's rows of Y are 0, so its two rows of D are identity rows, decoupled);
+* ``P^-1 = S - S Y^T D^-1 Y S`` (Woodbury);
+* Wiener filter ``a_wf = a0 + S Y^T D^-1 W^1/2 (d - X a0)``;
+* exact draws in the Hoffman & Ribak (1991) form: ``a_u ~ N(a0, S)``, ``n_u ~ N(0, N)``
+  (so ``z = W^1/2 n_u ~ N(0, I)`` on the unflagged rows) and
+  ``a = a_u + S Y^T D^-1 (W^1/2 (d - X a_u) - z)``, i.e.
+  ``a = a_wf + delta - S Y^T D^-1 (Y delta + z)`` with ``delta = a_u - a0``: the
+  covariance is ``P^-1`` exactly;
+* the log evidence ``-1/2 [r~^T D^-1 r~ + log det D - log det W + N_d log 2 pi]``
+  with ``r~ = W^1/2 (d - X a0)`` over the unflagged samples
+  (:func:`dataspace_evidence_parts`; ``log det D = log det(I + H)`` by Sylvester).
+
+Row layout (``N_d = 2 Nt Nbl`` rows per channel, flagged ones included as identity
+rows so that shapes stay static): row ``t * 2 Nbl + p * Nbl + b`` is the real
+(``p = 0``) or imaginary (``p = 1``) part of sample ``(t, b)``.
+
+How ``D`` is built.  X is never materialised for every time: :func:`dataspace_matrix`
+loops (``lax.map``) over the ``Nt (Nt + 1) / 2`` pairs of times ``t <= t'`` and forms
+the ``2 Nbl x 2 Nbl`` block ``Y_t S Y_t'^T`` from the two per-time responses
+(:func:`gcrsky.model.response_at`, ``O(Nf Nbl n)`` each, frame map included), so the
+only large arrays are D and its factor, ``8 Nf N_d^2`` bytes each
+(:func:`dataspace_memory_bytes`), against ``8 Nf N_d n`` for X itself.  Each step is
+rematerialised under reverse-mode differentiation (``jax.checkpoint``), so a gradient
+does not store the per-time responses either.  Cost: ``~Nf N_d^2 n`` flop for D
+(symmetry halves the block products), ``Nf N_d^3 / 3`` for its Cholesky factor; the
+Wiener filter and each draw cost one product with X and one with ``X^T``
+(``~8 Nf N_d n`` flop, matrix-free) and two triangular solves (``2 Nf N_d^2``).
+
+Differentiation is implicit as on the primal Cholesky path: solves with D go through
+:func:`gcrsky.solvers.cholesky_solve` (``dx = D^-1 (db - dD x)``, the factor held
+fixed) and ``log det D`` through :func:`gcrsky.solvers.cholesky_logdet`
+(``tr(D^-1 dD)``); D itself differentiates natively in the response, the angles, the
+noise and the prior.
+
+Draw ``i`` of a batch uses ``jax.random.split(key, ndraws)[i]``, split again into the
+prior part (``delta``, (Nf, n)) and the noise part (``z``, (Nf, N_d)).  A flat prior
+(``S^-1 = 0`` somewhere) has no S: refused with a ``ValueError`` on concrete arrays
+(under a trace it gives non-finite results, an error with ``DataSpaceOptions(throw=True)``).
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..base.dtypes import check_float64
+from ..base.memory import check_memory
+from ..model.operator import adjoint, apply, response_at
+from ..model.system import LinearSystem, precision_apply, wiener_rhs
+from .dense import cholesky_logdet, cholesky_solve
+from .info import SolveInfo, direct_info, exact_info
+from .options import DataSpaceOptions
+
+__all__ = [
+    "DataSpaceState",
+    "CHUNK_BYTES",
+    "check_proper_prior",
+    "data_size",
+    "dataspace_evidence_parts",
+    "dataspace_matrix",
+    "dataspace_memory_bytes",
+    "draw_dataspace",
+    "from_rows",
+    "prepare_dataspace",
+    "time_chunk",
+    "to_rows",
+]
+
+
+class DataSpaceState(eqx.Module):
+    """The data-space path set up for many draws (a PyTree; pass it through jit).
+
+    Attributes:
+        system: the linear system.
+        a_wf: (Nf, n) Wiener filter.
+        wiener: SolveInfo of the Wiener filter, (Nf,) fields: ``err_sigma`` from the
+            true primal residual ``b - P a_wf`` (matrix-free P) in posterior-sigma units,
+            ``sqrt(r^T P^-1 r)`` with ``P^-1`` applied in data space (rounding only).
+        gram: ``D = I + W^1/2 X S X^T W^1/2``, (Nf, N_d, N_d).
+        chol: lower Cholesky factor of D, (Nf, N_d, N_d).
+    """
+
+    system: LinearSystem
+    a_wf: jax.Array
+    wiener: SolveInfo
+    gram: jax.Array
+    chol: jax.Array
+
+    method: ClassVar[str] = "dataspace"
+
+
+# ---------------------------------------------------------------- layout and sizes
+
+
+def data_size(system: LinearSystem) -> int:
+    """``N_d = 2 Nt Nbl``: the rows of D per channel (flagged samples included, as identity rows)."""
+    _, nt, nbl = system.data.shape
+    return 2 * int(nt) * int(nbl)
+
+
+def to_rows(v: jax.Array) -> jax.Array:
+    """Complex samples (..., Nt, Nbl) -> real rows (..., 2 Nt Nbl) in the layout of the module docstring."""
+    return jnp.stack([v.real, v.imag], axis=-2).reshape(v.shape[:-2] + (-1,))
+
+
+def from_rows(u: jax.Array, nt: int, nbl: int) -> jax.Array:
+    """Real rows (..., 2 Nt Nbl) -> complex samples (..., Nt, Nbl); inverse of :func:`to_rows`."""
+    u = u.reshape(u.shape[:-1] + (nt, 2, nbl))
+    return u[..., 0, :] + 1j * u[..., 1, :]
+
+
+def dataspace_memory_bytes(system: LinearSystem, ndraws: int = 1) -> float:
+    """Estimated peak bytes of the data-space path's large arrays (float64), beyond the system.
+
+    D and its factor (``2 x 8 Nf N_d^2``), the transient copies of the block assembly
+    (``~2 x 8 Nf N_d^2``), two per-time responses (``2 x 16 Nf Nbl n``) and per draw the
+    operator's rotated copies (``2 x 8 Nf Nt n``) and vectors (``~6 x 8 Nf (N_d + n)``).
+    """
+    nf, nt, nbl = (int(x) for x in system.data.shape)
+    n = int(system.prior.mean.shape[-1])
+    nd = 2 * nt * nbl
+    return (4.0 * 8 * nf * nd * nd + 2.0 * 16 * nf * nbl * n
+            + max(1, ndraws) * (2.0 * 8 * nf * nt * n + 6.0 * 8 * nf * (nd + n)))
+
+
+def check_proper_prior(system: LinearSystem) -> None:
+    """Refuse a flat (or non-positive) prior direction on concrete arrays: the data-space path needs S."""
+    iv = system.prior.inv_var
+    if isinstance(iv, jax.core.Tracer):
+        return
+    bad = ~(np.asarray(iv) > 0)
+    if bad.any():
+        f, k = np.argwhere(bad)[0]
+        raise ValueError(
+            f"the data-space path needs a proper prior (S = 1 / inv_var), but the prior is flat or non-positive in "
+            f"{int(bad.sum())} directions (first: frequency {f}, parameter {k}, "
+            f"inv_var = {float(np.asarray(iv)[f, k])!r}); use method='eigh' (dense) or method='cg' (m-block "
+            "preconditioner) for a flat prior"
+        )
+
+
+# ---------------------------------------------------------------- D = I + Y S Y^T
+
+
+#: Largest size of one chunk of whitened rows ``Y_c`` (all channels) formed at a time when D is built.
+CHUNK_BYTES = 64 * 2**20
+
+
+def time_chunk(system: LinearSystem, chunk: int | None = None) -> int:
+    """Times per chunk when D is built: ``chunk`` (clipped to Nt), or by default as many as keep one
+    chunk's rows under :data:`CHUNK_BYTES`."""
+    nf, nt, nbl = (int(x) for x in system.data.shape)
+    n = int(system.prior.mean.shape[-1])
+    if chunk is None:
+        chunk = CHUNK_BYTES // (8 * nf * 2 * nbl * n)
+    return max(1, min(nt, int(chunk)))
+
+
+def _chunk_rows(op, sqrt_w: jax.Array, times: jax.Array) -> jax.Array:
+    """``Y_c = W_c^1/2 X_c`` realified for the times ``times`` (c,): (Nf, c 2 Nbl, n), rows in D's layout.
+
+    Indices ``>= Nt`` (padding of the last chunk) give zero rows.
+    """
+    nt = sqrt_w.shape[1]
+    tt = jnp.minimum(times, nt - 1)
+    X = jax.vmap(lambda t: response_at(op, op.angles[t]))(tt)  # (c, Nf, Nbl, n) complex
+    sw = jnp.where((times < nt)[:, None, None], jnp.moveaxis(sqrt_w[:, tt, :], 1, 0), 0.0)[..., None]
+    Y = jnp.stack([sw * X.real, sw * X.imag], axis=2)  # (c, Nf, 2, Nbl, n)
+    c, nf, _, nbl, n = Y.shape
+    return jnp.moveaxis(Y, 0, 1).reshape(nf, c * 2 * nbl, n)
+
+
+@partial(jax.jit, static_argnames=("chunk",))
+def dataspace_matrix(system: LinearSystem, chunk: int | None = None) -> jax.Array:
+    """``D = I + W^1/2 X S X^T W^1/2``, (Nf, N_d, N_d), from blocks of times (module docstring).
+
+    Never materialises X for every time (unless it is small): the times are cut into
+    chunks of ``chunk`` times (default :func:`time_chunk`: rows of at most
+    :data:`CHUNK_BYTES`), and a
+    ``lax.map`` over the pairs of chunks ``c <= c'`` forms ``Y_c S Y_c'^T`` from the
+    per-time responses (:func:`gcrsky.model.response_at`), rematerialised under
+    reverse-mode differentiation; memory ``O(Nf N_d^2 + CHUNK_BYTES)``.
+    """
+    op = system.op
+    nf, nt, nbl = system.data.shape
+    c = time_chunk(system, chunk)
+    k = -(-nt // c)  # chunks; the last one padded with zero rows
+    B = c * 2 * nbl
+    s = 1.0 / system.prior.inv_var  # (Nf, n)
+    sqrt_w = _sqrt_w(system)
+    times = jnp.arange(k * c).reshape(k, c)
+    I, J = np.triu_indices(k)
+
+    @jax.checkpoint
+    def block(ij):
+        Yi = _chunk_rows(op, sqrt_w, times[ij[0]])
+        Yj = Yi if k == 1 else _chunk_rows(op, sqrt_w, times[ij[1]])
+        return jnp.einsum("fak,fbk->fab", Yi * s[:, None, :], Yj)
+
+    blocks = jax.lax.map(block, jnp.asarray(np.stack([I, J], axis=1)))  # (npairs, Nf, B, B)
+    D = jnp.zeros((nf, k, B, k, B), blocks.dtype)
+    D = D.at[:, J, :, I, :].set(jnp.swapaxes(blocks, -1, -2))  # advanced indices first: (npairs, Nf, B, B)
+    D = D.at[:, I, :, J, :].set(blocks)
+    nd = 2 * nt * nbl
+    D = D.reshape(nf, k * B, k * B)[:, :nd, :nd]  # drop the padding rows
+    D = 0.5 * (D + jnp.swapaxes(D, -1, -2))  # exactly symmetric (the diagonal blocks up to rounding)
+    return D + jnp.eye(nd, dtype=D.dtype)
+
+
+# ---------------------------------------------------------------- products with Y, Y^T
+
+
+def _sqrt_w(system: LinearSystem) -> jax.Array:
+    """``W^1/2`` (Nf, Nt, Nbl), 0 on flagged samples with a zero (not NaN) derivative there."""
+    w = system.inv_noise
+    pos = w > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, w, 1.0)), 0.0)
+
+
+def _y_apply(system: LinearSystem, sqrt_w, a):
+    """``Y a = W^1/2 X a`` as rows (Nf, N_d), matrix-free."""
+    return to_rows(sqrt_w * apply(system.op, a))
+
+
+def _y_adjoint(system: LinearSystem, sqrt_w, u):
+    """``Y^T u = X^T W^1/2 u`` for rows u (Nf, N_d) -> (Nf, n), matrix-free."""
+    _, nt, nbl = system.data.shape
+    return adjoint(system.op, sqrt_w * from_rows(u, nt, nbl))
+
+
+def _whitened_residual(system: LinearSystem, sqrt_w):
+    """``r~ = W^1/2 (d - X a0)`` as rows (Nf, N_d); 0 on flagged samples (whatever they hold)."""
+    r = system.data - apply(system.op, system.prior.mean)
+    return to_rows(jnp.where(system.inv_noise > 0, sqrt_w * r, 0.0))
+
+
+def _factor(system: LinearSystem, chunk: int | None = None):
+    D = dataspace_matrix(system, chunk)
+    return D, jnp.linalg.cholesky(D)
+
+
+def _posterior_cov_apply(system: LinearSystem, sqrt_w, D, L, v):
+    """``P^-1 v = S v - S Y^T D^-1 Y S v`` for v (Nf, n)."""
+    s = 1.0 / system.prior.inv_var
+    sv = s * v
+    x = cholesky_solve(D, L, _y_apply(system, sqrt_w, sv))
+    return sv - s * _y_adjoint(system, sqrt_w, x)
+
+
+@partial(jax.jit, static_argnames=("options",))
+def _prepare_dataspace(system: LinearSystem, options: DataSpaceOptions = DataSpaceOptions()) -> DataSpaceState:
+    check_float64(system.op.response, system.inv_noise)
+    sqrt_w = _sqrt_w(system)
+    s = 1.0 / system.prior.inv_var
+    D, L = _factor(system, options.time_chunk)
+    x = cholesky_solve(D, L, _whitened_residual(system, sqrt_w))
+    a_wf = system.prior.mean + s * _y_adjoint(system, sqrt_w, x)
+    # how good is it: the true (matrix-free) residual of P a = b, in posterior-sigma units
+    sg = jax.lax.stop_gradient
+    ssys, Dc, Lc, a = sg(system), sg(D), sg(L), sg(a_wf)
+    b = wiener_rhs(ssys)
+    r = b - precision_apply(ssys, a)
+    err = jnp.sqrt(jnp.abs(jnp.sum(r * _posterior_cov_apply(ssys, sg(sqrt_w), Dc, Lc, r), axis=-1)))
+    finite = jnp.all(jnp.isfinite(Lc), axis=(1, 2)) & jnp.all(jnp.isfinite(a), axis=-1) & jnp.isfinite(err)
+    info = direct_info(err, jnp.linalg.norm(r, axis=-1) / jnp.linalg.norm(b, axis=-1), finite)
+    if options.throw:
+        a_wf = eqx.error_if(a_wf, ~info.converged, "gcrsky data space: D is not positive definite or the Wiener "
+                                                    "filter is not finite (a flat prior direction?)")
+    return DataSpaceState(system, a_wf, info, D, L)
+
+
+def prepare_dataspace(system: LinearSystem, options: DataSpaceOptions | None = None, *,
+                      memory_budget: float | None = None) -> DataSpaceState:
+    """Build and factorise ``D = I + W^1/2 X S X^T W^1/2`` and solve for the Wiener filter, once.
+
+    On concrete arrays, first refuses a flat prior (``ValueError``) and checks that D
+    and its factor fit (:func:`gcrsky.base.check_memory`, naming the alternative paths).
+
+    Args:
+        system: the linear system (every prior direction proper).
+        options: :class:`DataSpaceOptions`.
+        memory_budget: bytes the path may use (default: what is free on the device).
+    """
+    options = DataSpaceOptions() if options is None else options
+    if not isinstance(options, DataSpaceOptions):
+        raise TypeError(f"the data-space path takes DataSpaceOptions, got {type(options).__name__}")
+    concrete = not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(system))
+    if concrete:
+        check_proper_prior(system)
+        nd, nf = data_size(system), int(system.data.shape[0])
+        check_memory(dataspace_memory_bytes(system), f"the data-space path (D: {nf} x {nd} x {nd})",
+                     "use method='cg' with CGOptions(dense=False) (matrix-free) or method='auto'",
+                     budget=memory_budget)
+    return _prepare_dataspace(system, options)
+
+
+@partial(jax.jit, static_argnames=("ndraws",))
+def draw_dataspace(key: jax.Array, state: DataSpaceState, ndraws: int):
+    """``ndraws`` exact draws ``a_wf + delta - S Y^T D^-1 (Y delta + z)`` (Hoffman & Ribak).
+
+    Draw ``i`` uses ``k = jax.random.split(key, ndraws)[i]``; ``k_a, k_n = split(k)``
+    give ``delta = S^1/2 N(0, I)`` (Nf, n) and ``z ~ N(0, I)`` (Nf, N_d) (masked to the
+    unflagged rows, though flagged rows drop out of the product anyway).
+
+    Returns:
+        draws (Nf, ndraws, n); info dict ``"wiener"``, ``"draws"`` (SolveInfo over
+        (Nf, ndraws)) and ``"a_wf"``.
+    """
+    system, a_wf, D, L = state.system, state.a_wf, state.gram, state.chol
+    nf, n = a_wf.shape
+    nd = D.shape[-1]
+    sqrt_w = _sqrt_w(system)
+    s = 1.0 / system.prior.inv_var
+    keep = to_rows(jnp.where(system.inv_noise > 0, 1.0 + 1.0j, 0.0)).astype(a_wf.dtype)  # 1 on unflagged rows
+
+    def one(k):
+        ka, kn = jax.random.split(k)
+        delta = jnp.sqrt(s) * jax.random.normal(ka, (nf, n), a_wf.dtype)
+        z = keep * jax.random.normal(kn, (nf, nd), a_wf.dtype)
+        return delta, _y_apply(system, sqrt_w, delta) + z
+
+    delta, u = jax.vmap(one)(jax.random.split(key, ndraws))  # (ndraws, Nf, n), (ndraws, Nf, N_d)
+    x = jax.vmap(lambda uu: cholesky_solve(D, L, uu))(u)
+    corr = jax.vmap(lambda xx: s * _y_adjoint(system, sqrt_w, xx))(x)
+    out = a_wf[:, None, :] + jnp.moveaxis(delta - corr, 0, 1)
+    ok = state.wiener.converged[:, None] & jnp.all(jnp.isfinite(out), axis=-1)
+    return out, {"wiener": state.wiener, "draws": exact_info(ok, (nf, ndraws)), "a_wf": a_wf}
+
+
+# ---------------------------------------------------------------- evidence
+
+
+@partial(jax.jit, static_argnames=("chunk",))
+def dataspace_evidence_parts(system: LinearSystem, chunk: int | None = None):
+    """The data-space terms of the log evidence, per channel (Nf,) each.
+
+    Returns:
+        ``(q, logdet, finite)``: ``q = r~^T D^-1 r~`` with ``r~ = W^1/2 (d - X a0)``
+        (equal to ``r^T W r - b'^T P^-1 b'`` by Woodbury), ``logdet = log det D``
+        (``= log det(I + H)``, the prior-whitened precision's, by Sylvester) and whether
+        the factor is finite (``chunk``: as :func:`dataspace_matrix`).  ``log p(d) = -1/2 [q + logdet - log det W + N_d log 2 pi]``
+        over the unflagged samples.  Differentiates implicitly (the solve) and by
+        ``tr(D^-1 dD)`` (the log determinant), to second order.
+    """
+    sqrt_w = _sqrt_w(system)
+    D, L = _factor(system, chunk)
+    rt = _whitened_residual(system, sqrt_w)
+    q = jnp.sum(rt * cholesky_solve(D, L, rt), axis=-1)
+    finite = jnp.all(jnp.isfinite(jax.lax.stop_gradient(L)), axis=(1, 2))
+    return q, cholesky_logdet(D, L), finite
