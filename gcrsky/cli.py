@@ -38,6 +38,14 @@ batch size, draw ``i`` is the same whatever ``--nsamples`` is (``--nsamples 20``
 gives the first 20 draws of ``--nsamples 200``), and one compiled program serves
 every batch.  Changing ``--batch`` changes the draws (not their distribution).
 
+Compilation: the command turns on JAX's persistent compilation cache (in
+``$GCRSKY_COMPILE_CACHE``, else ``$JAX_COMPILATION_CACHE_DIR``, else
+``$XDG_CACHE_HOME/gcrsky/jax`` or ``~/.cache/gcrsky/jax``; ``--compile-cache DIR`` chooses,
+``--no-compile-cache`` turns it off), so only the first run of a configuration
+compiles its XLA programs; later processes load them (:func:`gcrsky.parallel.use_compile_cache`).
+``summary.json`` records the run's compile seconds and cache hits and misses
+(``timings_s.compile_s``, ``cache_hits``, ``cache_misses``; ``compile``).
+
 Exit status: 0 on success, also when some solves did not converge (a warning is
 printed and ``summary.json`` records it: check ``solver.all_converged``), and for a
 ``--resume`` of a run that was already complete; 1 if the draws contain non-finite
@@ -170,9 +178,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--date", default=d.obs_date, metavar="YYYY-MM-DD",
                    help="observe on this UTC date at the real times whose local Earth rotation angle is each "
                    "LST (sky in ICRS, exact ICRS -> CIRS-of-date frame map); default: the paper's idealised LSTs")
-    r.add_argument("--method", choices=("auto", "cg", "cholesky", "eigh", "mmode"), default=None,
-                   help="GCR solver (default auto: m-mode for uniform full-day coverage, else dense Cholesky "
-                   "where P fits, else matrix-free CG; or the scenario's: eigh where S^-1 = 0 makes P singular)")
+    r.add_argument("--method", choices=("auto", "cg", "cholesky", "eigh", "mmode", "dataspace"), default=None,
+                   help="GCR solver (default auto: m-mode for uniform full-day coverage, else the cheaper of dense "
+                   "Cholesky and data space (fewer data values than parameters) where they fit, else matrix-free "
+                   "CG; or the scenario's: eigh where S^-1 = 0 makes P singular)")
     r.add_argument("--tol", type=_positive_float("tol"), default=None,
                    help="CG tolerance in posterior-sigma units (default 1e-6, or the scenario's)")
     r.add_argument("--batch", type=_int_at_least(1, "batch"), default=DEFAULT_BATCH,
@@ -180,6 +189,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     r.add_argument("--no-progress", action="store_true", help="no progress bars")
     r.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)")
+    _add_compile_cache_options(r)
     dg = r.add_argument_group(
         "your own data", "sample the sky of a visibility file (any file pyuvdata reads) instead of simulating: "
         "--data FILE with --beam FILE or --dish-diameter D; --lmax, --nside, --prior-scale, --method, --tol and the "
@@ -229,7 +239,20 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)")
     sc.add_argument("--overwrite", action="store_true",
                     help="replace the run files already in the scenarios' directories (else they are refused)")
+    _add_compile_cache_options(sc)
     return p
+
+
+def _add_compile_cache_options(p) -> None:
+    """``--compile-cache DIR`` / ``--no-compile-cache`` (JAX's persistent compilation cache)."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--compile-cache", default=None, metavar="DIR",
+                   help="directory of JAX's persistent compilation cache, so that later runs load the compiled "
+                   "programs instead of compiling them (default: $GCRSKY_COMPILE_CACHE, else "
+                   "$JAX_COMPILATION_CACHE_DIR, else $XDG_CACHE_HOME/gcrsky/jax or ~/.cache/gcrsky/jax; "
+                   "GCRSKY_COMPILE_CACHE=off turns it off)")
+    g.add_argument("--no-compile-cache", action="store_true",
+                   help="compile every program afresh and write no compilation cache")
 
 
 def _csv(what: str, conv):
@@ -314,13 +337,36 @@ def _batch_bar(disable):
 # ---------------------------------------------------------------- the run command
 
 
-def _setup_jax():
-    from .parallel.runtime import use_safe_cpu_threading
+def _setup_jax(args=None):
+    """Process settings before JAX's first computation: the safe CPU pool, float64, the compilation cache.
 
-    use_safe_cpu_threading()  # before the first JAX computation (see gcrsky/runtime.py)
+    Returns the :func:`gcrsky.parallel.compile_stats` snapshot to count the command's compilation from.
+    """
+    from .parallel.runtime import compile_stats, use_safe_cpu_threading
+
+    use_safe_cpu_threading()  # before the first JAX computation (see gcrsky/parallel/runtime.py)
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    _setup_compile_cache(args)
+    return compile_stats()
+
+
+def _setup_compile_cache(args) -> None:
+    """JAX's persistent compilation cache as the options (``--compile-cache``, ``--no-compile-cache``) ask."""
+    from .parallel.runtime import disable_compile_cache, use_compile_cache
+
+    if args is not None and getattr(args, "no_compile_cache", False):
+        disable_compile_cache()
+        return
+    want = getattr(args, "compile_cache", None)
+    try:
+        where = use_compile_cache(want)
+    except OSError as e:  # e.g. a read-only home: run without the cache rather than fail
+        log.warning("no compilation cache (%s); every program is compiled afresh", e)
+        disable_compile_cache()
+        return
+    log.info("compilation cache: %s", where or "off")
 
 
 #: ``gcrsky run`` options that map to :class:`gcrsky.Config` fields.
@@ -387,7 +433,7 @@ def _refusal_message(e, *, resume: bool) -> str:
 
 
 def _run(args) -> int:
-    _setup_jax()
+    compile0 = _setup_jax(args)
     from .paper.pipeline import ResumeError, RunExistsError, check_output, run_problem, run_settings
     from .sim.config import Config
     from .sim.standard import problem_from_config
@@ -424,7 +470,7 @@ def _run(args) -> int:
         summary, products = run_problem(
             prob, out, nsamples=nsamples, seed=args.seed, batch=args.batch, method=method, plots=plots,
             build_s=build_s, argv=getattr(args, "_argv", None), scenario_name=scen, tol=tol,
-            on_stage=bar, progress=_batch_bar(disable_bars), existing=existing,
+            on_stage=bar, progress=_batch_bar(disable_bars), existing=existing, compile_since=compile0,
         )
     except (RunExistsError, ResumeError) as e:  # e.g. the inputs differ from the recorded ones
         print(_refusal_message(e, resume=args.resume), file=sys.stderr)
@@ -479,7 +525,7 @@ def _file_digest(path) -> str:
 
 def _run_data(args) -> int:
     """``gcrsky run --data FILE``: the posterior of a visibility file's sky (no truth: no truth metrics)."""
-    _setup_jax()
+    compile0 = _setup_jax(args)
     from .io.uvdata import from_uvdata
     from .paper.pipeline import ResumeError, RunExistsError, existing_run_files, run_problem
 
@@ -519,7 +565,7 @@ def _run_data(args) -> int:
         summary, products = run_problem(
             prob, out, nsamples=nsamples, seed=args.seed, batch=args.batch, method=method, plots=plots,
             build_s=build_s, argv=getattr(args, "_argv", None), tol=tol, on_stage=bar,
-            progress=_batch_bar(disable_bars), existing=existing, extra_settings=extra,
+            progress=_batch_bar(disable_bars), existing=existing, extra_settings=extra, compile_since=compile0,
         )
     except (RunExistsError, ResumeError) as e:
         print(_refusal_message(e, resume=args.resume), file=sys.stderr)
@@ -579,7 +625,7 @@ def _scenarios(args) -> int:
     from .paper.suite import run_suite, suite_names
 
     names = suite_names(args.names)
-    _setup_jax()
+    compile0 = _setup_jax(args)
     from .paper.pipeline import existing_run_files, remove_run_files
 
     taken = {n: existing_run_files(Path(args.out) / n) for n in names}
@@ -618,7 +664,27 @@ def _scenarios(args) -> int:
     print(res.claims_markdown)
     print(f"wrote {args.out}/results.md, results.csv, claims.md, suite.json"
           + (", " + ", ".join(res.figures) if res.figures else ""))
+    print(_compile_line(_compile_of(compile0), "compile (all scenarios)"))
     return 0
+
+
+def _compile_of(since) -> dict:
+    """The compilation since a snapshot, with the cache directory (as ``summary.json``'s ``compile``)."""
+    from .parallel.runtime import compile_cache_dir, compile_stats
+
+    d = compile_stats().since(since)._asdict()
+    where = compile_cache_dir()
+    d["cache_dir"] = None if where is None else str(where)
+    return d
+
+
+def _compile_line(c: dict, label: str = "compile") -> str:
+    """``compile 8.0 s (39 programs; cache DIR: 0 hits, 39 misses)``, from a ``compile`` block."""
+    if c.get("cache_dir"):
+        cache = f"cache {c['cache_dir']}: {c['cache_hits']} hits, {c['cache_misses']} misses"
+    else:
+        cache = "compilation cache off"
+    return f"  {label} {c['compile_s']:.1f} s ({c['programs']} programs; {cache})"
 
 
 def _print_summary(s: dict, out: Path, written=None) -> None:
@@ -653,6 +719,8 @@ def _print_summary(s: dict, out: Path, written=None) -> None:
         f"  time: build {t['build']:.1f} s, wiener {t['wiener']:.1f} s, draws {t['draws']:.1f} s (compile included), "
         f"maps {t['maps']:.1f} s" + (f", plots {t['plots']:.1f} s" if "plots" in t else ""),
     ]
+    if "compile" in s:  # not in the summary of a run made before it was recorded
+        lines.append(_compile_line(s["compile"]))
     if written is None:
         written = ["results.h5", "summary.json", *s.get("figures", {}).values()]
     lines.append("  wrote " + (", ".join(written) if written else "nothing (every file was there)"))

@@ -28,7 +28,8 @@ use) differs from the Wiener map by Monte Carlo noise.  Every file is written
 atomically (temporary name, then rename; :mod:`gcrsky.io.atomic`); a resumed run
 writes only the files that are missing.
 
-Stage timings are recorded by a :class:`StageTimer`; the caller may watch the stages
+Stage timings are recorded by a :class:`StageTimer`, and the run's XLA compilation (seconds,
+persistent-cache hits and misses) by :func:`gcrsky.parallel.compile_stats`; the caller may watch the stages
 (``on_stage``) and the draw batches (``progress``) to drive its own progress display:
 nothing here prints.
 
@@ -71,6 +72,7 @@ from ..io.results import (
     write_json,
 )
 from ..io.skymodel import write_skyh5
+from ..parallel.runtime import CompileStats, compile_cache_dir, compile_stats
 from ..sim.standard import beam_for_config
 from ..solvers.options import method_of, options_for
 from ..solvers.plan import choose_path
@@ -682,8 +684,17 @@ _METRICS_NOTE = (
 )
 _TIMINGS_NOTE = (
     "wall-clock seconds; 'wiener' and the first draw batch include JIT compilation; "
+    "compile_s: XLA compilation in all stages (build included when the caller counted from before it), a "
+    "program loaded from JAX's persistent compilation cache counting its loading time; cache_hits / "
+    "cache_misses: programs loaded from / compiled despite that cache (both 0 when it is off; see 'compile'); "
     "the set-up (P, its Cholesky factor or CG preconditioner, the Wiener filter) is done once, in 'wiener'; "
     "a resumed run times only its own stages (draw_batches_s covers every batch)"
+)
+_COMPILE_NOTE = (
+    "this run's JAX compilation (gcrsky.parallel.compile_stats): compile_s backend compilation or loading from "
+    "the persistent cache (cache_dir; null: off), trace_s tracing, lower_s lowering to MLIR (seconds, inside the "
+    "stages' wall-clock times); programs compiled or loaded, cache_hits loaded from the cache, cache_misses "
+    "compiled with the cache on, cache_writes entries written"
 )
 _PRODUCTS_NOTE = (
     "posterior_mean.* are the Wiener filter (the exact posterior mean), not the draws' mean; posterior_std.fits "
@@ -735,6 +746,7 @@ def run_problem(
     progress=None,
     existing: str = "refuse",
     extra_settings: dict | None = None,
+    compile_since: CompileStats | None = None,
 ) -> tuple[dict, RunProducts]:
     """Sample ``prob`` and write ``results.h5``, the products, figures and ``summary.json`` to ``out``.
 
@@ -759,10 +771,13 @@ def run_problem(
             :class:`ResumeError`; the recorded path is reused even if ``method`` is
             ``"auto"``; files already present are kept, missing ones written).
         extra_settings: further settings that identify the run (:func:`run_settings`).
+        compile_since: the :func:`gcrsky.parallel.compile_stats` snapshot to count the
+            run's compilation from (e.g. taken before building ``prob``); default: now.
 
     Returns:
         (the summary dict in ``summary.json``, :class:`RunProducts`).
     """
+    compile0 = compile_stats() if compile_since is None else compile_since
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cfg = prob.config
@@ -879,7 +894,12 @@ def run_problem(
     timings = dict(st.times)
     timings["total"] = float(sum(v for v in st.times.values()))
     timings["draw_batches_s"] = stored.batch_seconds
+    compiled = compile_stats().since(compile0)
+    timings["compile_s"] = compiled.compile_s
+    timings["cache_hits"] = compiled.cache_hits
+    timings["cache_misses"] = compiled.cache_misses
     timings["note"] = _TIMINGS_NOTE
+    cache_dir = compile_cache_dir()
     per_freq = ms.per_freq
     f0 = per_freq[0]
     summary = {
@@ -895,6 +915,8 @@ def run_problem(
         "draws_finite": finite,
         "warnings": warnings,
         "timings_s": timings,
+        "compile": {**compiled._asdict(), "cache_dir": None if cache_dir is None else str(cache_dir),
+                    "note": _COMPILE_NOTE},
         "run": {"nsamples": nsamples, "seed": seed, "batch": batch, "method": method, "scenario": scenario_name,
                 "argv": argv, "resumed_at_batch": None if state is None else start, "frame": parameter_frame(prob)},
         "figures": fig_names,

@@ -1,17 +1,24 @@
 """More than one device: the baseline axis sharded with ``jax.sharding``, and XLA's CPU pool.
 
 - ``sharding``: :func:`shard_system`: baselines padded and sharded over a mesh, identical results
-- ``runtime``: XLA CPU-thread settings (the safe single-threaded Eigen pool, forced host devices sized so batched LAPACK cannot deadlock)
+- ``runtime``: XLA CPU-thread settings (the safe single-threaded Eigen pool, forced host devices sized so batched LAPACK cannot deadlock); JAX's persistent compilation cache (:func:`use_compile_cache`, which the CLI calls and importing gcrsky never does) and the compile time and cache use of a run (:func:`compile_stats`)
 """
 
 
 from .runtime import (
+    COMPILE_CACHE_ENV,
     POOL_THREADS_PER_DEVICE,
     SAFE_XLA_FLAG,
+    CompileStats,
+    compile_cache_dir,
+    compile_stats,
+    default_compile_cache_dir,
+    disable_compile_cache,
     effective_pool_size,
     forced_device_count,
     host_devices_env,
     safe_pool_size,
+    use_compile_cache,
     use_host_devices,
     use_safe_cpu_threading,
 )
@@ -24,15 +31,22 @@ from .sharding import (
 
 __all__ = [
     "AXIS",
+    "COMPILE_CACHE_ENV",
     "POOL_THREADS_PER_DEVICE",
     "SAFE_XLA_FLAG",
+    "CompileStats",
     "baseline_mesh",
+    "compile_cache_dir",
+    "compile_stats",
+    "default_compile_cache_dir",
+    "disable_compile_cache",
     "effective_pool_size",
     "forced_device_count",
     "host_devices_env",
     "pad_baselines",
     "safe_pool_size",
     "shard_system",
+    "use_compile_cache",
     "use_host_devices",
     "use_safe_cpu_threading",
 ]

@@ -1,5 +1,9 @@
 """Process-level runtime settings that the CLI and the test suite apply (never on import).
 
+Two kinds: XLA's CPU thread pool (below), and JAX's persistent compilation cache with a
+record of the compile time (:func:`use_compile_cache`, :func:`compile_stats`; see
+"Compilation cache" at the end of this docstring).
+
 XLA's CPU backend can wedge its multi-threaded Eigen pool on large vmapped graphs:
 the main thread waits in ``block_until_ready`` while every worker idles at 0% CPU
 (seen here twice under load, in the vmapped CG loops; also reported upstream, e.g.
@@ -50,6 +54,41 @@ multi-threaded OpenBLAS concurrently, which on few cores spins in
 of 4 x 120 x 60 a hundred times: not done after 60 s, 3 of 3, vs 4-5 s with one
 OpenBLAS thread; jax-ml/jax#39292 reports the same oversubscription corrupting the
 heap on many-core hosts).
+
+Compilation cache
+-----------------
+
+Every new process compiles gcrsky's XLA programs again (8 s for the standard case's
+Cholesky path on 2 cores, 15-20 s for the CG path), for work that then takes a fraction
+of a second.  :func:`use_compile_cache` turns on JAX's persistent compilation cache
+(``jax_compilation_cache_dir``), so that a later process loads the compiled programs
+from disk instead.  The ``gcrsky`` command calls it (``--compile-cache DIR``,
+``--no-compile-cache``); the library never does: a program that imports gcrsky decides.
+The directory, unless given: ``$GCRSKY_COMPILE_CACHE`` (``off``, ``0``, ``none`` or
+``false`` turn the cache off), else ``$JAX_COMPILATION_CACHE_DIR``, else
+``$XDG_CACHE_HOME/gcrsky/jax`` or ``~/.cache/gcrsky/jax`` (:func:`default_compile_cache_dir`).
+
+JAX 0.10's thresholds would skip most of gcrsky's programs: it writes only programs that
+took at least ``jax_persistent_cache_min_compile_time_secs`` (default 1 s) to compile, and
+a run's many small programs (``jnp.asarray``, PRNG, elementwise steps: about 3 s of the
+standard case's 8 s) take less.  So :func:`use_compile_cache` lowers it to 0 by default and
+lifts the entry-size floor (``jax_persistent_cache_min_entry_size_bytes = -1``); the whole
+standard case is then 39 entries, about 0.4 MB.  The cache grows without bound (JAX's LRU
+limit ``jax_compilation_cache_max_size`` needs the ``filelock`` package); delete the
+directory to clear it.  Keys include the program, jaxlib's version, ``XLA_FLAGS`` and the
+devices, so an upgrade or other flags simply miss.  XLA:CPU checks on load that the host
+has the CPU features the program was compiled for and refuses an entry otherwise (then the
+program is compiled again): a directory shared between different machines is safe, but
+on some AVX-512 hosts jaxlib 0.10 refuses every entry (jax-ml/jax#38445), and the cache
+never hits there.  As JAX's documentation warns, a compilation cache is trusted code: do
+not share one with users you do not trust.
+
+:func:`compile_stats` counts, from the first call on, what JAX reports through
+``jax.monitoring``: the seconds of backend compilation (``/jax/core/compile/
+backend_compile_duration``: XLA compiling a program, or loading it from the cache), of
+tracing and of lowering to MLIR, and the persistent cache's hits, misses (programs
+compiled while the cache was on) and writes.  ``gcrsky run`` records the difference over
+a run in ``summary.json`` (``timings_s.compile_s``, ``cache_hits``, ``cache_misses``).
 """
 
 from __future__ import annotations
@@ -57,15 +96,25 @@ from __future__ import annotations
 import os
 import re
 import sys
+import threading
 from collections.abc import Mapping
+from pathlib import Path
+from typing import NamedTuple
 
 __all__ = [
+    "COMPILE_CACHE_ENV",
     "POOL_THREADS_PER_DEVICE",
     "SAFE_XLA_FLAG",
+    "CompileStats",
+    "compile_cache_dir",
+    "compile_stats",
+    "default_compile_cache_dir",
+    "disable_compile_cache",
     "effective_pool_size",
     "forced_device_count",
     "host_devices_env",
     "safe_pool_size",
+    "use_compile_cache",
     "use_host_devices",
     "use_safe_cpu_threading",
 ]
@@ -217,3 +266,165 @@ def use_safe_cpu_threading() -> bool:
     if "xla_cpu_multi_thread_eigen" not in flags:
         os.environ["XLA_FLAGS"] = (flags + " " + SAFE_XLA_FLAG).strip()
     return SAFE_XLA_FLAG in os.environ["XLA_FLAGS"]
+
+
+# ---------------------------------------------------------------- the persistent compilation cache
+
+#: Environment variable naming the compilation cache directory (or ``off``); see the module docstring.
+COMPILE_CACHE_ENV = "GCRSKY_COMPILE_CACHE"
+_OFF = frozenset({"off", "0", "none", "false", "no"})
+
+
+def default_compile_cache_dir(environ: Mapping[str, str] | None = None) -> Path | None:
+    """The compilation cache directory to use when none is given; None if the environment turns it off.
+
+    ``$GCRSKY_COMPILE_CACHE`` (``off``, ``0``, ``none``, ``false`` or ``no``: None), else
+    ``$JAX_COMPILATION_CACHE_DIR`` (JAX's own setting), else ``$XDG_CACHE_HOME/gcrsky/jax``,
+    else ``~/.cache/gcrsky/jax``.  Empty values count as unset.
+    """
+    env = os.environ if environ is None else environ
+    mine = env.get(COMPILE_CACHE_ENV, "").strip()
+    if mine:
+        return None if mine.lower() in _OFF else Path(mine).expanduser()
+    jaxs = env.get("JAX_COMPILATION_CACHE_DIR", "").strip()
+    if jaxs:
+        return Path(jaxs).expanduser()
+    xdg = env.get("XDG_CACHE_HOME", "").strip()
+    base = Path(xdg).expanduser() if xdg else Path(env.get("HOME") or Path.home()).expanduser() / ".cache"
+    return base / "gcrsky" / "jax"
+
+
+def use_compile_cache(path=None, *, min_compile_time_s: float = 0.0) -> Path | None:
+    """Turn on JAX's persistent compilation cache in ``path``; returns the directory (None: turned off).
+
+    Sets JAX's own configuration: ``jax_enable_compilation_cache``,
+    ``jax_compilation_cache_dir``, ``jax_persistent_cache_min_compile_time_secs =
+    min_compile_time_s`` (JAX's default of 1 s would skip most of gcrsky's programs) and
+    ``jax_persistent_cache_min_entry_size_bytes = -1`` (no size floor).  Call it before the
+    first computation: programs compiled earlier in the process are not written (JAX
+    0.10 picks the new directory up for later ones).  Also starts :func:`compile_stats`.
+    ``gcrsky run`` / ``gcrsky scenarios`` call it; importing gcrsky never does.
+
+    Args:
+        path: the directory (created if needed); None: :func:`default_compile_cache_dir`,
+            which may say "off" (then the cache is turned off, as :func:`disable_compile_cache`).
+        min_compile_time_s: programs that compiled faster are not written.
+
+    Raises:
+        OSError: the directory cannot be created.
+    """
+    import jax
+    from jax.experimental.compilation_cache import compilation_cache as cc
+
+    path = default_compile_cache_dir() if path is None else Path(path).expanduser()
+    compile_stats()  # start counting
+    if path is None:
+        disable_compile_cache()
+        return None
+    path.mkdir(parents=True, exist_ok=True)
+    path = path.resolve()
+    jax.config.update("jax_enable_compilation_cache", True)
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+    cc.reset_cache()  # a cache JAX already opened elsewhere in this process is dropped; the next compile opens this one
+    return path
+
+
+def disable_compile_cache() -> None:
+    """Turn JAX's persistent compilation cache off for this process (``jax_enable_compilation_cache = False``),
+    whatever directory JAX's configuration or environment names."""
+    import jax
+    from jax.experimental.compilation_cache import compilation_cache as cc
+
+    jax.config.update("jax_enable_compilation_cache", False)
+    cc.reset_cache()
+
+
+def compile_cache_dir() -> Path | None:
+    """The directory of JAX's persistent compilation cache as configured now, or None when it is off."""
+    import jax
+
+    path = jax.config.jax_compilation_cache_dir
+    return Path(path) if path and jax.config.jax_enable_compilation_cache else None
+
+
+class CompileStats(NamedTuple):
+    """Compilation counted by :func:`compile_stats` (totals since counting started; ``b.since(a)`` for a span).
+
+    Attributes:
+        compile_s: seconds of backend compilation: XLA compiling programs, or loading
+            them from the persistent cache (JAX's ``backend_compile_duration``).
+        trace_s: seconds tracing Python functions to jaxprs.
+        lower_s: seconds lowering jaxprs to MLIR (done again on a cache hit: the key is
+            the lowered program).
+        programs: backend compilations (each program once per process and shape).
+        cache_hits: programs loaded from the persistent cache.
+        cache_misses: programs compiled while the persistent cache was on.
+        cache_writes: entries written to it.
+    """
+
+    compile_s: float = 0.0
+    trace_s: float = 0.0
+    lower_s: float = 0.0
+    programs: int = 0
+    cache_hits: int = 0
+    cache_misses: int = 0
+    cache_writes: int = 0
+
+    def since(self, earlier: CompileStats) -> CompileStats:
+        """What was counted between ``earlier`` and this snapshot."""
+        return CompileStats(*(a - b for a, b in zip(self, earlier)))
+
+
+# JAX 0.10's monitoring events (jax/_src/dispatch.py, compiler.py, compilation_cache.py).
+_DURATIONS = {
+    "/jax/core/compile/backend_compile_duration": "compile_s",
+    "/jax/core/compile/jaxpr_trace_duration": "trace_s",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s",
+}
+_REQUEST = "/jax/compilation_cache/compile_requests_use_cache"
+_HIT = "/jax/compilation_cache/cache_hits"
+_WRITE = "/jax/compilation_cache/cache_misses"  # JAX records it when it writes an entry
+_counts: dict = {}
+_watch_lock = threading.Lock()
+
+
+def _on_duration(event: str, duration_secs: float, **kwargs) -> None:
+    field = _DURATIONS.get(event)
+    if field is not None:
+        _counts[field] = _counts.get(field, 0.0) + float(duration_secs)
+        if field == "compile_s":
+            _counts["programs"] = _counts.get("programs", 0) + 1
+
+
+def _on_event(event: str, **kwargs) -> None:
+    if event == _REQUEST:
+        if compile_cache_dir() is not None:  # JAX asks its cache even when no directory is set
+            _counts["requests"] = _counts.get("requests", 0) + 1
+    elif event == _HIT:
+        _counts["cache_hits"] = _counts.get("cache_hits", 0) + 1
+    elif event == _WRITE:
+        _counts["cache_writes"] = _counts.get("cache_writes", 0) + 1
+
+
+def compile_stats() -> CompileStats:
+    """Totals of JAX's compilation in this process since the first call (which starts counting).
+
+    Listens to ``jax.monitoring`` (see the module docstring); a snapshot, so a span is
+    ``compile_stats().since(before)``.  Counting does not change what is compiled or cached.
+    """
+    with _watch_lock:
+        if "watching" not in _counts:
+            import jax.monitoring
+
+            jax.monitoring.register_event_duration_secs_listener(_on_duration)
+            jax.monitoring.register_event_listener(_on_event)
+            _counts["watching"] = True
+    c = dict(_counts)
+    hits = int(c.get("cache_hits", 0))
+    return CompileStats(
+        compile_s=float(c.get("compile_s", 0.0)), trace_s=float(c.get("trace_s", 0.0)),
+        lower_s=float(c.get("lower_s", 0.0)), programs=int(c.get("programs", 0)), cache_hits=hits,
+        cache_misses=max(0, int(c.get("requests", 0)) - hits), cache_writes=int(c.get("cache_writes", 0)),
+    )
