@@ -55,7 +55,17 @@ from .options import (
     method_of,
     options_for,
 )
-from .plan import DENSE_MAX_N, DENSE_MEMORY_FRACTION, SamplerPlan, choose_path, path_memory_bytes, plan_sampler
+from .plan import (
+    DATASPACE_MAX_ND,
+    DENSE_MAX_N,
+    DENSE_MEMORY_FRACTION,
+    PLAN_DRAWS,
+    SamplerPlan,
+    choose_path,
+    path_cost_flop,
+    path_memory_bytes,
+    plan_sampler,
+)
 from .preconditioners import (
     MBlockPreconditioner,
     NystromPreconditioner,
@@ -68,11 +78,13 @@ from .preconditioners import (
 )
 
 __all__ = [
+    "DATASPACE_MAX_ND",
     "DEFAULT_TOL",
     "DENSE_MAX_N",
     "DENSE_MEMORY_FRACTION",
     "EIGH_RCOND",
     "METHODS",
+    "PLAN_DRAWS",
     "CGOptions",
     "CGState",
     "CholeskyOptions",
@@ -113,6 +125,7 @@ __all__ = [
     "mmode_check",
     "nystrom_preconditioner",
     "options_for",
+    "path_cost_flop",
     "path_memory_bytes",
     "pcg",
     "plan_sampler",
