@@ -1,10 +1,24 @@
 """More than one device: the baseline axis sharded with ``jax.sharding``, and XLA's CPU pool.
 
 - ``sharding``: :func:`shard_system`: baselines padded and sharded over a mesh, identical results
+- ``channels``: frequency channels one at a time (:func:`sample_channels`), over a device mesh (:func:`sample_channels_sharded`) and over ``jax.distributed`` processes (:func:`distributed_channels`), with a per-channel key scheme that makes the split invisible
 - ``runtime``: XLA CPU-thread settings (the safe single-threaded Eigen pool, forced host devices sized so batched LAPACK cannot deadlock); JAX's persistent compilation cache (:func:`use_compile_cache`, which the CLI calls and importing gcrsky never does) and the compile time and cache use of a run (:func:`compile_stats`)
 """
 
 
+from .channels import (
+    CHANNEL_KEY_SCHEME,
+    FREQ_AXIS,
+    ChannelDraws,
+    channel_blocks,
+    channel_key,
+    channel_mesh,
+    distributed_channels,
+    init_distributed,
+    resolve_channel_path,
+    sample_channels,
+    sample_channels_sharded,
+)
 from .runtime import (
     COMPILE_CACHE_ENV,
     POOL_THREADS_PER_DEVICE,
@@ -31,6 +45,17 @@ from .sharding import (
 
 __all__ = [
     "AXIS",
+    "CHANNEL_KEY_SCHEME",
+    "FREQ_AXIS",
+    "ChannelDraws",
+    "channel_blocks",
+    "channel_key",
+    "channel_mesh",
+    "distributed_channels",
+    "init_distributed",
+    "resolve_channel_path",
+    "sample_channels",
+    "sample_channels_sharded",
     "COMPILE_CACHE_ENV",
     "POOL_THREADS_PER_DEVICE",
     "SAFE_XLA_FLAG",
