@@ -190,6 +190,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-progress", action="store_true", help="no progress bars")
     r.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)")
     _add_compile_cache_options(r)
+    _add_channel_options(r)
     dg = r.add_argument_group(
         "your own data", "sample the sky of a visibility file (any file pyuvdata reads) instead of simulating: "
         "--data FILE with --beam FILE or --dish-diameter D; --lmax, --nside, --prior-scale, --method, --tol and the "
@@ -241,6 +242,47 @@ def build_parser() -> argparse.ArgumentParser:
                     help="replace the run files already in the scenarios' directories (else they are refused)")
     _add_compile_cache_options(sc)
     return p
+
+
+def _add_channel_options(p) -> None:
+    """``--by-channel``, ``--devices K`` and the ``jax.distributed`` options (:mod:`gcrsky.parallel.channels`)."""
+    g = p.add_argument_group(
+        "channels", "solve the frequency channels independently (their own key scheme: other, equally exact draws "
+        "than a joint run), with a progress bar over channels: one at a time (--by-channel), split over devices "
+        "(--devices K) or over processes (--coordinator/--num-processes/--process-id: start the same command once "
+        "per process, e.g. once per host; process 0 writes the outputs)")
+    g.add_argument("--by-channel", action="store_true",
+                   help="one channel at a time (memory of one channel's solver)")
+    g.add_argument("--devices", type=_int_at_least(1, "devices"), default=None, metavar="K",
+                   help="split the channels over K devices (on a CPU: K forced host devices, set before JAX starts)")
+    g.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                   help="jax.distributed coordinator address (process 0 listens there)")
+    g.add_argument("--num-processes", type=_int_at_least(1, "num-processes"), default=None, metavar="N")
+    g.add_argument("--process-id", type=_int_at_least(0, "process-id"), default=None, metavar="I")
+
+
+def _channel_mode(args) -> str | None:
+    """``run_problem``'s ``channels`` for the options: "processes", "devices", "loop" or None (joint)."""
+    if getattr(args, "coordinator", None):
+        return "processes"
+    if (getattr(args, "devices", None) or 1) > 1:
+        return "devices"
+    return "loop" if getattr(args, "by_channel", False) else None
+
+
+def _check_channel_options(parser, args) -> None:
+    dist = [args.coordinator, args.num_processes, args.process_id]
+    if any(v is not None for v in dist) and any(v is None for v in dist):
+        parser.error("--coordinator, --num-processes and --process-id go together")
+    if args.process_id is not None and args.process_id >= args.num_processes:
+        parser.error(f"--process-id {args.process_id} must be below --num-processes {args.num_processes}")
+
+
+def _channel_bar(disable):
+    from tqdm.auto import tqdm
+
+    return lambda total: tqdm(total=total, desc="channels", unit="channel", disable=disable, leave=False,
+                              position=1).update
 
 
 def _add_compile_cache_options(p) -> None:
@@ -342,13 +384,19 @@ def _setup_jax(args=None):
 
     Returns the :func:`gcrsky.parallel.compile_stats` snapshot to count the command's compilation from.
     """
-    from .parallel.runtime import compile_stats, use_safe_cpu_threading
+    from .parallel.runtime import compile_stats, use_host_devices, use_safe_cpu_threading
 
+    if (getattr(args, "devices", None) or 1) > 1:
+        use_host_devices(args.devices)  # CPU devices; on a GPU host the GPUs are the devices anyway
     use_safe_cpu_threading()  # before the first JAX computation (see gcrsky/parallel/runtime.py)
     import jax
 
     jax.config.update("jax_enable_x64", True)
     _setup_compile_cache(args)
+    if getattr(args, "coordinator", None):
+        from .parallel.channels import init_distributed
+
+        init_distributed(args.coordinator, args.num_processes, args.process_id)
     return compile_stats()
 
 
@@ -442,11 +490,14 @@ def _run(args) -> int:
     out = Path(args.out)
     existing = "resume" if args.resume else ("overwrite" if args.overwrite else "refuse")
     config = Config(**fields).validate()
+    mode = _channel_mode(args)
+    worker = bool(args.process_id)  # a jax.distributed process other than 0: computes, writes nothing
+    extra = None if mode is None else {"channels": mode, "channel_key_scheme": _channel_key_scheme()}
     # refuse (or resume) before the problem is built: the check needs only the settings
     settings = run_settings(config, nsamples=nsamples, seed=args.seed, batch=args.batch, method=method, tol=tol,
-                            scenario=scen)
+                            scenario=scen, extra=extra)
     try:
-        state = check_output(out, settings, existing)
+        state = None if worker else check_output(out, settings, existing)
     except (RunExistsError, ResumeError) as e:
         print(_refusal_message(e, resume=args.resume), file=sys.stderr)
         return EXIT_REFUSED
@@ -459,7 +510,8 @@ def _run(args) -> int:
         else:
             print(f"gcrsky: --resume: continuing the run in {out} at batch {state.batches_complete} of "
                   f"{state.n_batches} ({state.ndraws_complete} of {state.nsamples} draws done)")
-    out.mkdir(parents=True, exist_ok=True)
+    if not worker:
+        out.mkdir(parents=True, exist_ok=True)
     disable_bars = True if args.no_progress else None  # tqdm's None: bars only on a terminal
     t0 = time.perf_counter()
     prob = problem_from_config(config)
@@ -471,12 +523,15 @@ def _run(args) -> int:
             prob, out, nsamples=nsamples, seed=args.seed, batch=args.batch, method=method, plots=plots,
             build_s=build_s, argv=getattr(args, "_argv", None), scenario_name=scen, tol=tol,
             on_stage=bar, progress=_batch_bar(disable_bars), existing=existing, compile_since=compile0,
+            channels=mode, channel_progress=_channel_bar(disable_bars),
         )
     except (RunExistsError, ResumeError) as e:  # e.g. the inputs differ from the recorded ones
         print(_refusal_message(e, resume=args.resume), file=sys.stderr)
         return EXIT_REFUSED
     finally:
         bar.close()
+    if summary is None:
+        return _worker_done(args)
     if products["already_complete"]:
         missing = products["written"]
         print(f"gcrsky: the run in {out} was already complete; "
@@ -488,6 +543,18 @@ def _run(args) -> int:
         print("gcrsky: the draws contain NaN/inf; exiting with status 1 (results written for diagnosis).",
               file=sys.stderr)
         return 1
+    return 0
+
+
+def _channel_key_scheme() -> str:
+    from .parallel.channels import CHANNEL_KEY_SCHEME
+
+    return CHANNEL_KEY_SCHEME
+
+
+def _worker_done(args) -> int:
+    print(f"gcrsky: process {args.process_id} of {args.num_processes}: computed its channels; process 0 writes "
+          f"the results to {args.out}")
     return 0
 
 
@@ -538,7 +605,8 @@ def _run_data(args) -> int:
              "prior_scale": args.prior_scale, "noise": args.noise, "compress": not args.no_compress,
              "lmax": args.lmax, "nside": args.nside,
              "selection": {k: (list(v) if isinstance(v, tuple) else v) for k, v in kw.items()}}
-    if existing == "refuse":  # refuse before reading the file; --resume is checked once the problem is built
+    mode = _channel_mode(args)
+    if existing == "refuse" and not args.process_id:  # refuse before reading the file; --resume is checked once the problem is built
         # (its recorded settings include what the file said: conventions, selection, beam, prior)
         taken = existing_run_files(out)
         if taken:
@@ -566,12 +634,15 @@ def _run_data(args) -> int:
             prob, out, nsamples=nsamples, seed=args.seed, batch=args.batch, method=method, plots=plots,
             build_s=build_s, argv=getattr(args, "_argv", None), tol=tol, on_stage=bar,
             progress=_batch_bar(disable_bars), existing=existing, extra_settings=extra, compile_since=compile0,
+            channels=mode, channel_progress=_channel_bar(disable_bars),
         )
     except (RunExistsError, ResumeError) as e:
         print(_refusal_message(e, resume=args.resume), file=sys.stderr)
         return EXIT_REFUSED
     finally:
         bar.close()
+    if summary is None:
+        return _worker_done(args)
     if products["already_complete"]:
         print(f"gcrsky: the run in {out} was already complete")
     _print_summary(summary, out, products["written"])
@@ -758,6 +829,8 @@ def main(argv=None) -> int:
         except (ValueError, FileNotFoundError) as e:
             print(f"gcrsky inspect: {e}", file=sys.stderr)
             return 2
+    if args.command == "run":
+        _check_channel_options(parser, args)
     if args.command == "run" and args.data is not None:
         _check_data_options(parser, args)
         from tqdm.contrib.logging import logging_redirect_tqdm

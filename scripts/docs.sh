@@ -31,6 +31,7 @@ fi
 export XLA_FLAGS="${XLA_FLAGS:---xla_cpu_multi_thread_eigen=false}"
 export PJRT_NPROC="${PJRT_NPROC:-8}"   # room for blocked batched LAPACK calls (gcrsky/parallel/runtime.py)
 export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}"
+export OMP_WAIT_POLICY="${OMP_WAIT_POLICY:-PASSIVE}"  # healpy's OpenMP threads must not spin (gcrsky/parallel/runtime.py)
 export MPLBACKEND="${MPLBACKEND:-Agg}"
 export NO_MKDOCS_2_WARNING=1
 

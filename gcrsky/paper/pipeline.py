@@ -72,6 +72,13 @@ from ..io.results import (
     write_json,
 )
 from ..io.skymodel import write_skyh5
+from ..parallel.channels import (
+    CHANNEL_KEY_SCHEME,
+    distributed_channels,
+    resolve_channel_path,
+    sample_channels,
+    sample_channels_sharded,
+)
 from ..parallel.runtime import CompileStats, compile_cache_dir, compile_stats
 from ..sim.standard import beam_for_config
 from ..solvers.options import method_of, options_for
@@ -729,6 +736,88 @@ def _kill_hook(complete: int) -> None:
         os.kill(os.getpid(), getattr(signal, "SIGKILL", signal.SIGTERM))
 
 
+def _results_attrs(prob, settings, *, seed, batch, method, options, tol, scenario_name, key_scheme) -> dict:
+    """The attributes :func:`run_problem` records in a new ``results.h5``."""
+    cfg = prob.config
+    return {
+        "config_json": json.dumps(cfg.to_dict() if cfg is not None else None, default=json_default),
+        "sky_note": prob.sky_note,
+        "gcrsky_version": versions()["gcrsky"],
+        "seed": seed,
+        "batch": batch,
+        "method": method,
+        "method_requested": settings["method"],
+        "solver_options_json": _options_json(options),
+        "tol": tol,
+        "scenario": scenario_name or "",
+        "key_scheme": key_scheme,
+        "frame": parameter_frame(prob),
+    }
+
+
+def _channel_progress(progress, total: int):
+    return None if progress is None else progress(total)
+
+
+def _sample_by_channel(mode, key, system, nsamples, options, batch, update):
+    """All channels of ``system`` by :data:`~gcrsky.parallel.channels.CHANNEL_KEY_SCHEME` (``mode``: how)."""
+    kw = dict(options=options, batch=batch, progress=update)
+    if mode == "loop":
+        return sample_channels(key, system, nsamples, **kw)
+    if mode == "devices":
+        return sample_channels_sharded(key, system, nsamples, **kw)
+    return distributed_channels(key, system, nsamples, sharded=len(jax.local_devices()) > 1, **kw)
+
+
+def _worker_channels(prob, *, nsamples, seed, batch, method, tol, progress) -> None:
+    """A ``jax.distributed`` process other than 0: its share of the channels, gathered to process 0."""
+    system = prob.system()
+    options = resolve_channel_path(system, method, tol=tol, ndraws=batch)
+    update = _channel_progress(progress, prob.data.shape[0])
+    _sample_by_channel("processes", jax.random.PRNGKey(seed), system, nsamples, options, batch, update)
+
+
+def _channel_run(prob, h5, state, settings, st, *, key, nsamples, batch, method, tol, start, nbatch, mode,
+                 scenario_name, progress) -> str:
+    """``run_problem``'s set-up and draws with independent channels (``channels=mode``); returns the path.
+
+    Every channel is prepared and drawn (:mod:`gcrsky.parallel.channels`), then ``results.h5``
+    is created (or, resumed, checked) and the batches from ``start`` appended.  Starts the
+    ``"draws"`` stage and leaves it running (the caller stops it).
+    """
+    system = prob.system()
+    st.start("wiener")  # only the path here: the channels' set-up runs with their draws
+    if state is None:
+        options = resolve_channel_path(system, method, tol=tol, ndraws=batch)
+    else:
+        options = _options_from_json(state.attrs["solver_options_json"])
+    st.stop()
+    st.start("draws")
+    if start >= nbatch:
+        return str(state.attrs["method"])
+    update = _channel_progress(progress, prob.data.shape[0])
+    t0 = time.perf_counter()
+    res = _sample_by_channel(mode, key, system, nsamples, options, batch, update)
+    per_batch = (time.perf_counter() - t0) / nbatch
+    chosen = method_of(options)
+    if state is None:
+        attrs = _results_attrs(prob, settings, seed=int(settings["seed"]), batch=batch, method=chosen,
+                               options=options, tol=tol, scenario_name=scenario_name, key_scheme=CHANNEL_KEY_SCHEME)
+        create_results_h5(h5, prob, res.a_wf, nsamples=nsamples, batch=batch, settings=settings,
+                          wiener_info=res.wiener, rank=None, attrs=attrs)
+    else:
+        recorded = read_draws(h5).wiener_filter
+        if not np.array_equal(recorded, res.a_wf, equal_nan=True):
+            log.warning("the resumed channels' Wiener filter differs from the recorded one by up to %.3g K",
+                        float(np.nanmax(np.abs(recorded - res.a_wf))))
+    for b in range(start, nbatch):
+        sl = slice(b * batch, min((b + 1) * batch, nsamples))
+        info = jax.tree_util.tree_map(lambda a: np.asarray(a)[:, sl], res.info)
+        complete = append_batch(h5, b, res.draws[:, sl], info, seconds=per_batch)
+        _kill_hook(complete)
+    return chosen
+
+
 def run_problem(
     prob,
     out,
@@ -747,6 +836,8 @@ def run_problem(
     existing: str = "refuse",
     extra_settings: dict | None = None,
     compile_since: CompileStats | None = None,
+    channels: str | None = None,
+    channel_progress=None,
 ) -> tuple[dict, RunProducts]:
     """Sample ``prob`` and write ``results.h5``, the products, figures and ``summary.json`` to ``out``.
 
@@ -773,15 +864,35 @@ def run_problem(
         extra_settings: further settings that identify the run (:func:`run_settings`).
         compile_since: the :func:`gcrsky.parallel.compile_stats` snapshot to count the
             run's compilation from (e.g. taken before building ``prob``); default: now.
+        channels: None (default): one joint system, draws in batches as above.  Else the
+            channels are solved independently (:mod:`gcrsky.parallel.channels`, key scheme
+            :data:`~gcrsky.parallel.channels.CHANNEL_KEY_SCHEME`: other, equally exact
+            draws than the joint run's): ``"loop"`` one at a time (memory of one
+            channel), ``"devices"`` split over this process's devices, ``"processes"``
+            split over the processes of ``jax.distributed`` (initialised by the caller;
+            every process calls this function, only process 0 touches ``out``; the others
+            return ``(None, None)``).  The set-up and draws of every channel run before
+            ``results.h5`` is written (its batches are then appended at once), so a killed
+            channel run resumes by recomputing the channels; the draws are the same.
+        channel_progress: with ``channels``: a callable ``total -> update`` (e.g. a tqdm
+            bar's ``update``), called once; ``update(1)`` after each channel.
 
     Returns:
         (the summary dict in ``summary.json``, :class:`RunProducts`).
     """
     compile0 = compile_stats() if compile_since is None else compile_since
+    if channels not in (None, "loop", "devices", "processes"):
+        raise ValueError(f"channels must be None, 'loop', 'devices' or 'processes', got {channels!r}")
+    if channels == "processes" and jax.process_index() != 0:
+        _worker_channels(prob, nsamples=nsamples, seed=seed, batch=batch, method=method, tol=tol,
+                         progress=channel_progress)
+        return None, None
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cfg = prob.config
     n = prob.n
+    if channels is not None:
+        extra_settings = {**(extra_settings or {}), "channels": channels, "channel_key_scheme": CHANNEL_KEY_SCHEME}
     settings = run_settings(cfg, nsamples=nsamples, seed=seed, batch=batch, method=method, tol=tol,
                             scenario=scenario_name, extra=extra_settings)
     state = check_output(out, settings, existing)
@@ -813,50 +924,43 @@ def run_problem(
     before = set(existing_run_files(out))
     finalized = False
 
-    st.start("wiener")  # set-up once: P, factor / preconditioner, Wiener filter (compile included)
-    prepared = None
-    if start < nbatch:
-        if state is None:  # resolve "auto" here, so that the exact options can be recorded
-            options = choose_path(prob.system(), method, tol=tol, ndraws=batch)
-        else:  # a resumed run keeps the recorded path and its options (auto's CG is matrix-free, "cg"'s dense)
-            options = _options_from_json(state.attrs["solver_options_json"])
-        prepared = prepare(prob, options=options, ndraws=batch)
-        method = prepared.method  # what "auto" chose
-        a_wf, winfo = np.asarray(jax.block_until_ready(prepared.a_wf)), prepared.wiener
-        if state is None:
-            attrs = {
-                "config_json": json.dumps(cfg.to_dict() if cfg is not None else None, default=json_default),
-                "sky_note": prob.sky_note,
-                "gcrsky_version": versions()["gcrsky"],
-                "seed": seed,
-                "batch": batch,
-                "method": method,
-                "method_requested": settings["method"],
-                "solver_options_json": _options_json(options),
-                "tol": tol,
-                "scenario": scenario_name or "",
-                "key_scheme": KEY_SCHEME,
-                "frame": parameter_frame(prob),
-            }
-            create_results_h5(h5, prob, a_wf, nsamples=nsamples, batch=batch, settings=settings, wiener_info=winfo,
-                              rank=getattr(prepared, "rank", None), attrs=attrs)
-        else:
-            recorded = read_draws(h5).wiener_filter
-            if not np.array_equal(recorded, a_wf, equal_nan=True):
-                log.warning("the resumed set-up's Wiener filter differs from the recorded one by up to %.3g K: the "
-                            "remaining draws will not be bit-identical to an uninterrupted run's",
-                            float(np.nanmax(np.abs(recorded - a_wf))))
+    if channels is not None:  # set-up and draws of every channel; leaves the "draws" stage running
+        method = _channel_run(prob, h5, state, settings, st, key=key, nsamples=nsamples, batch=batch,
+                              method=method, tol=tol, start=start, nbatch=nbatch, mode=channels,
+                              scenario_name=scenario_name, progress=channel_progress)
     else:
-        method = str(state.attrs["method"])
-    st.stop()
+        st.start("wiener")  # set-up once: P, factor / preconditioner, Wiener filter (compile included)
+        prepared = None
+        if start < nbatch:
+            if state is None:  # resolve "auto" here, so that the exact options can be recorded
+                options = choose_path(prob.system(), method, tol=tol, ndraws=batch)
+            else:  # a resumed run keeps the recorded path and its options (auto's CG is matrix-free, "cg"'s dense)
+                options = _options_from_json(state.attrs["solver_options_json"])
+            prepared = prepare(prob, options=options, ndraws=batch)
+            method = prepared.method  # what "auto" chose
+            a_wf, winfo = np.asarray(jax.block_until_ready(prepared.a_wf)), prepared.wiener
+            if state is None:
+                attrs = _results_attrs(prob, settings, seed=seed, batch=batch, method=method, options=options,
+                                       tol=tol, scenario_name=scenario_name, key_scheme=KEY_SCHEME)
+                create_results_h5(h5, prob, a_wf, nsamples=nsamples, batch=batch, settings=settings, wiener_info=winfo,
+                                  rank=getattr(prepared, "rank", None), attrs=attrs)
+            else:
+                recorded = read_draws(h5).wiener_filter
+                if not np.array_equal(recorded, a_wf, equal_nan=True):
+                    log.warning("the resumed set-up's Wiener filter differs from the recorded one by up to %.3g K: the "
+                                "remaining draws will not be bit-identical to an uninterrupted run's",
+                                float(np.nanmax(np.abs(recorded - a_wf))))
+        else:
+            method = str(state.attrs["method"])
+        st.stop()
 
-    st.start("draws")
-    batches = range(start, nbatch)
-    for b in progress(batches) if progress is not None else batches:
-        t0 = time.perf_counter()
-        d, info = draw_batch(key, prepared, b, batch, nsamples)
-        complete = append_batch(h5, b, d, info, seconds=time.perf_counter() - t0)
-        _kill_hook(complete)
+        st.start("draws")
+        batches = range(start, nbatch)
+        for b in progress(batches) if progress is not None else batches:
+            t0 = time.perf_counter()
+            d, info = draw_batch(key, prepared, b, batch, nsamples)
+            complete = append_batch(h5, b, d, info, seconds=time.perf_counter() - t0)
+            _kill_hook(complete)
     stored = read_draws(h5)
     draws, a_wf = stored.draws, stored.wiener_filter
     st.stop()
