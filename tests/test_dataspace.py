@@ -130,6 +130,24 @@ def test_data_space_matrix_is_dense_algebra(icrs, chunk):
         assert np.max(np.abs(D[f] - ref)) < 1e-12 * np.max(np.abs(ref))
 
 
+def test_stationary_shortcut_equals_the_general_construction(partial, icrs):
+    """One block per distinct lag (no frame map, S commutes with rotations about the pole) gives the D of
+    the per-time blocks to rounding; it is not used with a frame map or a prior that does not commute."""
+    from gcrsky.solvers.dataspace import lag_structure
+
+    lags = lag_structure(partial)
+    assert lags is not None and lags.lags.shape == (3,)  # 2 times: lags -dt, 0, dt
+    D = np.asarray(dataspace_matrix(partial))
+    np.testing.assert_allclose(np.asarray(dataspace_matrix(partial, None, lags)), D, rtol=0, atol=1e-13 * np.abs(D).max())
+    assert lag_structure(icrs) is None  # frame map
+    iv = partial.prior.inv_var
+    odd = partial._replace(prior=partial.prior._replace(inv_var=iv.at[:, -1].multiply(2.0)))  # one Im part only
+    assert lag_structure(odd) is None
+    e1 = gcrsky.log_evidence(partial, options=DataSpaceOptions())
+    e2 = gcrsky.log_evidence(partial, options=DataSpaceOptions(stationary=False))
+    np.testing.assert_allclose(np.asarray(e1), np.asarray(e2), rtol=1e-12)
+
+
 @pytest.mark.parametrize("fixture", ["partial", "icrs"])
 def test_wiener_filter_equals_the_dense_solve(fixture, request):
     system = request.getfixturevalue(fixture)
@@ -287,3 +305,5 @@ def test_options_validate():
         DataSpaceOptions(time_chunk=0)
     with pytest.raises(ValueError, match="throw"):
         DataSpaceOptions(throw=1)
+    with pytest.raises(ValueError, match="stationary"):
+        DataSpaceOptions(stationary="yes")

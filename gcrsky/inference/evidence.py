@@ -59,7 +59,7 @@ import numpy as np
 from ..model.operator import adjoint, apply
 from ..model.system import LinearSystem, data_apply, precision_matrix
 from ..solvers.cg import freq_slice, prepare_cg
-from ..solvers.dataspace import dataspace_evidence_parts
+from ..solvers.dataspace import dataspace_evidence_parts, lag_structure
 from ..solvers.dense import _eigh_parts, cholesky_logdet, cholesky_solve
 from ..solvers.info import SolveInfo, direct_info
 from ..solvers.mmode import prepare_mmode
@@ -217,7 +217,8 @@ def log_evidence_system(
     b_res = terms["b_res"]
     method = method_of(options)
     if method == "dataspace":
-        q, logdet, finite = dataspace_evidence_parts(system, options.time_chunk)
+        lags = lag_structure(system) if options.stationary else None  # None under a trace
+        q, logdet, finite = dataspace_evidence_parts(system, options.time_chunk, lags)
         zeros = jnp.zeros(q.shape)
         info = direct_info(zeros, zeros, finite)
         if options.throw:

@@ -37,6 +37,18 @@ does not store the per-time responses either.  Cost: ``~Nf N_d^2 n`` flop for D
 Wiener filter and each draw cost one product with X and one with ``X^T``
 (``~8 Nf N_d n`` flop, matrix-free) and two triangular solves (``2 Nf N_d^2``).
 
+Stationary shortcut (:func:`lag_structure`).  Without a frame map, ``X_t = R Q(t)`` with
+``Q(t)`` the rotation about the pole (:func:`gcrsky.sphere.rotate`), and when S commutes
+with it (equal variances for the two real parts of every ``a_lm``, as any isotropic
+prior has) every block depends only on the lag: ``Y_t S Y_t'^T = W_t^1/2 R_r S Q(t - t')
+R_r^T W_t'^1/2`` with ``R_r = [Re R; Im R]``.  Then D needs one ``2 Nbl x 2 Nbl`` product
+per distinct lag ``t - t'`` (``2 Nt - 1`` for equally spaced times, against
+``Nt (Nt + 1) / 2`` blocks, each of per-time responses): measured ~30x faster at 60
+times.  It is used when the angles and the prior are concrete (host-side), there is no
+frame map and S commutes; lags closer than :data:`LAG_TOL` rad share one block (phase
+error ``<= lmax LAG_TOL``).  Under a trace (e.g. ``jax.grad`` of the evidence in the
+prior) the general construction runs: same D to rounding.
+
 Differentiation is implicit as on the primal Cholesky path: solves with D go through
 :func:`gcrsky.solvers.cholesky_solve` (``dx = D^-1 (db - dD x)``, the factor held
 fixed) and ``log det D`` through :func:`gcrsky.solvers.cholesky_logdet`
@@ -52,7 +64,7 @@ prior part (``delta``, (Nf, n)) and the noise part (``z``, (Nf, N_d)).  A flat p
 from __future__ import annotations
 
 from functools import partial
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
@@ -63,6 +75,7 @@ from ..base.dtypes import check_float64
 from ..base.memory import check_memory
 from ..model.operator import adjoint, apply, response_at
 from ..model.system import LinearSystem, precision_apply, wiener_rhs
+from ..sphere.rotation import rotate
 from .dense import cholesky_logdet, cholesky_solve
 from .info import SolveInfo, direct_info, exact_info
 from .options import DataSpaceOptions
@@ -70,6 +83,9 @@ from .options import DataSpaceOptions
 __all__ = [
     "DataSpaceState",
     "CHUNK_BYTES",
+    "LAG_TOL",
+    "LagStructure",
+    "lag_structure",
     "check_proper_prior",
     "data_size",
     "dataspace_evidence_parts",
@@ -157,6 +173,75 @@ def check_proper_prior(system: LinearSystem) -> None:
 
 # ---------------------------------------------------------------- D = I + Y S Y^T
 
+#: Lags ``t - t'`` (radians) closer than this share one block of D on the stationary shortcut.
+LAG_TOL = 1e-13
+
+
+class LagStructure(NamedTuple):
+    """The distinct lags of a stationary system (:func:`lag_structure`).
+
+    Attributes:
+        lags: (k,) distinct values of ``angle_t - angle_t'``, radians.
+        index: (Nt, Nt) int, the lag of each pair of times (an index into ``lags``).
+    """
+
+    lags: jax.Array
+    index: jax.Array
+
+
+def _concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def lag_structure(system: LinearSystem, tol: float = LAG_TOL) -> LagStructure | None:
+    """The stationary shortcut's lags (module docstring), or None where it does not apply.
+
+    None when there is a frame map, when the angles or the prior's inverse variances are
+    traced (they decide whether the shortcut is exact), or when S does not commute with
+    rotations about the pole (the two real parts of some ``a_lm``, ``m > 0``, have
+    different prior variances).  Host-side.
+    """
+    op = system.op
+    if op.frame is not None or not (_concrete(op.angles) and _concrete(system.prior.inv_var)):
+        return None
+    iv = np.asarray(system.prior.inv_var)
+    n = iv.shape[-1]
+    lmax = int(round(np.sqrt(n))) - 1
+    nalm = (lmax + 1) * (lmax + 2) // 2
+    if (lmax + 1) ** 2 != n or not np.array_equal(iv[..., lmax + 1 : nalm], iv[..., nalm:]):
+        return None
+    ang = np.asarray(op.angles, np.float64)
+    diff = (ang[:, None] - ang[None, :]).ravel()
+    order = np.argsort(diff, kind="stable")
+    new = np.concatenate([[True], np.diff(diff[order]) > tol])  # start of each group of equal lags
+    group = np.cumsum(new) - 1
+    index = np.empty(diff.size, np.int64)
+    index[order] = group
+    lags = diff[order][new]  # each group's smallest member: an exact difference of two angles
+    return LagStructure(jnp.asarray(lags), jnp.asarray(index.reshape(ang.size, ang.size), jnp.int32))
+
+
+def _lag_matrix(system: LinearSystem, lagst: LagStructure) -> jax.Array:
+    """``D`` by the stationary shortcut: one ``2 Nbl x 2 Nbl`` product per distinct lag."""
+    nf, nt, nbl = system.data.shape
+    R = system.op.response
+    Rr = jnp.concatenate([R.real, R.imag], axis=1)  # (Nf, 2 Nbl, n): rows p * Nbl + b
+    Rs = Rr / system.prior.inv_var[:, None, :]
+
+    @jax.checkpoint
+    def one(lag):
+        return jnp.einsum("fak,fbk->fab", Rs, rotate(Rr, lag))
+
+    G = jax.lax.map(one, lagst.lags)  # (k, Nf, 2 Nbl, 2 Nbl)
+    B = 2 * nbl
+    core = jnp.moveaxis(G[lagst.index], 2, 0)  # (Nf, Nt, Nt, B, B)
+    core = jnp.swapaxes(core, 2, 3).reshape(nf, nt * B, nt * B)
+    sw = _sqrt_w(system)
+    rows = jnp.concatenate([sw, sw], axis=-1).reshape(nf, nt * B)  # (Nf, N_d) in the row layout
+    D = rows[:, :, None] * core * rows[:, None, :]
+    D = 0.5 * (D + jnp.swapaxes(D, -1, -2))
+    return D + jnp.eye(nt * B, dtype=D.dtype)
+
 
 #: Largest size of one chunk of whitened rows ``Y_c`` (all channels) formed at a time when D is built.
 CHUNK_BYTES = 64 * 2**20
@@ -187,8 +272,11 @@ def _chunk_rows(op, sqrt_w: jax.Array, times: jax.Array) -> jax.Array:
 
 
 @partial(jax.jit, static_argnames=("chunk",))
-def dataspace_matrix(system: LinearSystem, chunk: int | None = None) -> jax.Array:
+def dataspace_matrix(system: LinearSystem, chunk: int | None = None, lags: LagStructure | None = None) -> jax.Array:
     """``D = I + W^1/2 X S X^T W^1/2``, (Nf, N_d, N_d), from blocks of times (module docstring).
+
+    With ``lags`` (:func:`lag_structure` of this system) by the stationary shortcut,
+    one block per distinct lag; else as follows.
 
     Never materialises X for every time (unless it is small): the times are cut into
     chunks of ``chunk`` times (default :func:`time_chunk`: rows of at most
@@ -197,6 +285,8 @@ def dataspace_matrix(system: LinearSystem, chunk: int | None = None) -> jax.Arra
     per-time responses (:func:`gcrsky.model.response_at`), rematerialised under
     reverse-mode differentiation; memory ``O(Nf N_d^2 + CHUNK_BYTES)``.
     """
+    if lags is not None:
+        return _lag_matrix(system, lags)
     op = system.op
     nf, nt, nbl = system.data.shape
     c = time_chunk(system, chunk)
@@ -250,8 +340,8 @@ def _whitened_residual(system: LinearSystem, sqrt_w):
     return to_rows(jnp.where(system.inv_noise > 0, sqrt_w * r, 0.0))
 
 
-def _factor(system: LinearSystem, chunk: int | None = None):
-    D = dataspace_matrix(system, chunk)
+def _factor(system: LinearSystem, chunk: int | None = None, lags: LagStructure | None = None):
+    D = dataspace_matrix(system, chunk, lags)
     return D, jnp.linalg.cholesky(D)
 
 
@@ -264,11 +354,12 @@ def _posterior_cov_apply(system: LinearSystem, sqrt_w, D, L, v):
 
 
 @partial(jax.jit, static_argnames=("options",))
-def _prepare_dataspace(system: LinearSystem, options: DataSpaceOptions = DataSpaceOptions()) -> DataSpaceState:
+def _prepare_dataspace(system: LinearSystem, options: DataSpaceOptions = DataSpaceOptions(),
+                       lags: LagStructure | None = None) -> DataSpaceState:
     check_float64(system.op.response, system.inv_noise)
     sqrt_w = _sqrt_w(system)
     s = 1.0 / system.prior.inv_var
-    D, L = _factor(system, options.time_chunk)
+    D, L = _factor(system, options.time_chunk, lags)
     x = cholesky_solve(D, L, _whitened_residual(system, sqrt_w))
     a_wf = system.prior.mean + s * _y_adjoint(system, sqrt_w, x)
     # how good is it: the true (matrix-free) residual of P a = b, in posterior-sigma units
@@ -307,7 +398,8 @@ def prepare_dataspace(system: LinearSystem, options: DataSpaceOptions | None = N
         check_memory(dataspace_memory_bytes(system), f"the data-space path (D: {nf} x {nd} x {nd})",
                      "use method='cg' with CGOptions(dense=False) (matrix-free) or method='auto'",
                      budget=memory_budget)
-    return _prepare_dataspace(system, options)
+    lags = lag_structure(system) if options.stationary else None
+    return _prepare_dataspace(system, options, lags)
 
 
 @partial(jax.jit, static_argnames=("ndraws",))
@@ -347,19 +439,19 @@ def draw_dataspace(key: jax.Array, state: DataSpaceState, ndraws: int):
 
 
 @partial(jax.jit, static_argnames=("chunk",))
-def dataspace_evidence_parts(system: LinearSystem, chunk: int | None = None):
+def dataspace_evidence_parts(system: LinearSystem, chunk: int | None = None, lags: LagStructure | None = None):
     """The data-space terms of the log evidence, per channel (Nf,) each.
 
     Returns:
         ``(q, logdet, finite)``: ``q = r~^T D^-1 r~`` with ``r~ = W^1/2 (d - X a0)``
         (equal to ``r^T W r - b'^T P^-1 b'`` by Woodbury), ``logdet = log det D``
         (``= log det(I + H)``, the prior-whitened precision's, by Sylvester) and whether
-        the factor is finite (``chunk``: as :func:`dataspace_matrix`).  ``log p(d) = -1/2 [q + logdet - log det W + N_d log 2 pi]``
+        the factor is finite (``chunk``, ``lags``: as :func:`dataspace_matrix`).  ``log p(d) = -1/2 [q + logdet - log det W + N_d log 2 pi]``
         over the unflagged samples.  Differentiates implicitly (the solve) and by
         ``tr(D^-1 dD)`` (the log determinant), to second order.
     """
     sqrt_w = _sqrt_w(system)
-    D, L = _factor(system, chunk)
+    D, L = _factor(system, chunk, lags)
     rt = _whitened_residual(system, sqrt_w)
     q = jnp.sum(rt * cholesky_solve(D, L, rt), axis=-1)
     finite = jnp.all(jnp.isfinite(jax.lax.stop_gradient(L)), axis=(1, 2))

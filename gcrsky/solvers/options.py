@@ -185,16 +185,22 @@ class DataSpaceOptions:
             and memory.
         throw: raise (through ``equinox.error_if``) when the factor of ``D`` or the
             Wiener filter is not finite (e.g. a flat prior direction under a trace).
+        stationary: build D by the stationary shortcut (one block per distinct lag
+            between times; :func:`gcrsky.solvers.dataspace.lag_structure`) where it is
+            exact, checked on concrete arrays; False: always the general construction.
     """
 
     time_chunk: int | None = None
     throw: bool = False
+    stationary: bool = True
 
     method = "dataspace"
 
     def __post_init__(self):
         if not isinstance(self.throw, bool):
             raise ValueError(f"throw must be True or False, got {self.throw!r}")
+        if not isinstance(self.stationary, bool):
+            raise ValueError(f"stationary must be True or False, got {self.stationary!r}")
         if self.time_chunk is not None:
             _positive("time_chunk", self.time_chunk, integer=True)
 
