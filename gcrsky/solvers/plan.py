@@ -51,7 +51,7 @@ import numpy as np
 from ..base.memory import available_memory_bytes, check_memory, format_bytes
 from ..model.operator import n_in
 from ..model.system import LinearSystem
-from .dataspace import check_proper_prior, dataspace_memory_bytes
+from .dataspace import check_proper_prior, dataspace_memory_bytes, lag_structure
 from .mmode import mmode_check
 from .options import (
     CGOptions,
@@ -144,7 +144,9 @@ def path_cost_flop(system: LinearSystem, method: str, *, ndraws: int = PLAN_DRAW
 
     Rough but of the right order (the planner compares them): ``"cholesky"`` / ``"eigh"``:
     P from the per-time responses (``8 Nf Nt Nbl n^2``) and its factor (``Nf n^3 / 3``), then
-    ``2 n^2`` per draw; ``"dataspace"``: D (``4 Nf N_d^2 n`` with ``N_d = 2 Nt Nbl``) and its
+    ``2 n^2`` per draw; ``"dataspace"``: D (``4 Nf N_d^2 n`` with ``N_d = 2 Nt Nbl``, or
+    ``8 Nf k (2 Nbl)^2 n`` for ``k`` distinct lags on the stationary shortcut,
+    :func:`gcrsky.solvers.dataspace.lag_structure`) and its
     factor (``Nf N_d^3 / 3``), then per draw the products with X and ``X^T``
     (``16 Nf Nt Nbl n`` plus ``~8 Nf Nt (lmax+1)^3`` for the rotations) and two triangular
     solves (``2 Nf N_d^2``).
@@ -155,7 +157,9 @@ def path_cost_flop(system: LinearSystem, method: str, *, ndraws: int = PLAN_DRAW
     if method == "dataspace":
         nd = 2.0 * nt * nbl
         rot = 8.0 * nf * nt * (np.sqrt(n)) ** 3
-        return 4.0 * nf * nd * nd * n + nf * nd**3 / 3.0 + ndraws * (16.0 * nf * nt * nbl * n + rot + 2.0 * nf * nd * nd)
+        lags = lag_structure(system)
+        build = 4.0 * nf * nd * nd * n if lags is None else 8.0 * nf * lags.lags.shape[0] * (2.0 * nbl) ** 2 * n
+        return build + nf * nd**3 / 3.0 + ndraws * (16.0 * nf * nt * nbl * n + rot + 2.0 * nf * nd * nd)
     raise ValueError(f"no cost model for method {method!r} (direct paths only: 'cholesky', 'eigh', 'dataspace')")
 
 
