@@ -267,6 +267,10 @@ def test_draw_key_scheme_and_jit(partial):
     assert not np.allclose(one[:, 0], d3[:, 2])
     d_jit = np.asarray(jax.jit(lambda k, s: draw_dataspace(k, s, 3)[0])(key, st))
     np.testing.assert_allclose(d_jit, d3, rtol=1e-12, atol=1e-12)
+    assert st.rows is not None  # small: Y = W^1/2 X is kept for the draws
+    mf = prepare_dataspace(partial, DataSpaceOptions(materialize=False))
+    assert mf.rows is None  # the matrix-free draws: the same numbers
+    np.testing.assert_allclose(np.asarray(draw_dataspace(key, mf, 3)[0]), d3, rtol=1e-12, atol=1e-12)
     draws, info = gcrsky.sample(key, partial, 3, method="dataspace")
     np.testing.assert_allclose(np.asarray(draws), d3, rtol=1e-12, atol=1e-12)
     assert np.all(np.asarray(info["draws"].converged))
@@ -285,8 +289,9 @@ def test_auto_picks_data_space_where_it_is_cheaper_and_says_why(partial):
     plan = plan_sampler(one)
     assert plan.method == "dataspace", plan.reason
     assert f"N_d = {data_size(one)}" in plan.reason and "n = 289" in plan.reason
-    # at lmax 10 (n = 121) the dense path is cheaper for 200 draws (each data-space draw needs X and X^T)
-    plan = plan_sampler(partial)
+    # at lmax 6 (n = 49, N_d = 28) the dense path is cheaper for 200 draws (each data-space draw needs Y and Y^T)
+    small = _problem(6, 1).system()
+    plan = plan_sampler(small)
     assert plan.method == "cholesky" and "cheaper than data space" in plan.reason, plan.reason
     # ... unless the dense P does not fit: then data space is the only direct path left
     budget = 0.9 * path_memory_bytes(partial, "cholesky") / 0.5
@@ -307,3 +312,5 @@ def test_options_validate():
         DataSpaceOptions(throw=1)
     with pytest.raises(ValueError, match="stationary"):
         DataSpaceOptions(stationary="yes")
+    with pytest.raises(ValueError, match="materialize"):
+        DataSpaceOptions(materialize=1)

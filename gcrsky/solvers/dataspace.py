@@ -85,7 +85,9 @@ __all__ = [
     "CHUNK_BYTES",
     "LAG_TOL",
     "LagStructure",
+    "ROWS_MAX_BYTES",
     "lag_structure",
+    "materialize_rows",
     "check_proper_prior",
     "data_size",
     "dataspace_evidence_parts",
@@ -110,6 +112,10 @@ class DataSpaceState(eqx.Module):
             ``sqrt(r^T P^-1 r)`` with ``P^-1`` applied in data space (rounding only).
         gram: ``D = I + W^1/2 X S X^T W^1/2``, (Nf, N_d, N_d).
         chol: lower Cholesky factor of D, (Nf, N_d, N_d).
+        rows: ``Y = W^1/2 X`` realified, (Nf, N_d, n), when materialised
+            (:class:`~gcrsky.solvers.DataSpaceOptions` ``materialize``): then the draws'
+            products with Y and ``Y^T`` are two matrix products over the batch instead of
+            per-draw matrix-free products with their per-time rotations; else None.
     """
 
     system: LinearSystem
@@ -117,6 +123,7 @@ class DataSpaceState(eqx.Module):
     wiener: SolveInfo
     gram: jax.Array
     chol: jax.Array
+    rows: jax.Array | None = None
 
     method: ClassVar[str] = "dataspace"
 
@@ -141,18 +148,20 @@ def from_rows(u: jax.Array, nt: int, nbl: int) -> jax.Array:
     return u[..., 0, :] + 1j * u[..., 1, :]
 
 
-def dataspace_memory_bytes(system: LinearSystem, ndraws: int = 1) -> float:
+def dataspace_memory_bytes(system: LinearSystem, ndraws: int = 1, materialize: bool = False) -> float:
     """Estimated peak bytes of the data-space path's large arrays (float64), beyond the system.
 
     D and its factor (``2 x 8 Nf N_d^2``), the transient copies of the block assembly
     (``~2 x 8 Nf N_d^2``), two per-time responses (``2 x 16 Nf Nbl n``) and per draw the
-    operator's rotated copies (``2 x 8 Nf Nt n``) and vectors (``~6 x 8 Nf (N_d + n)``).
+    operator's rotated copies (``2 x 8 Nf Nt n``) and vectors (``~6 x 8 Nf (N_d + n)``);
+    with ``materialize``, ``Y`` itself (``8 Nf N_d n``) and no per-draw rotated copies.
     """
     nf, nt, nbl = (int(x) for x in system.data.shape)
     n = int(system.prior.mean.shape[-1])
     nd = 2 * nt * nbl
-    return (4.0 * 8 * nf * nd * nd + 2.0 * 16 * nf * nbl * n
-            + max(1, ndraws) * (2.0 * 8 * nf * nt * n + 6.0 * 8 * nf * (nd + n)))
+    per_draw = 6.0 * 8 * nf * (nd + n) + (0.0 if materialize else 2.0 * 8 * nf * nt * n)
+    return (4.0 * 8 * nf * nd * nd + 2.0 * 16 * nf * nbl * n + (8.0 * nf * nd * n if materialize else 0.0)
+            + max(1, ndraws) * per_draw)
 
 
 def check_proper_prior(system: LinearSystem) -> None:
@@ -244,7 +253,7 @@ def _lag_matrix(system: LinearSystem, lagst: LagStructure) -> jax.Array:
 
 
 #: Largest size of one chunk of whitened rows ``Y_c`` (all channels) formed at a time when D is built.
-CHUNK_BYTES = 64 * 2**20
+CHUNK_BYTES = 512 * 2**20
 
 
 def time_chunk(system: LinearSystem, chunk: int | None = None) -> int:
@@ -353,9 +362,21 @@ def _posterior_cov_apply(system: LinearSystem, sqrt_w, D, L, v):
     return sv - s * _y_adjoint(system, sqrt_w, x)
 
 
-@partial(jax.jit, static_argnames=("options",))
+#: Largest ``Y = W^1/2 X`` (bytes, all channels) that ``materialize=None`` keeps for the draws.
+ROWS_MAX_BYTES = 4 * 2**30
+
+
+def materialize_rows(system: LinearSystem, options: DataSpaceOptions) -> bool:
+    """Whether the draws use a materialised ``Y`` (``options.materialize``; None: ``8 Nf N_d n <= ROWS_MAX_BYTES``)."""
+    if options.materialize is not None:
+        return bool(options.materialize)
+    nf = int(system.data.shape[0])
+    return 8.0 * nf * data_size(system) * int(system.prior.mean.shape[-1]) <= ROWS_MAX_BYTES
+
+
+@partial(jax.jit, static_argnames=("options", "materialize"))
 def _prepare_dataspace(system: LinearSystem, options: DataSpaceOptions = DataSpaceOptions(),
-                       lags: LagStructure | None = None) -> DataSpaceState:
+                       lags: LagStructure | None = None, materialize: bool = False) -> DataSpaceState:
     check_float64(system.op.response, system.inv_noise)
     sqrt_w = _sqrt_w(system)
     s = 1.0 / system.prior.inv_var
@@ -373,7 +394,11 @@ def _prepare_dataspace(system: LinearSystem, options: DataSpaceOptions = DataSpa
     if options.throw:
         a_wf = eqx.error_if(a_wf, ~info.converged, "gcrsky data space: D is not positive definite or the Wiener "
                                                     "filter is not finite (a flat prior direction?)")
-    return DataSpaceState(system, a_wf, info, D, L)
+    rows = None
+    if materialize:
+        nt = system.data.shape[1]
+        rows = _chunk_rows(system.op, sqrt_w, jnp.arange(nt))  # (Nf, N_d, n)
+    return DataSpaceState(system, a_wf, info, D, L, rows)
 
 
 def prepare_dataspace(system: LinearSystem, options: DataSpaceOptions | None = None, *,
@@ -395,11 +420,12 @@ def prepare_dataspace(system: LinearSystem, options: DataSpaceOptions | None = N
     if concrete:
         check_proper_prior(system)
         nd, nf = data_size(system), int(system.data.shape[0])
-        check_memory(dataspace_memory_bytes(system), f"the data-space path (D: {nf} x {nd} x {nd})",
+        check_memory(dataspace_memory_bytes(system, 1, materialize_rows(system, options)),
+                     f"the data-space path (D: {nf} x {nd} x {nd})",
                      "use method='cg' with CGOptions(dense=False) (matrix-free) or method='auto'",
                      budget=memory_budget)
     lags = lag_structure(system) if options.stationary else None
-    return _prepare_dataspace(system, options, lags)
+    return _prepare_dataspace(system, options, lags, materialize_rows(system, options))
 
 
 @partial(jax.jit, static_argnames=("ndraws",))
@@ -421,15 +447,23 @@ def draw_dataspace(key: jax.Array, state: DataSpaceState, ndraws: int):
     s = 1.0 / system.prior.inv_var
     keep = to_rows(jnp.where(system.inv_noise > 0, 1.0 + 1.0j, 0.0)).astype(a_wf.dtype)  # 1 on unflagged rows
 
-    def one(k):
+    def normals(k):
         ka, kn = jax.random.split(k)
         delta = jnp.sqrt(s) * jax.random.normal(ka, (nf, n), a_wf.dtype)
         z = keep * jax.random.normal(kn, (nf, nd), a_wf.dtype)
-        return delta, _y_apply(system, sqrt_w, delta) + z
+        return delta, z
 
-    delta, u = jax.vmap(one)(jax.random.split(key, ndraws))  # (ndraws, Nf, n), (ndraws, Nf, N_d)
+    delta, z = jax.vmap(normals)(jax.random.split(key, ndraws))  # (ndraws, Nf, n), (ndraws, Nf, N_d)
+    Y = state.rows
+    if Y is None:  # matrix-free products, draw by draw
+        u = jax.vmap(lambda dd: _y_apply(system, sqrt_w, dd))(delta) + z
+    else:
+        u = jnp.einsum("fak,dfk->dfa", Y, delta) + z
     x = jax.vmap(lambda uu: cholesky_solve(D, L, uu))(u)
-    corr = jax.vmap(lambda xx: s * _y_adjoint(system, sqrt_w, xx))(x)
+    if Y is None:
+        corr = jax.vmap(lambda xx: s * _y_adjoint(system, sqrt_w, xx))(x)
+    else:
+        corr = s * jnp.einsum("fak,dfa->dfk", Y, x)
     out = a_wf[:, None, :] + jnp.moveaxis(delta - corr, 0, 1)
     ok = state.wiener.converged[:, None] & jnp.all(jnp.isfinite(out), axis=-1)
     return out, {"wiener": state.wiener, "draws": exact_info(ok, (nf, ndraws)), "a_wf": a_wf}

@@ -181,18 +181,23 @@ class DataSpaceOptions:
     Attributes:
         time_chunk: times per block when D is built (blocks ``Y_c S Y_c'^T`` of
             ``2 Nbl time_chunk`` rows); None: as many as keep a block's rows under
-            64 MiB (:func:`gcrsky.solvers.dataspace.time_chunk`).  Changes only speed
+            512 MiB (:func:`gcrsky.solvers.dataspace.time_chunk`).  Changes only speed
             and memory.
         throw: raise (through ``equinox.error_if``) when the factor of ``D`` or the
             Wiener filter is not finite (e.g. a flat prior direction under a trace).
         stationary: build D by the stationary shortcut (one block per distinct lag
             between times; :func:`gcrsky.solvers.dataspace.lag_structure`) where it is
             exact, checked on concrete arrays; False: always the general construction.
+        materialize: keep ``Y = W^1/2 X`` (``8 Nf N_d n`` bytes) for the draws, whose
+            products with Y and ``Y^T`` become matrix products over the batch; None:
+            when it takes at most ``gcrsky.solvers.dataspace.ROWS_MAX_BYTES`` (4 GiB).
+            Changes only speed and memory.
     """
 
     time_chunk: int | None = None
     throw: bool = False
     stationary: bool = True
+    materialize: bool | None = None
 
     method = "dataspace"
 
@@ -201,6 +206,8 @@ class DataSpaceOptions:
             raise ValueError(f"throw must be True or False, got {self.throw!r}")
         if not isinstance(self.stationary, bool):
             raise ValueError(f"stationary must be True or False, got {self.stationary!r}")
+        if self.materialize is not None and not isinstance(self.materialize, bool):
+            raise ValueError(f"materialize must be None, True or False, got {self.materialize!r}")
         if self.time_chunk is not None:
             _positive("time_chunk", self.time_chunk, integer=True)
 

@@ -51,7 +51,7 @@ import numpy as np
 from ..base.memory import available_memory_bytes, check_memory, format_bytes
 from ..model.operator import n_in
 from ..model.system import LinearSystem
-from .dataspace import check_proper_prior, dataspace_memory_bytes, lag_structure
+from .dataspace import check_proper_prior, dataspace_memory_bytes, lag_structure, materialize_rows
 from .mmode import mmode_check
 from .options import (
     CGOptions,
@@ -132,7 +132,7 @@ def path_memory_bytes(
     if method in ("cholesky", "eigh"):  # P, factor and L^-T (Cholesky) / P and eigenvectors, sqrt_cov (eigh)
         return 3.0 * 8 * nf * n * n + 8.0 * nf * max(1, ndraws) * n
     if method == "dataspace":  # D, its factor, the assembly's transients, per-time responses, per-draw vectors
-        return dataspace_memory_bytes(system, ndraws)
+        return dataspace_memory_bytes(system, ndraws, materialize_rows(system, DataSpaceOptions()))
     if method == "cg":
         sketch = max(3.0 * 8 * nf * n * min(n, rank), 8.0 * nf * (lmax + 1) * (2 * lmax + 2) ** 2)
         return (8.0 * nf * n * n if dense else 0.0) + sketch + vec
@@ -148,8 +148,8 @@ def path_cost_flop(system: LinearSystem, method: str, *, ndraws: int = PLAN_DRAW
     ``8 Nf k (2 Nbl)^2 n`` for ``k`` distinct lags on the stationary shortcut,
     :func:`gcrsky.solvers.dataspace.lag_structure`) and its
     factor (``Nf N_d^3 / 3``), then per draw the products with X and ``X^T``
-    (``16 Nf Nt Nbl n`` plus ``~8 Nf Nt (lmax+1)^3`` for the rotations) and two triangular
-    solves (``2 Nf N_d^2``).
+    (``16 Nf Nt Nbl n`` plus ``~8 Nf Nt (lmax+1)^3`` for the rotations; ``4 Nf N_d n`` with
+    ``Y = W^1/2 X`` materialised) and two triangular solves (``2 Nf N_d^2``).
     """
     nf, nt, nbl, n = _sizes(system)
     if method in ("cholesky", "eigh"):
@@ -159,7 +159,9 @@ def path_cost_flop(system: LinearSystem, method: str, *, ndraws: int = PLAN_DRAW
         rot = 8.0 * nf * nt * (np.sqrt(n)) ** 3
         lags = lag_structure(system)
         build = 4.0 * nf * nd * nd * n if lags is None else 8.0 * nf * lags.lags.shape[0] * (2.0 * nbl) ** 2 * n
-        return build + nf * nd**3 / 3.0 + ndraws * (16.0 * nf * nt * nbl * n + rot + 2.0 * nf * nd * nd)
+        per_draw = (4.0 * nf * nd * n if materialize_rows(system, DataSpaceOptions()) else
+                    16.0 * nf * nt * nbl * n + rot)
+        return build + nf * nd**3 / 3.0 + ndraws * (per_draw + 2.0 * nf * nd * nd)
     raise ValueError(f"no cost model for method {method!r} (direct paths only: 'cholesky', 'eigh', 'dataspace')")
 
 
