@@ -482,7 +482,7 @@ def _refusal_message(e, *, resume: bool) -> str:
 
 def _run(args) -> int:
     compile0 = _setup_jax(args)
-    from .paper.pipeline import ResumeError, RunExistsError, check_output, run_problem, run_settings
+    from .paper.pipeline import ResumeError, RunExistsError, check_output, run_settings
     from .sim.config import Config
     from .sim.standard import problem_from_config
 
@@ -518,20 +518,12 @@ def _run(args) -> int:
     build_s = time.perf_counter() - t0
     plots = not args.no_plots
     bar = _StageBar(["wiener", "draws", "maps"] + (["plots"] if plots else []) + ["write"], disable_bars)
-    try:
-        summary, products = run_problem(
-            prob, out, nsamples=nsamples, seed=args.seed, batch=args.batch, method=method, plots=plots,
-            build_s=build_s, argv=getattr(args, "_argv", None), scenario_name=scen, tol=tol,
-            on_stage=bar, progress=_batch_bar(disable_bars), existing=existing, compile_since=compile0,
-            channels=mode, channel_progress=_channel_bar(disable_bars),
-        )
-    except (RunExistsError, ResumeError) as e:  # e.g. the inputs differ from the recorded ones
-        print(_refusal_message(e, resume=args.resume), file=sys.stderr)
-        return EXIT_REFUSED
-    finally:
-        bar.close()
-    if summary is None:
-        return _worker_done(args)
+    done = _sample_and_write(args, prob, out, bar, disable_bars, mode, nsamples=nsamples, method=method,
+                             plots=plots, build_s=build_s, scenario_name=scen, tol=tol, existing=existing,
+                             compile_since=compile0)
+    if isinstance(done, int):
+        return done
+    summary, products = done
     if products["already_complete"]:
         missing = products["written"]
         print(f"gcrsky: the run in {out} was already complete; "
@@ -550,6 +542,26 @@ def _channel_key_scheme() -> str:
     from .parallel.channels import CHANNEL_KEY_SCHEME
 
     return CHANNEL_KEY_SCHEME
+
+
+def _sample_and_write(args, prob, out, bar, disable_bars, mode, **kw):
+    """``run_problem`` with the command's bars, seed and batch: ``(summary, products)``, or an exit status
+    (a refused run; a ``jax.distributed`` process other than 0, which writes nothing)."""
+    from .paper.pipeline import ResumeError, RunExistsError, run_problem
+
+    try:
+        summary, products = run_problem(
+            prob, out, seed=args.seed, batch=args.batch, argv=getattr(args, "_argv", None), on_stage=bar,
+            progress=_batch_bar(disable_bars), channels=mode, channel_progress=_channel_bar(disable_bars), **kw,
+        )
+    except (RunExistsError, ResumeError) as e:  # e.g. the inputs differ from the recorded ones
+        print(_refusal_message(e, resume=args.resume), file=sys.stderr)
+        return EXIT_REFUSED
+    finally:
+        bar.close()
+    if summary is None:
+        return _worker_done(args)
+    return summary, products
 
 
 def _worker_done(args) -> int:
@@ -594,7 +606,7 @@ def _run_data(args) -> int:
     """``gcrsky run --data FILE``: the posterior of a visibility file's sky (no truth: no truth metrics)."""
     compile0 = _setup_jax(args)
     from .io.uvdata import from_uvdata
-    from .paper.pipeline import ResumeError, RunExistsError, existing_run_files, run_problem
+    from .paper.pipeline import RunExistsError, existing_run_files
 
     out = Path(args.out)
     existing = "resume" if args.resume else ("overwrite" if args.overwrite else "refuse")
@@ -629,20 +641,12 @@ def _run_data(args) -> int:
           f"{prob.data.shape[0]} channels, {cfg.pol}; prior: {cfg.prior}")
     plots = not args.no_plots
     bar = _StageBar(["wiener", "draws", "maps"] + (["plots"] if plots else []) + ["write"], disable_bars)
-    try:
-        summary, products = run_problem(
-            prob, out, nsamples=nsamples, seed=args.seed, batch=args.batch, method=method, plots=plots,
-            build_s=build_s, argv=getattr(args, "_argv", None), tol=tol, on_stage=bar,
-            progress=_batch_bar(disable_bars), existing=existing, extra_settings=extra, compile_since=compile0,
-            channels=mode, channel_progress=_channel_bar(disable_bars),
-        )
-    except (RunExistsError, ResumeError) as e:
-        print(_refusal_message(e, resume=args.resume), file=sys.stderr)
-        return EXIT_REFUSED
-    finally:
-        bar.close()
-    if summary is None:
-        return _worker_done(args)
+    done = _sample_and_write(args, prob, out, bar, disable_bars, mode, nsamples=nsamples, method=method,
+                             plots=plots, build_s=build_s, tol=tol, existing=existing, extra_settings=extra,
+                             compile_since=compile0)
+    if isinstance(done, int):
+        return done
+    summary, products = done
     if products["already_complete"]:
         print(f"gcrsky: the run in {out} was already complete")
     _print_summary(summary, out, products["written"])
