@@ -371,3 +371,26 @@ def test_prepare_once_then_draw_equals_sample(small, method):
     d2, _ = gcrsky.draw(jax.random.PRNGKey(9), prepared, 6)  # reuse: new key, new draws
     assert np.abs(np.asarray(d2) - np.asarray(d1)).max() > 1e-3
     assert bool(np.all(np.asarray(info["draws"].converged)))
+
+
+def test_cholesky_draws_without_the_inverse_factor_equal_those_with_it(small):
+    """``CholeskyOptions(inverse=False)`` (the large-n mode: draws solve with L^T, no L^-T)
+    gives the same draws as the default's product with L^-T: same keys, same z, and
+    ``L^-T z`` formed two ways agrees to ~cond(P) eps relative (the two factors differ
+    at rounding: one of a symmetrised P), and whitens to z through NumPy's factor."""
+    from gcrsky.solvers import CholeskyOptions
+
+    prob = small["prob"]
+    key = jax.random.PRNGKey(3)
+    with_inv = gcrsky.prepare(prob, method="cholesky")
+    without = gcrsky.prepare(prob, options=CholeskyOptions(inverse=False))
+    assert with_inv.chol_inv_t is not None and without.chol_inv_t is None
+    d1, _ = gcrsky.draw(key, with_inv, 8)
+    d2, info = gcrsky.draw(key, without, 8)
+    tol = 10 * np.linalg.cond(small["P"]) * np.finfo(float).eps * np.abs(np.asarray(d1)).max()
+    np.testing.assert_allclose(np.asarray(d2), np.asarray(d1), rtol=0, atol=tol)
+    assert bool(np.all(np.asarray(info["draws"].converged)))
+    z = (np.asarray(d2)[0] - small["a_wf"]) @ small["L"]  # L^T (a - a_wf) for each draw
+    zk = np.stack([np.asarray(jax.random.normal(k, (1, small["P"].shape[0])))[0]
+                   for k in jax.random.split(key, 8)])
+    np.testing.assert_allclose(z, zk, rtol=0, atol=1e-6)

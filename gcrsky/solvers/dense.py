@@ -28,6 +28,7 @@ the eigen draws use it.  The cut at ``rcond`` is held fixed under differentiatio
 
 from __future__ import annotations
 
+import os
 from functools import partial
 from typing import ClassVar
 
@@ -36,11 +37,14 @@ import jax
 import jax.numpy as jnp
 
 from ..base.dtypes import check_float64
+from ..model.operator import n_in
 from ..model.system import LinearSystem, precision_matrix, wiener_rhs
 from .info import SolveInfo, direct_info, exact_info
 from .options import CholeskyOptions, EighOptions
 
 __all__ = [
+    "CHOLESKY_INVERSE_MAX_N",
+    "OPENBLAS_SAFE_N",
     "CholeskyState",
     "EighState",
     "cholesky_logdet",
@@ -64,7 +68,8 @@ class CholeskyState(eqx.Module):
         precision: dense P (Nf, n, n).
         chol: lower Cholesky factor L of P (Nf, n, n).
         chol_inv_t: ``L^-T`` (Nf, n, n): draws are then one matrix product (~3x faster
-            than a triangular solve per batch).
+            than a triangular solve per batch); None where it was not formed
+            (``CholeskyOptions.inverse``), and draws solve with ``L^T``.
     """
 
     system: LinearSystem
@@ -72,7 +77,7 @@ class CholeskyState(eqx.Module):
     wiener: SolveInfo
     precision: jax.Array
     chol: jax.Array
-    chol_inv_t: jax.Array
+    chol_inv_t: jax.Array | None
 
     method: ClassVar[str] = "cholesky"
 
@@ -144,12 +149,24 @@ def cholesky_logdet(P: jax.Array, L: jax.Array) -> jax.Array:
     return _logdet_factor(P, L)
 
 
-@partial(jax.jit, static_argnames=("throw",))
-def _prepare_cholesky(system: LinearSystem, throw: bool = False) -> CholeskyState:
+#: ``CholeskyOptions(inverse=None)`` forms ``L^-T`` up to this n (n^3 flop, 8 n^2 bytes more).
+CHOLESKY_INVERSE_MAX_N = 12000
+
+#: Above this n, a multi-threaded OpenBLAS ``dpotrf`` crashed (segmentation fault) on the
+#: development host (scipy-openblas 0.3.30, the LAPACK jaxlib calls: n = 14000 ran, n =
+#: 16000 crashed, in scipy as in JAX); with ``OPENBLAS_NUM_THREADS=1`` set before start-up
+#: it ran (n = 22801 in 127 s).  :func:`prepare_cholesky` refuses larger n without it.
+OPENBLAS_SAFE_N = 14000
+
+
+@partial(jax.jit, static_argnames=("throw", "inverse"))
+def _prepare_cholesky(system: LinearSystem, throw: bool = False, inverse: bool = True) -> CholeskyState:
     check_float64(system.op.response, system.inv_noise)
     b = wiener_rhs(system)
     P = precision_matrix(system)
-    L = jnp.linalg.cholesky(P)
+    # P is symmetric to rounding; the large-n path factors its lower triangle as it is
+    # (no symmetrised copy: 8 n^2 bytes less at the peak)
+    L = jnp.linalg.cholesky(P) if inverse else jax.lax.linalg.cholesky(P, symmetrize_input=False)
     cho = jax.vmap(lambda l, v: jax.scipy.linalg.cho_solve((l, True), v))
     a_wf = cholesky_solve(P, L, b)
     r = jax.lax.stop_gradient(b - jnp.einsum("fij,fj->fi", P, a_wf))
@@ -158,6 +175,8 @@ def _prepare_cholesky(system: LinearSystem, throw: bool = False) -> CholeskyStat
     winfo = direct_info(err, jnp.linalg.norm(r, axis=1) / jnp.linalg.norm(jax.lax.stop_gradient(b), axis=1), finite)
     if throw:
         a_wf = eqx.error_if(a_wf, ~winfo.converged, "gcrsky Cholesky: P is not positive definite (non-finite factor)")
+    if not inverse:
+        return CholeskyState(system, a_wf, winfo, P, L, None)
     eye = jnp.eye(L.shape[-1], dtype=L.dtype)
     linv = jax.vmap(lambda l: jax.scipy.linalg.solve_triangular(l, eye, lower=True))(L)
     return CholeskyState(system, a_wf, winfo, P, L, jnp.swapaxes(linv, -1, -2))
@@ -173,7 +192,15 @@ def prepare_cholesky(system: LinearSystem, options: CholeskyOptions | None = Non
     options = CholeskyOptions() if options is None else options
     if not isinstance(options, CholeskyOptions):
         raise TypeError(f"the Cholesky path takes CholeskyOptions, got {type(options).__name__}")
-    return _prepare_cholesky(system, options.throw)
+    n = n_in(system.op)
+    if n > OPENBLAS_SAFE_N and os.environ.get("OPENBLAS_NUM_THREADS") != "1":
+        raise RuntimeError(
+            f"the dense Cholesky of n = {n} > {OPENBLAS_SAFE_N} parameters needs OPENBLAS_NUM_THREADS=1 "
+            "in the environment before Python starts (multi-threaded OpenBLAS dpotrf crashed at this "
+            "size); the gcrsky CLI sets it, as does gcrsky.parallel.use_safe_cpu_threading() when "
+            "called before numpy/scipy/jax are imported")
+    inverse = n <= CHOLESKY_INVERSE_MAX_N if options.inverse is None else bool(options.inverse)
+    return _prepare_cholesky(system, options.throw, inverse)
 
 
 def _eigh_fns(lam, rcond):
@@ -278,7 +305,12 @@ def draw_cholesky(key: jax.Array, state: CholeskyState, ndraws: int):
     nf, n = a_wf.shape
     keys = jax.random.split(key, ndraws)
     z = jax.vmap(lambda k: jax.random.normal(k, (nf, n), a_wf.dtype))(keys)  # (ndraws, Nf, n)
-    delta = upper_triangular_product(state.chol_inv_t, z)
+    if state.chol_inv_t is None:  # L^T delta = z, one triangular solve per channel
+        solve = jax.vmap(lambda l, zf: jax.scipy.linalg.solve_triangular(l, zf.T, lower=True, trans="T").T,
+                         in_axes=(0, 1))
+        delta = solve(state.chol, z)
+    else:
+        delta = upper_triangular_product(state.chol_inv_t, z)
     ok = state.wiener.converged[:, None] & jnp.all(jnp.isfinite(delta), axis=-1)
     return a_wf[:, None, :] + delta, {"wiener": state.wiener, "draws": exact_info(ok, (nf, ndraws)), "a_wf": a_wf}
 

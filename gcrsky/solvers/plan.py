@@ -13,9 +13,10 @@ Paths (all exact; they differ only in cost):
 * ``"mmode"``: uniform full-day coverage with time-stationary noise and no frame map
   (:func:`gcrsky.solvers.mmode.mmode_check`): P is block-diagonal in m; blocks cost
   ``O(Nf Nbl lmax^3)`` to build and ``8 Nf (lmax+1) (2 lmax+2)^2`` bytes.
-* ``"cholesky"``: dense ``P`` built once (``8 Nf Nt Nbl n^2`` flop, ``8 Nf n^2`` bytes,
-  three times that with its factor and ``L^-T``), then each draw is a product with
-  ``L^-T`` (``2 n^2`` flop).
+* ``"cholesky"``: dense ``P`` built once by m-blocks (``~8 Nf Nbl n^2`` flop whatever
+  Nt, :func:`gcrsky.model.precision_matrix`; ``8 Nf n^2`` bytes, three times that with
+  its factor and ``L^-T``, twice for ``n >`` :data:`~gcrsky.solvers.dense.CHOLESKY_INVERSE_MAX_N`
+  where draws solve with ``L^T``), then each draw is a product with ``L^-T`` (``2 n^2`` flop).
 * ``"eigh"``: like Cholesky, for a singular P (a flat prior, ``S^-1 = 0`` somewhere).
 * ``"dataspace"``: through the ``N_d x N_d`` matrix ``D = I + W^1/2 X S X^T W^1/2``
   (:mod:`gcrsky.solvers.dataspace`; ``N_d = 2 Nt Nbl`` real data values per channel):
@@ -36,14 +37,17 @@ P and its factor fit in :data:`DENSE_MEMORY_FRACTION` of the available memory an
 with the smaller estimated cost of set-up plus :data:`PLAN_DRAWS` draws
 (:func:`path_cost_flop`); else matrix-free CG.  The crossovers are measured in ``benchmarks/scale.py``: at lmax 50
 (n = 2601) Cholesky set-up is 2-9 s and a draw 2-3 ms against 40-600 ms per draw for
-matrix-free CG, so dense wins wherever it fits; ``DENSE_MAX_N`` = 12000 keeps the
-``n^3 / 3`` factorisation under ~1 min on two cores.
+matrix-free CG, so dense wins wherever it fits; ``DENSE_MAX_N`` = 24000 keeps the
+``n^3 / 3`` factorisation under ~2.5 min (n = 22801: P 94 s, factor 127 s on one
+OpenBLAS thread, which n > :data:`~gcrsky.solvers.dense.OPENBLAS_SAFE_N` needs: the
+dense path is only chosen there when ``OPENBLAS_NUM_THREADS=1``).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 from typing import NamedTuple
 
 import numpy as np
@@ -52,6 +56,7 @@ from ..base.memory import available_memory_bytes, check_memory, format_bytes
 from ..model.operator import n_in
 from ..model.system import LinearSystem
 from .dataspace import check_proper_prior, dataspace_memory_bytes, lag_structure, materialize_rows
+from .dense import CHOLESKY_INVERSE_MAX_N, OPENBLAS_SAFE_N
 from .mmode import mmode_check
 from .options import (
     CGOptions,
@@ -80,7 +85,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: Largest n for which ``method="auto"`` forms and factorises the dense P.
-DENSE_MAX_N = 12000
+DENSE_MAX_N = 24000
 #: Fraction of the available memory the dense P and its factor may take under "auto".
 DENSE_MEMORY_FRACTION = 0.5
 #: Largest number of real data values per channel for which ``method="auto"`` forms and
@@ -130,7 +135,8 @@ def path_memory_bytes(
     if method == "mmode":
         return 2.0 * 8 * nf * (lmax + 1) * (2 * lmax + 2) ** 2 + vec
     if method in ("cholesky", "eigh"):  # P, factor and L^-T (Cholesky) / P and eigenvectors, sqrt_cov (eigh)
-        return 3.0 * 8 * nf * n * n + 8.0 * nf * max(1, ndraws) * n
+        copies = 2.0 if method == "cholesky" and n > CHOLESKY_INVERSE_MAX_N else 3.0
+        return copies * 8 * nf * n * n + 8.0 * nf * max(1, ndraws) * n
     if method == "dataspace":  # D, its factor, the assembly's transients, per-time responses, per-draw vectors
         return dataspace_memory_bytes(system, ndraws, materialize_rows(system, DataSpaceOptions()))
     if method == "cg":
@@ -143,7 +149,7 @@ def path_cost_flop(system: LinearSystem, method: str, *, ndraws: int = PLAN_DRAW
     """Estimated floating-point operations of a direct path's set-up plus ``ndraws`` draws (all channels).
 
     Rough but of the right order (the planner compares them): ``"cholesky"`` / ``"eigh"``:
-    P from the per-time responses (``8 Nf Nt Nbl n^2``) and its factor (``Nf n^3 / 3``), then
+    P by m-blocks (``8 Nf Nbl n^2``, :func:`gcrsky.model.precision_matrix`) and its factor (``Nf n^3 / 3``), then
     ``2 n^2`` per draw; ``"dataspace"``: D (``4 Nf N_d^2 n`` with ``N_d = 2 Nt Nbl``, or
     ``8 Nf k (2 Nbl)^2 n`` for ``k`` distinct lags on the stationary shortcut,
     :func:`gcrsky.solvers.dataspace.lag_structure`) and its
@@ -153,7 +159,7 @@ def path_cost_flop(system: LinearSystem, method: str, *, ndraws: int = PLAN_DRAW
     """
     nf, nt, nbl, n = _sizes(system)
     if method in ("cholesky", "eigh"):
-        return 8.0 * nf * nt * nbl * n * n + nf * n**3 / 3.0 + ndraws * 2.0 * nf * n * n
+        return 8.0 * nf * min(1.0, nt / 2.0) * nbl * n * n + nf * n**3 / 3.0 + ndraws * 2.0 * nf * n * n
     if method == "dataspace":
         nd = 2.0 * nt * nbl
         rot = 8.0 * nf * nt * (np.sqrt(n)) ** 3
@@ -188,7 +194,8 @@ def plan_sampler(system: LinearSystem, *, ndraws: int = 1, budget: float | None 
     dense_mem = path_memory_bytes(system, "cholesky", ndraws=ndraws)
     ds_mem = path_memory_bytes(system, "dataspace", ndraws=ndraws)
     nd = 2 * nt * nbl
-    dense_ok = n <= DENSE_MAX_N and dense_mem <= DENSE_MEMORY_FRACTION * avail
+    dense_ok = (n <= DENSE_MAX_N and dense_mem <= DENSE_MEMORY_FRACTION * avail
+                and (n <= OPENBLAS_SAFE_N or os.environ.get("OPENBLAS_NUM_THREADS") == "1"))
     ds_ok = (not flat) and nd < n and nd <= DATASPACE_MAX_ND and ds_mem <= DENSE_MEMORY_FRACTION * avail
     if ds_ok and (not dense_ok or path_cost_flop(system, "dataspace") < path_cost_flop(system, "cholesky")):
         why = (f"N_d = {nd} real data values per channel < n = {n}: data space (D + factor "
