@@ -259,7 +259,8 @@ HERA_SPEC = {
     "l200-a37-t60-8h-f1-red": dict(paths=["ds", "cgMF-ny"], ndraws={"ds": 200, "cgMF-ny": 1}, ds_chunks=[None],
                                    timeout=1200),
     "l300-a331-t601-24h-f1-red": dict(paths=["mmode"], ndraws={"mmode": 200}, resp_compare=32, timeout=1200),
-    "l150-a331-t30-8h-f1-red": dict(paths=["cgMF-ny", "cgMF-mb"], ndraws={"cgMF-ny": 0, "cgMF-mb": 0},
+    "l150-a331-t30-8h-f1-red": dict(paths=["chol", "cgD-mb", "cgD-ny", "cgMF-ny", "cgMF-mb"],
+                                    ndraws={"chol": 200, "cgD-mb": 0, "cgD-ny": 0, "cgMF-ny": 0, "cgMF-mb": 0},
                                     cg_tol=1e-6, nd_estimate_only=True, timeout=1500),
 }
 
@@ -469,7 +470,7 @@ def run_one(c) -> dict:
         res = jax.block_until_ready(comp(*args, **dyn_kw))
         return res, tc, time.perf_counter() - t0
 
-    dense_flops = 8.0 * nf * nt * nbl * n * n
+    dense_flops = 8.0 * nf * min(1.0, nt / 2.0) * nbl * n * n  # P by m-blocks (was 8 Nf Nt Nbl n^2 by times)
     dense_bytes = 8.0 * nf * n * n
     mv_flops = 16.0 * nf * nt * nbl * n
     dense_ok = dense_flops <= DENSE_FLOP_MAX and dense_bytes <= DENSE_BYTES_MAX
@@ -486,9 +487,9 @@ def run_one(c) -> dict:
                  "cgMF-ny": dict(options=CGOptions(dense=False, preconditioner="nystrom")),
                  "cgMF-mb": dict(options=CGOptions(dense=False, preconditioner="mblock"))}
     if cg_tol is not None:
-        for k in ("cgMF-ny", "cgMF-mb"):
-            all_paths[k] = dict(options=CGOptions(dense=False, preconditioner=all_paths[k]["options"].preconditioner,
-                                                  tol=cg_tol))
+        for k in ("cgD-ny", "cgD-mb", "cgMF-ny", "cgMF-mb"):
+            o = all_paths[k]["options"]
+            all_paths[k] = dict(options=CGOptions(dense=o.dense, preconditioner=o.preconditioner, tol=cg_tol))
     wanted = spec.get("paths", ["chol", "cgD-ny", "cgD-mb", "cgMF-ny", "mmode", "ds"])
     # data space: exact, through the N_d x N_d matrix D = I + W^1/2 X S X^T W^1/2 (only where N_d < n)
     if "ds" in wanted or spec.get("nd_estimate_only"):
@@ -535,7 +536,7 @@ def run_one(c) -> dict:
         nd_p = int(ndr.get(pname, ndraws))
         rec = {"load": load_now(), "ndraws": nd_p}
         if static.get("method") == "cholesky" or static["options"].dense:
-            if not dense_ok:
+            if not dense_ok and not spec:  # an issue row runs the paths it names
                 out["paths"][pname] = {"skip": dense_why}
                 continue
         elif not spec:  # default grid: budget the matrix-free CG
@@ -549,6 +550,8 @@ def run_one(c) -> dict:
         if prep.method == "cg":
             rec.update(it_wiener=float(np.mean(np.asarray(prep.wiener.iterations))), tol=static["options"].tol,
                        wiener_err_sigma=float(np.max(np.asarray(prep.wiener.err_sigma))))
+        elif prep.method == "cholesky":
+            rec["wiener_err_sigma"] = float(np.max(np.asarray(prep.wiener.err_sigma)))
         out["paths"][pname] = rec
         partial(out)
         if nd_p > 0:
@@ -626,7 +629,7 @@ def fmt_path(r) -> str:
 
 
 PATHS = ["chol", "cgD-ny", "cgD-mb", "cgMF-ny", "mmode", "ds"]
-HERA_PATHS = ["ds", "cgMF-ny", "cgMF-mb", "mmode"]
+HERA_PATHS = ["ds", "chol", "cgD-mb", "cgD-ny", "cgMF-ny", "cgMF-mb", "mmode"]
 
 
 def _notes(results) -> list:
@@ -761,6 +764,7 @@ def main(argv=None) -> int:
         res.setdefault("red", len(c) > 6 and bool(c[6]))
         print(f"{nm}: {res['wall']:.1f} s wall, load {load_now()}"
               + (f"  ({res['error']})" if "error" in res else ""), flush=True)
+        print("RESULT:" + json.dumps(res), flush=True)  # every field, for the record
         results.append(res)
     print_table(results)
     print(f"\ntotal {time.perf_counter() - t_all:.1f} s")

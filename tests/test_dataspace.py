@@ -45,6 +45,7 @@ from gcrsky.solvers import (
     prepare_dataspace,
 )
 from gcrsky.solvers.dataspace import from_rows, to_rows
+from gcrsky.solvers.plan import DENSE_MEMORY_FRACTION
 
 ALPHA = 1e-3
 SOLVE = 1e-8  # posterior sigma
@@ -294,8 +295,8 @@ def test_auto_picks_data_space_where_it_is_cheaper_and_says_why(partial):
     plan = plan_sampler(small)
     assert plan.method == "cholesky" and "cheaper than data space" in plan.reason, plan.reason
     # ... unless the dense P does not fit: then data space is the only direct path left
-    budget = 0.9 * path_memory_bytes(partial, "cholesky") / 0.5
-    assert path_memory_bytes(partial, "dataspace") < 0.5 * budget
+    budget = 0.9 * path_memory_bytes(partial, "cholesky") / DENSE_MEMORY_FRACTION
+    assert path_memory_bytes(partial, "dataspace") < DENSE_MEMORY_FRACTION * budget
     plan = plan_sampler(partial, budget=budget)
     assert plan.method == "dataspace" and "dense P + factor would need" in plan.reason
     # more data than parameters: never data space

@@ -17,6 +17,7 @@ from gcrsky.base import InsufficientMemoryError, available_memory_bytes
 from gcrsky.instrument import response_matrix
 from gcrsky.model import build_problem, flat_prior, isotropic_prior
 from gcrsky.solvers import CGOptions, path_memory_bytes, plan_sampler
+from gcrsky.solvers.plan import DENSE_MEMORY_FRACTION
 
 
 def _problem(small_response, lsts, *, flat=False):
@@ -68,11 +69,12 @@ def test_auto_picks_the_cheapest_exact_path(request, case, expect, getkey):
 def test_small_budget_falls_back_to_matrix_free_cg(partial, getkey):
     sysm = partial.system()
     dense = path_memory_bytes(sysm, "cholesky")
-    plan = plan_sampler(sysm, budget=1.9 * dense)  # dense needs <= 50% of the budget: not met
+    budget = 0.95 * dense / DENSE_MEMORY_FRACTION  # dense needs <= DENSE_MEMORY_FRACTION of the budget: not met
+    plan = plan_sampler(sysm, budget=budget)
     assert (plan.method, plan.options.dense, plan.options.preconditioner) == ("cg", False, "nystrom")
     assert "matrix-free" in plan.reason
     a_ref, sig = _dense_wf_and_sigma(partial)
-    a = gcrsky.wiener_filter(partial, tol=1e-10, memory_budget=1.9 * dense)
+    a = gcrsky.wiener_filter(partial, tol=1e-10, memory_budget=budget)
     assert np.max(np.abs(np.asarray(a) - a_ref) / sig) < 1e-8
 
 
@@ -99,7 +101,9 @@ def test_estimates_cover_the_arrays_they_describe(partial, full_day):
     prepared = gcrsky.prepare(partial, method="cholesky")
     actual = prepared.precision.nbytes + prepared.chol.nbytes + prepared.chol_inv_t.nbytes
     est = path_memory_bytes(partial.system(), "cholesky")
-    assert actual <= est <= 1.5 * actual
+    # the estimate is the set-up's peak: the three kept n x n arrays plus XLA's transients
+    # (memory_analysis of the one program: 7.25 n^2 doubles in all)
+    assert actual <= est <= 2.6 * actual
     pm = gcrsky.prepare(full_day, method="mmode")
     est = path_memory_bytes(full_day.system(), "mmode")
     assert pm.chol.nbytes <= est <= 4 * pm.chol.nbytes + 6 * 8 * full_day.n * 2 + 1

@@ -112,3 +112,20 @@ def test_bad_inputs(hexagon):
         response_matrix_sht(hexagon, np.array([[0, 10]]), FREQS, 6, 16)
     with pytest.raises(ValueError, match="chunk"):
         response_matrix_sht(hexagon, pairs, FREQS, 6, 16, chunk=0)
+
+
+def test_auto_builds_by_transforms_from_the_threshold(hexagon, monkeypatch):
+    """``response_matrix(method="auto")`` (the default) is the rings sum below
+    ``RESPONSE_SHT_MIN_LMAX`` and this module's transforms from it on, bit for bit what
+    each route gives when asked by name; the two agree to RTOL (polarised rows too)."""
+    import gcrsky.instrument.response as resp_mod
+
+    pairs = antpairs(10)[::4]
+    rings = np.asarray(response_matrix(hexagon, pairs, FREQS, 8, 16, method="rings", pols="xx"))
+    sht = np.asarray(response_matrix(hexagon, pairs, FREQS, 8, 16, method="sht", pols="xx"))
+    assert _rel_err(sht, rings) < RTOL
+    np.testing.assert_array_equal(np.asarray(response_matrix(hexagon, pairs, FREQS, 8, 16, pols="xx")), rings)
+    monkeypatch.setattr(resp_mod, "RESPONSE_SHT_MIN_LMAX", 8)
+    np.testing.assert_array_equal(np.asarray(response_matrix(hexagon, pairs, FREQS, 8, 16, pols="xx")), sht)
+    with pytest.raises(ValueError, match="method must be"):
+        response_matrix(hexagon, pairs, FREQS, 8, 16, method="healpy")

@@ -324,7 +324,7 @@ def unique_response(
     nside: int,
     *,
     lst_ref_rad: float = 0.0,
-    method: Literal["quadrature", "sht"] = "quadrature",
+    method: Literal["auto", "quadrature", "sht"] = "auto",
     rtol: float = DEFAULT_RTOL,
 ) -> jax.Array:
     """Response rows of the group representatives only: (Nf, Ngroups, (lmax+1)**2) complex.
@@ -339,8 +339,9 @@ def unique_response(
         array: the :class:`~gcrsky.instrument.AntennaArray` the groups were made for.
         groups: from :func:`groups_for_array` (the same array; beams by identity).
         freqs_hz, lmax, nside, lst_ref_rad: as for :func:`gcrsky.instrument.response_matrix`.
-        method: ``"quadrature"`` (:func:`gcrsky.instrument.response_matrix`) or ``"sht"``
-            (:func:`gcrsky.instrument.response_sht.response_matrix_sht`, faster for lmax >~ 50).
+        method: ``"auto"`` (``response_matrix``'s choice by lmax), ``"quadrature"``
+            (:func:`gcrsky.instrument.response_matrix` by rings) or ``"sht"``
+            (:func:`gcrsky.instrument.response_sht.response_matrix_sht`).
         rtol: bound on the phase offset above.
 
     Returns:
@@ -367,13 +368,10 @@ def unique_response(
             "(regroup with a smaller tol_m)"
         )
     reps = groups.representative_antpairs
-    if method == "quadrature":
-        return response_matrix(array, reps, freqs, lmax, nside, lst_ref_rad=lst_ref_rad)
-    if method == "sht":
-        from .response_sht import response_matrix_sht
-
-        return response_matrix_sht(array, reps, freqs, lmax, nside, lst_ref_rad)
-    raise ValueError(f"method must be 'quadrature' or 'sht', got {method!r}")
+    how = {"auto": "auto", "quadrature": "rings", "sht": "sht"}.get(method)
+    if how is None:
+        raise ValueError(f"method must be 'auto', 'quadrature' or 'sht', got {method!r}")
+    return response_matrix(array, reps, freqs, lmax, nside, lst_ref_rad=lst_ref_rad, method=how)
 
 
 def redundant_responses(
@@ -384,7 +382,7 @@ def redundant_responses(
     nside: int,
     *,
     lst_ref_rad: float = 0.0,
-    method: Literal["quadrature", "sht"] = "quadrature",
+    method: Literal["auto", "quadrature", "sht"] = "auto",
     rtol: float = DEFAULT_RTOL,
 ) -> tuple[jax.Array, jax.Array]:
     """``(cross, auto)`` responses for ``build_problem(..., responses=...)``, unique rows only.

@@ -44,7 +44,7 @@ from .antennas import AntennaArray, baseline_vectors
 from .beams import unique_beams
 from .polarization import baseline_kernels, normalise_pols
 
-__all__ = ["SkyGrid", "analytic_response", "equatorial_to_enu", "response_matrix", "sky_grid"]
+__all__ = ["RESPONSE_SHT_MIN_LMAX", "SkyGrid", "analytic_response", "equatorial_to_enu", "response_matrix", "sky_grid"]
 
 
 class SkyGrid(NamedTuple):
@@ -226,6 +226,11 @@ def _ring_quadrature(lmax, ring_theta, phi, enu, weight, kern_r, kern_i, kidx, b
     return jnp.where(jnp.asarray(tab.is_imag), -2.0 * ts[:, :, ell, m], re)
 
 
+#: ``response_matrix(method="auto")`` builds by healpy transforms from this lmax on (the
+#: faster route there: ``benchmarks/scale.py``, section (B)), by rings below it.
+RESPONSE_SHT_MIN_LMAX = 200
+
+
 def response_matrix(
     array: AntennaArray,
     pairs: np.ndarray,
@@ -235,7 +240,7 @@ def response_matrix(
     *,
     lst_ref_rad: float = 0.0,
     chunk: int = 4096,
-    method: str = "rings",
+    method: str = "auto",
     beam_floor: float = 1e-16,
     pols=None,
 ) -> jax.Array:
@@ -250,10 +255,15 @@ def response_matrix(
         lst_ref_rad: local sidereal angle of the reference grid, radians.
         chunk: pixels per batch of the direct method; memory is
             O(chunk * (lmax+1)**2 + Nf*Nbl*chunk).
-        method: ``"rings"`` (default): the sum factored through HEALPix rings,
+        method: ``"auto"`` (default): ``"sht"`` for ``lmax >=`` :data:`RESPONSE_SHT_MIN_LMAX`,
+            else ``"rings"``; ``"rings"``: the sum factored through HEALPix rings,
             O(Nf Nbl Npix lmax + Nf Nbl Nrings lmax^2); ``"direct"``: every basis map
-            on every pixel, O(Nf Nbl Npix lmax^2).  The same terms summed in another
-            order (they agree to ~1e-14 relative; ``tests/test_response.py``).
+            on every pixel, O(Nf Nbl Npix lmax^2); ``"sht"``: healpy's transform of
+            each baseline's kernel map
+            (:func:`gcrsky.instrument.response_sht.response_matrix_sht`, which keeps
+            every visible pixel: ``beam_floor`` and ``chunk`` do not apply).  The same
+            terms summed in another order (they agree to ~1e-14 relative;
+            ``tests/test_response.py``, ``tests/test_response_sht.py``).
         beam_floor: pixels where every beam kernel ``|K|`` (all frequencies and
             rows) is at most ``beam_floor`` times its peak are left out of the sum.
             The default 1e-16 drops only terms below float64 rounding of the result
@@ -280,8 +290,10 @@ def response_matrix(
     nant = array.positions_enu_m.shape[0]
     if pairs.ndim != 2 or pairs.shape[1] != 2 or pairs.min() < 0 or pairs.max() >= nant:
         raise ValueError(f"pairs must be (Nbl, 2) antenna indices in [0, {nant}), got shape {pairs.shape}")
-    if method not in ("rings", "direct"):
-        raise ValueError(f"method must be 'rings' or 'direct', got {method!r}")
+    if method not in ("auto", "rings", "direct", "sht"):
+        raise ValueError(f"method must be 'auto', 'rings', 'direct' or 'sht', got {method!r}")
+    if method == "auto":
+        method = "sht" if int(lmax) >= RESPONSE_SHT_MIN_LMAX else "rings"
     if not (0.0 <= beam_floor < 1.0):
         raise ValueError(f"beam_floor must be in [0, 1), got {beam_floor!r}")
     pols = normalise_pols(pols, pairs.shape[0])
@@ -295,6 +307,11 @@ def response_matrix(
         "build only the distinct baselines of a redundant array (gcrsky.redundant_responses) or fewer "
         "frequencies per call",
     )
+
+    if method == "sht":
+        from .response_sht import response_matrix_sht
+
+        return response_matrix_sht(array, pairs, freqs, lmax, nside, lst_ref_rad, pols=pols)
 
     kern = baseline_kernels(array.beams, pairs, grid.az_uvbeam, grid.za, freqs, pols)  # once per (beam pair, product)
     K, kidx = kern.kernels, kern.index  # (Nf, Nk, Np), (Nbl,)

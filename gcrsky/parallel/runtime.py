@@ -53,7 +53,13 @@ multi-threaded OpenBLAS concurrently, which on few cores spins in
 ``exec_blas_async_wait`` (4 devices, an 8-thread pool, two replicated batched SVDs
 of 4 x 120 x 60 a hundred times: not done after 60 s, 3 of 3, vs 4-5 s with one
 OpenBLAS thread; jax-ml/jax#39292 reports the same oversubscription corrupting the
-heap on many-core hosts).
+heap on many-core hosts).  One OpenBLAS thread is also what makes the dense Cholesky
+of large P possible: multi-threaded ``dpotrf`` (scipy-openblas 0.3.30, which jaxlib's
+CPU LAPACK kernels call) crashed with a segmentation fault from n = 16000 on this
+2-core host (n = 14000 ran), in scipy as in JAX, while with one thread n = 16000 took
+35 s and n = 22801 127 s (:data:`gcrsky.solvers.dense.OPENBLAS_SAFE_N`).  The setting
+must precede the first import of scipy's LAPACK (gcrsky imports it lazily, so calling
+:func:`use_safe_cpu_threading` right after ``import gcrsky`` is early enough).
 
 Compilation cache
 -----------------

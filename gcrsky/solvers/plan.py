@@ -86,8 +86,8 @@ log = logging.getLogger(__name__)
 
 #: Largest n for which ``method="auto"`` forms and factorises the dense P.
 DENSE_MAX_N = 24000
-#: Fraction of the available memory the dense P and its factor may take under "auto".
-DENSE_MEMORY_FRACTION = 0.5
+#: Fraction of the available memory the dense path's set-up peak may take under "auto".
+DENSE_MEMORY_FRACTION = 0.75
 #: Largest number of real data values per channel for which ``method="auto"`` forms and
 #: factorises the data-space matrix D (the same ~1 min factorisation bound as ``DENSE_MAX_N``).
 DATASPACE_MAX_ND = 12000
@@ -126,7 +126,8 @@ def path_memory_bytes(
     """Estimated peak bytes of a path's large arrays (float64), beyond the system itself.
 
     ``dense`` and ``rank`` describe the CG path (:class:`~gcrsky.solvers.CGOptions`).
-    Counts the dense P, its factor and inverse factor / eigenvectors (``8 Nf n^2`` each), the m-blocks,
+    Counts the dense P, its factor and inverse factor / eigenvectors (``8 Nf n^2`` each; for
+    Cholesky the set-up's measured peak with LAPACK's copies, 7.5 or 3.5 of them), the m-blocks,
     the Nystrom sketch and the per-draw CG work vectors (``~6 x 8 Nf ndraws n``).
     """
     nf, nt, nbl, n = _sizes(system)
@@ -134,9 +135,13 @@ def path_memory_bytes(
     vec = 6.0 * 8 * nf * max(1, ndraws) * n  # CG state per draw
     if method == "mmode":
         return 2.0 * 8 * nf * (lmax + 1) * (2 * lmax + 2) ** 2 + vec
-    if method in ("cholesky", "eigh"):  # P, factor and L^-T (Cholesky) / P and eigenvectors, sqrt_cov (eigh)
-        copies = 2.0 if method == "cholesky" and n > CHOLESKY_INVERSE_MAX_N else 3.0
+    if method == "cholesky":  # the peak of the set-up (XLA memory_analysis, in n^2 doubles): one program
+        # holding P, its factor, L^-T and their transients (7.25); for n > CHOLESKY_INVERSE_MAX_N two
+        # programs, the factor's holding P, L and LAPACK's working copy (3.4)
+        copies = 3.5 if n > CHOLESKY_INVERSE_MAX_N else 7.5
         return copies * 8 * nf * n * n + 8.0 * nf * max(1, ndraws) * n
+    if method == "eigh":  # P, eigenvectors, sqrt_cov
+        return 3.0 * 8 * nf * n * n + 8.0 * nf * max(1, ndraws) * n
     if method == "dataspace":  # D, its factor, the assembly's transients, per-time responses, per-draw vectors
         return dataspace_memory_bytes(system, ndraws, materialize_rows(system, DataSpaceOptions()))
     if method == "cg":
