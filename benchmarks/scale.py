@@ -43,7 +43,8 @@ run until its residual ``||b - P x||`` reaches the relative residual the m-block
 Wiener solve achieved (the same tolerance in residual terms), capped at 20000
 ('capped').  ``P_MB`` is the size of one dense P (all channels) where formed.
 A path is skipped ('skip') when its estimated cost exceeds the per-configuration
-budget (dense P: 8 Nf Nt Nbl n^2 flops > 4e11, or P > 3 GB; matrix-free CG: the
+budget (dense P: 8 Nf Nbl n^2 min(1, Nt/2) flops > 4e11 -- P by m-blocks since 2026-12-02, 8 Nf Nt Nbl n^2
+by times before -- or P > 3 GB; matrix-free CG: the
 matvecs for set-up + draws > ~6e11 flops); the reason is printed.
 
 Measured (2026-11-22, this repository's machine: 2 shared x86 cores, 24 GB, CPU JAX float64,
@@ -207,6 +208,41 @@ on this machine.  The next step toward it is structural: every matrix-free produ
 about the pole is a phase per m, so ``X a`` factorises into per-m sums over l (``O(Nbl n)``
 once) and a short Fourier sum over m per time (``O(Nt Nbl lmax)``): ~Nt x cheaper CG
 iterations here (30 LSTs), and the same for the dense P build.  Not done in this round.
+
+(C') The same row after building P by m-blocks (MEASURED 2026-12-02 07:05-07:09 UTC, load
+~2, ``SCALE_PATHS=chol python benchmarks/scale.py --only l150-a331-t30-8h-f1-red``).  A
+rotation about the pole is a phase per m, so ``X^T W X`` is one real product over
+``4 Nbl`` per order m (``gcrsky.model.precision_data_matrix``): ~8 Nbl n^2 = 2.6e12 flop
+whatever Nt (1.25x that with the loops' fixed windows), against 4 Nt Nbl n^2 = 3.9e13
+summed over times.  Exact dense Cholesky (``method="auto"`` picks it)::
+
+    config                      n      Nbl/all    N_d    resp_s  prob_s  peak_MB  auto      chol
+    l150-a331-t30-8h-f1-red     22801  630/54615  37800    29.7     2.1  13283    cholesky  205 (incl. compile) / 28.5ms
+
+* set-up 204.9 s (P by m-blocks ~94 s and its factor ~127 s on one OpenBLAS thread, the
+  times of a separate run; the Wiener filter by the factor), 200 draws 5.7 s (two
+  triangular solves per batch: above n = 12000 no ``L^-T`` is formed), Wiener filter
+  error 3.3e-8 posterior sigma; the whole configuration 250 s wall with the response.
+  Goal (exact to 1e-6 sigma in < 5 min): MET.
+* Peak 13.3 GB: the set-up runs as two programs (P, then its factor).  Under one outer
+  ``jit`` they fuse and peaked at 21.0 GB (an earlier run of this row: P being built,
+  LAPACK's copy and the factor at once).
+* The threaded OpenBLAS ``dpotrf`` crashes at this size (segfault from n = 16000 on this
+  host); ``use_safe_cpu_threading``'s ``OPENBLAS_NUM_THREADS=1`` avoids it, and
+  ``prepare_cholesky`` refuses n > 14000 without it.
+* Where the time goes now: the factor (n^3 / 3 = 4e12 flop) and P (2.6e12); next
+  bottleneck is memory (P and its factor, 8.3 GB, grow as lmax^4), so lmax >~ 160 needs the
+  matrix-free route, whose products still cost ``O(Nt Nbl n)`` each.
+
+(B') Response routes side by side, all 630 unique rows of the 331-antenna hexagon, nside
+256, 1 channel (MEASURED 2026-12-02 06:53-07:06 UTC, load 0.4-2, one process per lmax,
+``python benchmarks/response_routes.py 300 256 331`` and ``150 256 331``): lmax 300: rings 115.6 s, SHT 41.5 s (2.8x), max |dR| / max |R| =
+3.3e-14; lmax 150: rings 27.0 s, SHT 24.6 s (1.1x), 2.3e-14.  Row by row the two agree to
+9.2e-9 of the row's norm over the rows with norm > 1e-6 of the largest; the worst rows
+(norm 6e-14 of the largest: fringes far beyond lmax) differ at the level of the
+rings' beam-floor cut.  ``response_matrix(method="auto")`` (the default) now builds by
+the SHT from lmax 200 (``RESPONSE_SHT_MIN_LMAX``).  The 177 s of (B) was the rings under
+load 4-6 inside the full m-mode run; the SHT route there is MEASURED 41.5 s here.
 """
 
 from __future__ import annotations
@@ -346,6 +382,7 @@ def run_one(c) -> dict:
     from gcrsky.model import LinearSystem, VisOperator, apply, build_problem, compress_system, isotropic_prior
     from gcrsky.solvers import CGOptions, DataSpaceOptions, draw_dataspace, draw_mmode, mmode_check, pcg, plan_sampler
     from gcrsky.solvers.dataspace import _prepare_dataspace, dataspace_memory_bytes, lag_structure, materialize_rows
+    from gcrsky.solvers.dense import CHOLESKY_INVERSE_MAX_N
     from gcrsky.solvers.mmode import _prepare as _prep_mm
     from gcrsky.sphere import n_params
 
@@ -544,7 +581,15 @@ def run_one(c) -> dict:
             if est > MF_FLOP_MAX:
                 out["paths"][pname] = {"skip": f"matrix-free CG ~{est:.1e} flop (~{mv_flops:.1e}/matvec) > {MF_FLOP_MAX:.0e}"}
                 continue
-        prep, tc, tr = timed(jit_prepare, (system,), static)
+        if static.get("method") == "cholesky" and n > CHOLESKY_INVERSE_MAX_N:
+            # the large-n Cholesky set-up is two programs (P, then its factor); under one outer jit
+            # they would fuse and hold 5.25 n^2 doubles at once, so time it as a user calls it
+            t0 = time.perf_counter()
+            prep = jax.block_until_ready(prepare_sampler(system, **static))
+            tc, tr = 0.0, time.perf_counter() - t0
+            rec["setup_note"] = "not under an outer jit: compile included in the set-up time"
+        else:
+            prep, tc, tr = timed(jit_prepare, (system,), static)
         rec.update(setup_compile=tc, setup=tr)
         rec["ok"] = bool(np.all(np.asarray(prep.wiener.converged)))
         if prep.method == "cg":

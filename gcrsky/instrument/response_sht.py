@@ -47,8 +47,14 @@ in JAX and skips pixels below the beam floor; side by side it was faster (nside 
 2 channels: lmax 50, 10 antennas 0.39 s vs 4.1 s; lmax 100, 37 antennas 21 s vs 89 s,
 on a loaded 2-core box, where healpy's OpenMP threads suffer most), but on a quiet box
 this route's threaded transforms can win at lmax >= 100 (13.7 s for that case measured
-here earlier, against ~30 s for the rings under load: not a side-by-side number).  This module stays as an
-independent cross-check (healpy's transforms, not gcrsky's Legendre recursion).
+here earlier, against ~30 s for the rings under load: not a side-by-side number).  Side by
+side at HERA-core scale (630 unique rows of the 331-antenna hexagon, nside 256, one
+channel, load ~1-2; ``benchmarks/scale.py`` section (B')): lmax 300, rings 115.6 s vs
+41.5 s here; lmax 150, 27.0 s vs 24.6 s; equal to 3.3e-14 of the largest entry.  So
+``response_matrix(method="auto")`` (the default) uses this route from
+:data:`gcrsky.instrument.response.RESPONSE_SHT_MIN_LMAX` = 200 on, and it remains the
+independent cross-check of the rings below that (healpy's transforms, not gcrsky's
+Legendre recursion).
 """
 
 from __future__ import annotations
