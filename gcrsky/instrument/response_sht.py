@@ -67,7 +67,7 @@ from ..base.units import SPEED_OF_LIGHT
 from ..sphere.modes import mode_table, n_params, realify
 from .antennas import AntennaArray, baseline_vectors
 from .polarization import baseline_kernels, normalise_pols
-from .response import sky_grid
+from .skygrid import sky_grid
 
 __all__ = ["realified_projection", "response_matrix_sht"]
 
