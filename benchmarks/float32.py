@@ -128,7 +128,7 @@ def run(name, prob, ndraws=20):
             t0 = time.perf_counter()
             _, info = jax.block_until_ready(draw(key, prep, ndraws))
             dt_ms = (time.perf_counter() - t0) / ndraws * 1e3
-            ok = bool(np.all(np.asarray(info["draws"].converged)) and np.all(np.asarray(prep.wiener.converged)))
+            ok = bool(np.all(np.asarray(info.draws.converged)) and np.all(np.asarray(prep.wiener.converged)))
             print(f"{'matrix-free CG, ' + pc + ' pc ' + dt:34s} {float(np.mean(prep.wiener.iterations)):7.0f} "
                   f"{float(np.mean(info['draws'].iterations)):8.1f} {dt_ms:8.2f} "
                   f"{err_sigma(prep.a_wf, a_ref, sig):15.1e}{'' if ok else '  (not converged)'}")

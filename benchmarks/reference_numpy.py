@@ -440,7 +440,7 @@ def gcrsky_worker(npz_path: str, out_json: str, nside: int, nlst: int, ndraws: i
                                                                GCR_NDRAWS)[1] for i in range(4)])
     res["solve_peak_rss_mib"] = rss_mib()
     res["wf_iters"] = np.asarray(prep.wiener.iterations).tolist()
-    res["draw_iters_mean"] = np.asarray(info["draws"].iterations).mean(axis=1).tolist()
+    res["draw_iters_mean"] = np.asarray(info.draws.iterations).mean(axis=1).tolist()
     res["preconditioner"] = type(prep.pc).__name__
 
     # errors vs a dense numpy solve of gcrsky's own (dense-X) posterior

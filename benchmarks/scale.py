@@ -556,7 +556,7 @@ def run_one(c) -> dict:
             partial(out)
             (dr, info), tc2, tr2 = timed(draw_dataspace, (key, prep), dict(ndraws=nd_p))
             rec.update(draw_compile=tc2, draw_total=tr2, per_draw=tr2 / nd_p)
-            rec["ok"] = bool(np.all(np.asarray(info["draws"].converged)) and np.all(np.asarray(prep.wiener.converged)))
+            rec["ok"] = bool(np.all(np.asarray(info.draws.converged)) and np.all(np.asarray(prep.wiener.converged)))
             rec["wiener_err_sigma"] = float(np.max(np.asarray(prep.wiener.err_sigma)))
             out["paths"]["ds"] = rec
             del prep, dr, info
@@ -602,9 +602,9 @@ def run_one(c) -> dict:
         if nd_p > 0:
             (dr, info), tc2, tr2 = timed(jit_draw, (key, prep), dict(ndraws=nd_p))
             rec.update(draw_compile=tc2, draw_total=tr2, per_draw=tr2 / nd_p)
-            rec["ok"] = rec["ok"] and bool(np.all(np.asarray(info["draws"].converged)))
+            rec["ok"] = rec["ok"] and bool(np.all(np.asarray(info.draws.converged)))
             if prep.method == "cg":
-                rec["it_draw"] = float(np.mean(np.asarray(info["draws"].iterations)))
+                rec["it_draw"] = float(np.mean(np.asarray(info.draws.iterations)))
             del dr, info
         if prep.method == "cg":
             rec["it_wiener"] = float(np.mean(np.asarray(prep.wiener.iterations)))
@@ -641,7 +641,7 @@ def run_one(c) -> dict:
             rec.update(setup_compile=tc, setup=tr)
             (dr, info), tc2, tr2 = timed(draw_mmode, (key, prep), dict(ndraws=nd_p))
             rec.update(draw_compile=tc2, draw_total=tr2, per_draw=tr2 / nd_p)
-            rec["ok"] = bool(np.all(np.asarray(info["draws"].converged)))
+            rec["ok"] = bool(np.all(np.asarray(info.draws.converged)))
             rec["wiener_rel_resid"] = float(np.max(np.asarray(prep.wiener.rel_residual)))
             rec["wiener_err_sigma"] = float(np.max(np.asarray(prep.wiener.err_sigma)))
             out["paths"]["mmode"] = rec

@@ -188,8 +188,8 @@ def main(argv=None) -> int:
         # 6. draws by CG
         c_cg, tc = aot(jit_sample, key, system, ndraws=args.ndraws, method="cg", **kw)
         (draws_cg, info), tr_cg = best_of(args.repeat, c_cg, key, system)
-        it = np.asarray(info["draws"].iterations)
-        conv = bool(np.all(info["draws"].converged)) and bool(np.all(info["wiener"].converged))
+        it = np.asarray(info.draws.iterations)
+        conv = bool(np.all(info.draws.converged)) and bool(np.all(info.wiener.converged))
         table.add(
             f"{args.ndraws} draws, CG{label}",
             tc,
@@ -214,8 +214,8 @@ def main(argv=None) -> int:
     # a sanity check that the samplers describe the same posterior
     sd = np.sqrt(np.diagonal(np.linalg.inv(np.asarray(c_pm(system))), axis1=1, axis2=2))
     for name, info in cg_infos.items():
-        diff = np.abs(np.asarray(info["a_wf"]) - np.asarray(info_ch["a_wf"]))
-        err = np.asarray(info["draws"].err_sigma)
+        diff = np.abs(np.asarray(info.a_wf) - np.asarray(info_ch.a_wf))
+        err = np.asarray(info.draws.err_sigma)
         print(
             f"CG ({name}) vs Cholesky Wiener filter: max |diff| / posterior sigma = {np.max(diff / sd):.2e} "
             f"(max |diff| {diff.max():.2e} K); draws err_sigma median {np.median(err):.1e}, max {err.max():.1e} "

@@ -274,7 +274,7 @@ def test_draw_key_scheme_and_jit(partial):
     np.testing.assert_allclose(np.asarray(draw_dataspace(key, mf, 3)[0]), d3, rtol=1e-12, atol=1e-12)
     draws, info = gcrsky.sample(key, partial, 3, method="dataspace")
     np.testing.assert_allclose(np.asarray(draws), d3, rtol=1e-12, atol=1e-12)
-    assert np.all(np.asarray(info["draws"].converged))
+    assert np.all(np.asarray(info.draws.converged))
 
 
 def test_flat_prior_is_refused_with_the_reason(partial):

@@ -150,7 +150,7 @@ def test_problem_in_icrs_samples():
     assert prob.response.shape[-1] == n_params(lmax_out)
     a_cg = np.asarray(gcrsky.wiener_filter(prob, method="cg"))
     P = np.asarray(prob.precision_matrix())[0]
-    a_ch = np.asarray(gcrsky.sample(jax.random.PRNGKey(0), prob, 2, method="cholesky")[1]["a_wf"])
+    a_ch = np.asarray(gcrsky.sample(jax.random.PRNGKey(0), prob, 2, method="cholesky")[1].a_wf)
     sig = np.sqrt(np.diag(np.linalg.inv(P)))
     assert np.max(np.abs(a_cg - a_ch)[0] / sig) < 1e-5
     # chi-square of the Wiener filter's error against the posterior covariance

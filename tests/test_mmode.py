@@ -94,7 +94,7 @@ def test_draws_have_exact_covariance(system, dense_P):
     draws = np.asarray(draws)
     nf, n = dense_P.shape[0], dense_P.shape[1]
     assert draws.shape == (nf, ndraws, n)
-    assert np.all(np.asarray(info["draws"].converged))
+    assert np.all(np.asarray(info.draws.converged))
     b = np.asarray(wiener_rhs(system))
     a_wf = np.linalg.solve(dense_P, b[..., None])[..., 0]
     L = np.linalg.cholesky(dense_P)

@@ -81,7 +81,7 @@ def test_every_path_has_its_state_and_the_exact_answer(full_day, options, state,
     a, info = wiener_filter_system(system, options=options)
     assert np.max(np.abs(np.asarray(a) - a_ref) / sig) < SOLVE and bool(np.all(np.asarray(info.converged)))
     draws, dinfo = draw(getkey(), prepared, 3)
-    assert draws.shape == (2, 3, full_day.n) and bool(np.all(np.asarray(dinfo["draws"].converged)))
+    assert draws.shape == (2, 3, full_day.n) and bool(np.all(np.asarray(dinfo.draws.converged)))
     if isinstance(prepared, CGState):  # the options travel with the state (static)
         assert prepared.options.preconditioner in ("nystrom", "mblock")
 

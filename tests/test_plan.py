@@ -63,7 +63,7 @@ def test_auto_picks_the_cheapest_exact_path(request, case, expect, getkey):
     a_ref, sig = _dense_wf_and_sigma(prob)
     assert np.max(np.abs(np.asarray(prepared.a_wf) - a_ref) / sig) < 1e-8
     draws, info = gcrsky.draw(getkey(), prepared, 4)
-    assert draws.shape == (2, 4, prob.n) and bool(np.all(np.asarray(info["draws"].converged)))
+    assert draws.shape == (2, 4, prob.n) and bool(np.all(np.asarray(info.draws.converged)))
 
 
 def test_small_budget_falls_back_to_matrix_free_cg(partial, getkey):

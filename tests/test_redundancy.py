@@ -234,12 +234,12 @@ def test_wiener_filter_and_draws_identical(system, groups, getkey):
     key = getkey()
     d0, i0 = sample_system(key, system, 3, method="cholesky")
     d1, i1 = sample_system(key, c, 3, method="cholesky")
-    assert rel(i1["a_wf"], i0["a_wf"]) < SOLVE
+    assert rel(i1.a_wf, i0.a_wf) < SOLVE
     assert rel(d1, d0) < SOLVE  # same P -> same Cholesky factor -> same draws for the same key
     # the CG path (matrix-free) converges to the same Wiener filter
     p = prepare_sampler(c, options=CGOptions(dense=False, preconditioner="nystrom"), tol=1e-8)  # rounding floor ~5e-9 sigma here
     assert bool(np.all(p.wiener.converged))
-    assert rel(p.a_wf, i0["a_wf"]) < 1e-8  # measured 6e-12
+    assert rel(p.a_wf, i0.a_wf) < 1e-8  # measured 6e-12
 
 
 def test_flags(system, groups):

@@ -119,7 +119,7 @@ def test_problem_has_data_dominated_directions(small):
 def test_draws_exact_mean_and_covariance(small, method):
     N = 4000
     draws, info = gcrsky.sample(jax.random.PRNGKey(11), small["prob"], N, method=method)
-    assert np.all(np.asarray(info["draws"].converged))
+    assert np.all(np.asarray(info.draws.converged))
     d = np.asarray(draws)[0]
     y = _whiten(d, small)
     n = y.shape[1]
@@ -132,7 +132,7 @@ def test_draws_exact_mean_and_covariance(small, method):
     assert zmax < zcrit, (zmax, zcrit)
     # the Wiener filter reported alongside equals the dense solve
     sig = np.sqrt(np.diag(np.linalg.inv(small["P"])))
-    assert np.max(np.abs(np.asarray(info["a_wf"])[0] - small["a_wf"]) / sig) < 1e-6
+    assert np.max(np.abs(np.asarray(info.a_wf)[0] - small["a_wf"]) / sig) < 1e-6
 
 
 def test_dispersion_tests_catch_reference_code_bug(small):
@@ -260,7 +260,7 @@ def test_eigh_sampler_on_a_singular_flat_prior_problem():
     assert _chi2_upper_p(N * np.sum(y.mean(0) ** 2), k) > ALPHA
     chi2 = np.sum(y**2)  # ~ chi2(N k)
     assert stats.chi2.sf(chi2, N * k) > ALPHA / 2 and stats.chi2.cdf(chi2, N * k) > ALPHA / 2
-    assert bool(np.all(np.asarray(info["draws"].converged)))
+    assert bool(np.all(np.asarray(info.draws.converged)))
     chol = gcrsky.prepare(prob, method="cholesky")
     assert not bool(np.all(np.asarray(chol.wiener.converged)))
 
@@ -370,7 +370,7 @@ def test_prepare_once_then_draw_equals_sample(small, method):
     np.testing.assert_allclose(np.asarray(d1), np.asarray(d_ref), rtol=0, atol=1e-9)
     d2, _ = gcrsky.draw(jax.random.PRNGKey(9), prepared, 6)  # reuse: new key, new draws
     assert np.abs(np.asarray(d2) - np.asarray(d1)).max() > 1e-3
-    assert bool(np.all(np.asarray(info["draws"].converged)))
+    assert bool(np.all(np.asarray(info.draws.converged)))
 
 
 def test_cholesky_draws_without_the_inverse_factor_equal_those_with_it(small):
@@ -389,7 +389,7 @@ def test_cholesky_draws_without_the_inverse_factor_equal_those_with_it(small):
     d2, info = gcrsky.draw(key, without, 8)
     tol = 10 * np.linalg.cond(small["P"]) * np.finfo(float).eps * np.abs(np.asarray(d1)).max()
     np.testing.assert_allclose(np.asarray(d2), np.asarray(d1), rtol=0, atol=tol)
-    assert bool(np.all(np.asarray(info["draws"].converged)))
+    assert bool(np.all(np.asarray(info.draws.converged)))
     z = (np.asarray(d2)[0] - small["a_wf"]) @ small["L"]  # L^T (a - a_wf) for each draw
     zk = np.stack([np.asarray(jax.random.normal(k, (1, small["P"].shape[0])))[0]
                    for k in jax.random.split(key, 8)])

@@ -21,7 +21,7 @@ from gcrsky.sphere import alm_to_map
 def test_standard_case_reproduces_paper_headline():
     prob = gcrsky.standard_case()
     draws, info = gcrsky.sample(jax.random.PRNGKey(0), prob, 200, method="cholesky")
-    assert bool(np.all(np.asarray(info["draws"].converged)))
+    assert bool(np.all(np.asarray(info.draws.converged)))
     cfg = prob.config
     nside = cfg.nside
     for f in range(prob.freqs_hz.shape[0]):

@@ -92,7 +92,7 @@ class GCRSampler(NamedTuple):
 
     def __call__(self, key: jax.Array, system: LinearSystem, ndraws: int):
         draws, info = sample_system(key, system, ndraws, method=self.method, options=self.options)
-        ok = jnp.all(info["draws"].converged) & jnp.all(info["wiener"].converged)
+        ok = jnp.all(info.draws.converged) & jnp.all(info.wiener.converged)
         return draws, ok
 
 

@@ -98,7 +98,7 @@ def sample(
         raise ValueError(f"ndraws must be a positive integer, got {ndraws}")
     prepared = prepare(problem, method, tol=tol, options=options, ndraws=int(ndraws), memory_budget=memory_budget)
     draws, info = draw(key, prepared, int(ndraws))
-    warn_unconverged(info["draws"], "GCR draws")
+    warn_unconverged(info.draws, "GCR draws")
     return draws, info
 
 

@@ -81,7 +81,7 @@ def draw_batches(
         d = np.asarray(jax.block_until_ready(d))
         take = min(batch, nsamples - b * batch)
         chunks.append(d[:, :take])
-        infos.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[:, :take], info["draws"]))
+        infos.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[:, :take], info.draws))
         seconds.append(time.perf_counter() - t0)
     draws = np.concatenate(chunks, axis=1)
     info = jax.tree_util.tree_map(lambda *a: np.concatenate(a, axis=1), *infos)

@@ -436,7 +436,7 @@ def draw_batch(key: jax.Array, prepared, b: int, batch: int, nsamples: int):
     d, info = draw(batch_key(key, b), prepared, batch)
     d = np.asarray(jax.block_until_ready(d))
     take = min(batch, nsamples - b * batch)
-    return d[:, :take], jax.tree_util.tree_map(lambda a: np.asarray(a)[:, :take], info["draws"])
+    return d[:, :take], jax.tree_util.tree_map(lambda a: np.asarray(a)[:, :take], info.draws)
 
 
 class MapSummary(NamedTuple):

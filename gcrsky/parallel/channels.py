@@ -203,11 +203,11 @@ def _draw_channel(key_f, state, ndraws: int, batch: int | None):
     """Draws of one prepared one-channel path by the key scheme; (1, ndraws, n), SolveInfo (1, ndraws)."""
     if batch is None:
         d, info = draw(key_f, state, ndraws)
-        return d, info["draws"]
+        return d, info.draws
     nb = -(-ndraws // batch)
     parts = [draw(batch_key(key_f, b), state, batch) for b in range(nb)]
     d = jnp.concatenate([p[0] for p in parts], axis=1)[:, :ndraws]
-    info = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a, axis=1)[:, :ndraws], *[p[1]["draws"] for p in parts])
+    info = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a, axis=1)[:, :ndraws], *[p[1].draws for p in parts])
     return d, info
 
 

@@ -39,7 +39,7 @@ from .dense import (
     prepare_cholesky,
     prepare_eigh,
 )
-from .info import Result, SolveInfo, result_names
+from .info import DrawInfo, Result, SolveInfo, result_names
 from .mmode import MModeState, draw_mmode, mmode_blocks, mmode_check, prepare_mmode
 from .options import (
     DEFAULT_TOL,
@@ -91,6 +91,7 @@ __all__ = [
     "CholeskyState",
     "DataSpaceOptions",
     "DataSpaceState",
+    "DrawInfo",
     "EighOptions",
     "EighState",
     "MBlockPreconditioner",

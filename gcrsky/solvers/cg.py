@@ -35,7 +35,7 @@ import jax.numpy as jnp
 
 from ..base.dtypes import check_float64
 from ..model.system import LinearSystem, fluctuation_rhs, precision_apply, precision_matrix, wiener_rhs
-from .info import Result, SolveInfo, result_code
+from .info import DrawInfo, Result, SolveInfo, result_code
 from .options import CGOptions
 from .preconditioners import inverse_bound, make_preconditioner, precondition_one, resolve_preconditioner
 
@@ -281,4 +281,4 @@ def draw_cg(key: jax.Array, state: CGState, ndraws: int):
     keys = jax.random.split(key, ndraws)
     fl = jax.vmap(lambda k: fluctuation_rhs(k, system), out_axes=1)(keys)  # (Nf, ndraws, n)
     delta, dinfo = solve_cg(system, state.precision, state.pc, fl, jnp.zeros_like(fl), state.options)
-    return a_wf[:, None, :] + delta, {"wiener": state.wiener, "draws": dinfo, "a_wf": a_wf}
+    return a_wf[:, None, :] + delta, DrawInfo(state.wiener, dinfo, a_wf)

@@ -77,7 +77,7 @@ from ..model.operator import adjoint, apply, response_at
 from ..model.system import LinearSystem, precision_apply, wiener_rhs
 from ..sphere.rotation import rotate
 from .dense import cholesky_logdet, cholesky_solve
-from .info import SolveInfo, direct_info, exact_info
+from .info import DrawInfo, SolveInfo, direct_info, exact_info
 from .options import DataSpaceOptions
 
 __all__ = [
@@ -466,7 +466,7 @@ def draw_dataspace(key: jax.Array, state: DataSpaceState, ndraws: int):
         corr = s * jnp.einsum("fak,dfa->dfk", Y, x)
     out = a_wf[:, None, :] + jnp.moveaxis(delta - corr, 0, 1)
     ok = state.wiener.converged[:, None] & jnp.all(jnp.isfinite(out), axis=-1)
-    return out, {"wiener": state.wiener, "draws": exact_info(ok, (nf, ndraws)), "a_wf": a_wf}
+    return out, DrawInfo(state.wiener, exact_info(ok, (nf, ndraws)), a_wf)
 
 
 # ---------------------------------------------------------------- evidence

@@ -39,7 +39,7 @@ import jax.numpy as jnp
 from ..base.dtypes import check_float64
 from ..model.operator import n_in
 from ..model.system import LinearSystem, precision_matrix, wiener_rhs
-from .info import SolveInfo, direct_info, exact_info
+from .info import DrawInfo, SolveInfo, direct_info, exact_info
 from .options import CholeskyOptions, EighOptions
 
 __all__ = [
@@ -331,7 +331,7 @@ def draw_cholesky(key: jax.Array, state: CholeskyState, ndraws: int):
     else:
         delta = upper_triangular_product(state.chol_inv_t, z)
     ok = state.wiener.converged[:, None] & jnp.all(jnp.isfinite(delta), axis=-1)
-    return a_wf[:, None, :] + delta, {"wiener": state.wiener, "draws": exact_info(ok, (nf, ndraws)), "a_wf": a_wf}
+    return a_wf[:, None, :] + delta, DrawInfo(state.wiener, exact_info(ok, (nf, ndraws)), a_wf)
 
 
 @partial(jax.jit, static_argnames=("ndraws",))
@@ -346,4 +346,4 @@ def draw_eigh(key: jax.Array, state: EighState, ndraws: int):
     z = jax.random.normal(key, (nf, n, ndraws), a_wf.dtype)
     delta = jnp.einsum("fij,fjd->fdi", state.sqrt_cov, z)  # (Nf, ndraws, n)
     ok = state.wiener.converged[:, None] & jnp.all(jnp.isfinite(delta), axis=-1)
-    return a_wf[:, None, :] + delta, {"wiener": state.wiener, "draws": exact_info(ok, (nf, ndraws)), "a_wf": a_wf}
+    return a_wf[:, None, :] + delta, DrawInfo(state.wiener, exact_info(ok, (nf, ndraws)), a_wf)

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["Result", "SolveInfo", "direct_info", "exact_info", "result_code", "result_names"]
+__all__ = ["DrawInfo", "Result", "SolveInfo", "direct_info", "exact_info", "result_code", "result_names"]
 
 
 class Result:
@@ -49,6 +49,32 @@ class SolveInfo(NamedTuple):
     rel_residual: jax.Array
     converged: jax.Array
     result: jax.Array
+
+
+class DrawInfo(NamedTuple):
+    """What a batch of draws reports, on every path (:func:`gcrsky.draw`, :func:`gcrsky.sample`).
+
+    Attributes:
+        wiener: :class:`SolveInfo` of the set-up's Wiener solve, (Nf,) fields.
+        draws: :class:`SolveInfo` of the draws, (Nf, ndraws) fields.
+        a_wf: (Nf, n) the Wiener filter (exact posterior mean) the draws scatter about.
+
+    ``info["draws"]``-style access by field name still works (it was a dict before 0.2)
+    but is deprecated: use the attributes.
+    """
+
+    wiener: SolveInfo
+    draws: SolveInfo
+    a_wf: jax.Array
+
+    def __getitem__(self, key):
+        if isinstance(key, str):
+            import warnings
+
+            warnings.warn(f"info[{key!r}] is deprecated: DrawInfo is a NamedTuple, use info.{key}",
+                          DeprecationWarning, stacklevel=2)
+            return getattr(self, key)
+        return tuple.__getitem__(self, key)
 
 
 def result_code(ok, *, finite, broke=None) -> jax.Array:

@@ -51,7 +51,7 @@ from ..base.dtypes import check_float64
 from ..model.operator import n_in
 from ..model.system import LinearSystem, precision_apply, wiener_rhs
 from ..sphere.modes import lmax_from_nparams, mode_table, n_alm
-from .info import SolveInfo, direct_info, exact_info
+from .info import DrawInfo, SolveInfo, direct_info, exact_info
 from .options import MModeOptions
 
 __all__ = [
@@ -329,7 +329,7 @@ def draw_mmode(key: jax.Array, prepared: MModeState, ndraws: int):
     lay = mmode_layout(M - 1)
     delta = _scatter(jnp.moveaxis(delta, -1, 1), lay)  # (Nf, ndraws, n)
     ok = prepared.wiener.converged[:, None] & jnp.all(jnp.isfinite(delta), axis=-1)
-    return a_wf[:, None, :] + delta, {"wiener": prepared.wiener, "draws": exact_info(ok, (nf, ndraws)), "a_wf": a_wf}
+    return a_wf[:, None, :] + delta, DrawInfo(prepared.wiener, exact_info(ok, (nf, ndraws)), a_wf)
 
 
 def mmode_wiener_and_draws(key: jax.Array, system: LinearSystem, ndraws: int, options: MModeOptions | None = None):
