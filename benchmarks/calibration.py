@@ -63,7 +63,7 @@ def main(argv=None):
     doubled = system._replace(inv_noise=system.inv_noise / 2.0)
     chol = GCRSampler("cholesky")
     runs = [
-        ("cg", 100, system, GCRSampler("cg", CGOptions(dense=True, preconditioner="nystrom", rank=8)), None, None),
+        ("cg", 100, system, GCRSampler("cg", CGOptions(dense=True, preconditioner="nystrom", sketch_size=8)), None, None),
         ("cholesky", 101, system, chol, None, 50),
         ("bug 1/sqrt2", 102, system, reference_bug_sampler, None, 50),
         ("post 2sig2", 103, system, chol, doubled, 50),

@@ -70,7 +70,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import gcrsky  # noqa: E402
-from gcrsky.inference import draw, prepare_sampler  # noqa: E402
+from gcrsky.inference import draw, prepare_system  # noqa: E402
 from gcrsky.instrument import (  # noqa: E402
     HERA_LATITUDE_DEG,
     antpairs,
@@ -123,7 +123,7 @@ def run(name, prob, ndraws=20):
     for pc in ("nystrom", "mblock"):
         for dt in ("float64", "float32"):
             kw = dict(options=CGOptions(dense=False, preconditioner=pc, pc_dtype=dt, tol=1e-8, maxiter=20000))
-            prep = jax.block_until_ready(prepare_sampler(system, **kw))
+            prep = jax.block_until_ready(prepare_system(system, **kw))
             jax.block_until_ready(draw(key, prep, ndraws))  # compile
             t0 = time.perf_counter()
             _, info = jax.block_until_ready(draw(key, prep, ndraws))

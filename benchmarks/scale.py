@@ -368,7 +368,7 @@ def run_one(c) -> dict:
     import numpy as np
 
     import gcrsky
-    from gcrsky.inference import draw, prepare_sampler
+    from gcrsky.inference import draw, prepare_system
     from gcrsky.instrument import (
         HERA_LATITUDE_DEG,
         antpairs,
@@ -494,7 +494,7 @@ def run_one(c) -> dict:
     key = jax.random.PRNGKey(7)
     partial(out)
 
-    jit_prepare = jax.jit(prepare_sampler, static_argnames=("method", "options", "tol"))
+    jit_prepare = jax.jit(prepare_system, static_argnames=("method", "options", "tol"))
     jit_draw = jax.jit(draw, static_argnames=("ndraws",))
 
     def timed(jitted, args, static, dyn_kw=None):
@@ -585,7 +585,7 @@ def run_one(c) -> dict:
             # the large-n Cholesky set-up is two programs (P, then its factor); under one outer jit
             # they would fuse and hold 5.25 n^2 doubles at once, so time it as a user calls it
             t0 = time.perf_counter()
-            prep = jax.block_until_ready(prepare_sampler(system, **static))
+            prep = jax.block_until_ready(prepare_system(system, **static))
             tc, tr = 0.0, time.perf_counter() - t0
             rec["setup_note"] = "not under an outer jit: compile included in the set-up time"
         else:

@@ -38,7 +38,7 @@ except ImportError:  # running from a checkout without an install
 import numpy as np
 
 import gcrsky
-from gcrsky.inference import draw, prepare_sampler, sample_system, wiener_filter_system
+from gcrsky.inference import draw, prepare_system, sample_system, wiener_filter_system
 from gcrsky.instrument import antpairs, gaussian_beam, hex_array, make_array, response_matrix
 from gcrsky.model import precision_matrix
 from gcrsky.sim.sky import sky_truth
@@ -204,7 +204,7 @@ def main(argv=None) -> int:
     table.add(f"{args.ndraws} draws, Cholesky", tc, tr_ch, verdict(tr_ch, 1.0))
     # 7. set up once, then draws only (what a notebook drawing thousands does)
     for method in ("cg", "cholesky"):
-        prepared = jax.block_until_ready(prepare_sampler(system, method=method))
+        prepared = jax.block_until_ready(prepare_system(system, method=method))
         c_d, tc = aot(jit_draw, key, prepared, ndraws=args.ndraws)
         _, tr = best_of(args.repeat, c_d, key, prepared)
         table.add(f"{args.ndraws} draws, {method}, after prepare", tc, tr, note="gcrsky.draw(key, prepared, n)")

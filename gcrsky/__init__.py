@@ -25,7 +25,7 @@ from .inference.cl import cl_hat, sample_cl
 from .inference.evidence import log_evidence
 from .inference.gibbs import GCRState, gcr_init, gcr_step
 from .inference.hyper import fit_hyperparameters
-from .inference.posterior import draw, prepare_sampler, sample_system, wiener_filter_system
+from .inference.posterior import draw, prepare_system, sample_system, wiener_filter_system
 from .io.uvdata import from_uvdata
 from .model.compress import compress_problem, compress_system
 from .model.operator import VisOperator, dense_matrix
@@ -36,7 +36,8 @@ from .model.template import spectral_template_system
 from .sim.config import Config
 from .sim.standard import standard_case
 from .solvers.info import SolveInfo
-from .solvers.options import CGOptions, CholeskyOptions, EighOptions, MModeOptions
+from .solvers.options import CGOptions, CholeskyOptions, DataSpaceOptions, EighOptions, MModeOptions
+from .solvers.plan import choose_path
 from .sphere.maps import alm_to_map
 from .sphere.modes import mode_table, realify, unrealify
 
@@ -44,6 +45,7 @@ __all__ = [
     "CGOptions",
     "CholeskyOptions",
     "Config",
+    "DataSpaceOptions",
     "EighOptions",
     "GCRState",
     "LinearSystem",
@@ -55,6 +57,7 @@ __all__ = [
     "alm_to_map",
     "build_problem",
     "check_system",
+    "choose_path",
     "cl_hat",
     "compress_problem",
     "compress_system",
@@ -71,7 +74,7 @@ __all__ = [
     "paper_prior",
     "power_law_cl",
     "prepare",
-    "prepare_sampler",
+    "prepare_system",
     "prior_from_cl",
     "realify",
     "sample",
@@ -85,3 +88,12 @@ __all__ = [
 ]
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name):
+    """``gcrsky.prepare_sampler``: the old name of :func:`prepare_system` (deprecated; not in ``__all__``)."""
+    if name == "prepare_sampler":
+        from .inference.posterior import prepare_sampler
+
+        return prepare_sampler
+    raise AttributeError(f"module 'gcrsky' has no attribute {name!r}")

@@ -114,7 +114,7 @@ def test_setup_is_realistic_and_functionals_probe_both_regimes(setup):
         # iterates (up to ~25 iterations); dense P (gcrsky.sample's default; the
         # matrix-free P is checked against it in test_flags.py).  Replicates one at a
         # time: the vmapped CG compiles slower than it runs here.
-        (GCRSampler("cg", CGOptions(dense=True, preconditioner="nystrom", rank=8)), 100, None),
+        (GCRSampler("cg", CGOptions(dense=True, preconditioner="nystrom", sketch_size=8)), 100, None),
         (GCRSampler("cholesky"), 101, 50),
     ],
     ids=["cg", "cholesky"],

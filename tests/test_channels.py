@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gcrsky.inference import draw, draw_batches, prepare_sampler, wiener_filter_system
+from gcrsky.inference import draw_batches, draw_exactly, prepare_system, wiener_filter_system
 from gcrsky.parallel import (
     CHANNEL_KEY_SCHEME,
     channel_blocks,
@@ -124,8 +124,8 @@ def test_sample_channels_is_the_one_channel_path(system, chol):
     assert chol.info.converged.all() and chol.wiener.converged.all()
     np.testing.assert_array_equal(chol.channels, np.arange(nf))
     for f in range(nf):
-        state = prepare_sampler(freq_slice(system, f), method="cholesky")
-        d, _ = draw(jax.random.fold_in(key, f), state, NDRAWS)
+        state = prepare_system(freq_slice(system, f), method="cholesky")
+        d, _ = draw_exactly(jax.random.fold_in(key, f), state, NDRAWS)
         np.testing.assert_array_equal(chol.draws[f], np.asarray(d[0]))  # exactly: the key scheme
         np.testing.assert_array_equal(chol.a_wf[f], np.asarray(state.a_wf[0]))
     # the joint (all channels at once) posterior mean is the same: channels are independent
@@ -144,8 +144,8 @@ def test_rows_do_not_depend_on_the_split(system, chol):
     np.testing.assert_array_equal(sub.a_wf, chol.a_wf[[2, 0]])
     # negative control: the joint scheme (one (Nf, n) normal per draw) cannot be split,
     # its channel f depends on Nf; it gives different (equally exact) draws
-    joint, _ = draw(key, prepare_sampler(system, method="cholesky"), NDRAWS)
-    half, _ = draw(key, prepare_sampler(freq_slice(system, 2), method="cholesky"), NDRAWS)
+    joint, _ = draw_exactly(key, prepare_system(system, method="cholesky"), NDRAWS)
+    half, _ = draw_exactly(key, prepare_system(freq_slice(system, 2), method="cholesky"), NDRAWS)
     assert rel(np.asarray(joint[2]), np.asarray(half[0])) > 1e-3
     assert rel(np.asarray(joint), chol.draws) > 1e-3
     assert channel_key(key, 2).shape == key.shape
@@ -154,7 +154,7 @@ def test_rows_do_not_depend_on_the_split(system, chol):
 def test_batches_follow_draw_batches(system):
     key = jax.random.PRNGKey(SEED)
     got = sample_channels(key, system, 5, "cholesky", batch=2, channels=[1])
-    ref = draw_batches(channel_key(key, 1), prepare_sampler(freq_slice(system, 1), method="cholesky"), 5, 2)
+    ref = draw_batches(channel_key(key, 1), prepare_system(freq_slice(system, 1), method="cholesky"), 5, 2)
     np.testing.assert_array_equal(got.draws[0], ref.draws[0])
     assert got.info.converged.shape == (1, 5)
 
@@ -164,8 +164,8 @@ def test_progress_and_cg(system, chol, cg, cg_ticks):
     assert cg_ticks == [1, 1, 1]
     assert cg.wiener.converged.all() and cg.info.converged.all()
     assert rel(cg.a_wf, chol.a_wf) < 1e-10
-    state = prepare_sampler(freq_slice(system, 1), options=CG)
-    d, _ = draw(jax.random.fold_in(key, 1), state, NDRAWS)
+    state = prepare_system(freq_slice(system, 1), options=CG)
+    d, _ = draw_exactly(jax.random.fold_in(key, 1), state, NDRAWS)
     np.testing.assert_array_equal(cg.draws[1], np.asarray(d[0]))
 
 

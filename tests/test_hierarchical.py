@@ -137,7 +137,7 @@ def test_a_step_is_the_exact_conditional_draw(system, options):
     lmax = 4
     cl = jnp.stack([3.0 / (1.0 + jnp.arange(lmax + 1)) ** 2] * 2)
     inv_var = gcrsky.prior_from_cl(cl).inv_var
-    fixed = gibbs_setup(system, options=options, rank=12)
+    fixed = gibbs_setup(system, options=options, sketch_size=12)
     key = jax.random.PRNGKey(9)
     a, info = jax.jit(_a_step)(key, fixed, cl, system.prior.mean)
     assert np.all(np.asarray(info.converged))

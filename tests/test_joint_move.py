@@ -166,7 +166,7 @@ def test_ratio_is_the_joint_density_ratio_times_the_jacobian(system, rescale, fa
                          ids=["cg-dense", "cg-matrix-free"])
 def test_prior_rescaling_is_the_same_move_on_cg_paths(system, options):
     ref_fixed = gibbs_setup(system)
-    fixed = gibbs_setup(system, options=options, rank=12)
+    fixed = gibbs_setup(system, options=options, sketch_size=12)
     state = _start(ref_fixed)
     kw = dict(proposal=jnp.array([0.3, 0.2]), rescale="prior")
     key = jax.random.PRNGKey(5)
@@ -195,7 +195,7 @@ def test_refresh_draws_the_sky_at_the_accepted_spectrum(system):
 
 def test_bad_arguments(system):
     fixed = gibbs_setup(system)
-    cg = gibbs_setup(system, options=CGOptions(), rank=12)
+    cg = gibbs_setup(system, options=CGOptions(), sketch_size=12)
     state = _start(fixed)
     with pytest.raises(ValueError, match="rescale"):
         joint_step(jax.random.PRNGKey(0), state, fixed, proposal=0.1, rescale="both")

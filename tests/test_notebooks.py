@@ -141,6 +141,6 @@ def test_readme_python_examples_run(tmp_path, monkeypatch):
     assert ns["real"].response.shape[-1] == (20 + 4 + 1) ** 2  # ICRS lmax 20 -> CIRS lmax 24
     assert ns["real"].data.shape == (2, 10, 45)
     assert np.all(np.isfinite(np.asarray(ns["chain"])))
-    assert ns["fit"].converged and abs(float(ns["fit"].theta)) < 4 * float(ns["fit"].std[0])
+    assert ns["fit"].converged and abs(float(ns["fit"].theta)) < 4 * float(ns["fit"].std)
     assert ns["cls"].shape == (200, 2, 21) and np.all(np.isfinite(np.asarray(ns["cls"])))
     assert np.all((np.asarray(ns["alphas"]) > 0) & (np.asarray(ns["alphas"]) < 6))

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gcrsky.inference import prepare_sampler, sample_system
+from gcrsky.inference import prepare_system, sample_system
 from gcrsky.instrument import (
     HERA_LATITUDE_DEG,
     RedundantGroups,
@@ -237,7 +237,7 @@ def test_wiener_filter_and_draws_identical(system, groups, getkey):
     assert rel(i1.a_wf, i0.a_wf) < SOLVE
     assert rel(d1, d0) < SOLVE  # same P -> same Cholesky factor -> same draws for the same key
     # the CG path (matrix-free) converges to the same Wiener filter
-    p = prepare_sampler(c, options=CGOptions(dense=False, preconditioner="nystrom"), tol=1e-8)  # rounding floor ~5e-9 sigma here
+    p = prepare_system(c, options=CGOptions(dense=False, preconditioner="nystrom"), tol=1e-8)  # rounding floor ~5e-9 sigma here
     assert bool(np.all(p.wiener.converged))
     assert rel(p.a_wf, i0.a_wf) < 1e-8  # measured 6e-12
 

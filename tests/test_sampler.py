@@ -20,7 +20,7 @@ import gcrsky
 from gcrsky.inference import sample_system, wiener_filter_system
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
 from gcrsky.model import Prior, build_problem, fluctuation_rhs, isotropic_prior, wiener_rhs
-from gcrsky.solvers import CGOptions, EighOptions, pcg
+from gcrsky.solvers import CGOptions, EighOptions, Result, pcg
 from gcrsky.sphere import hours_to_rad
 
 jax.config.update("jax_enable_x64", True)
@@ -187,7 +187,7 @@ def test_nystrom_error_estimate_bounds_the_true_error(small):
     system = small["prob"].system()
     P = small["P"]
     for maxiter in (1, 2, 3):
-        a, info = wiener_filter_system(system, options=CGOptions(tol=1e-14, maxiter=maxiter, preconditioner="nystrom", rank=6))
+        a, info = wiener_filter_system(system, options=CGOptions(tol=1e-14, maxiter=maxiter, preconditioner="nystrom", sketch_size=6))
         e = np.asarray(a)[0] - small["a_wf"]
         true = np.sqrt(e @ P @ e)
         assert true > 1e-6  # really unconverged, so the comparison means something
@@ -238,8 +238,13 @@ def test_eigh_sampler_on_a_singular_flat_prior_problem():
     rcond = 1e-14  # inside the gap
     keep = lam > rcond * lam[-1]
     assert 0 < keep.sum() <= 20 and lam[~keep].max() < 1e-15 * lam[-1]  # the construction holds
-    prepared = gcrsky.prepare(prob, options=EighOptions(rcond=rcond))
-    assert int(np.asarray(prepared.rank)[0]) == keep.sum()
+    # the weakest kept directions are defined only to ~4e-4 in angle (below): the Wiener solve's
+    # measured error is 2.3e-5 posterior sigma, so the default tol (1e-6) reports it INACCURATE,
+    # honestly, and a tol that admits it reports success
+    loose = gcrsky.prepare(prob, options=EighOptions(rcond=rcond))
+    assert int(np.asarray(loose.wiener.result)[0]) == Result.INACCURATE
+    prepared = gcrsky.prepare(prob, options=EighOptions(rcond=rcond, tol=1e-4))
+    assert int(np.asarray(prepared.kept)[0]) == keep.sum()
     b = np.asarray(wiener_rhs(prob.system()))[0]
     ref = V[:, keep] @ ((V[:, keep].T @ b) / lam[keep])
     a_wf = np.asarray(prepared.a_wf)[0]
@@ -391,6 +396,6 @@ def test_cholesky_draws_without_the_inverse_factor_equal_those_with_it(small):
     np.testing.assert_allclose(np.asarray(d2), np.asarray(d1), rtol=0, atol=tol)
     assert bool(np.all(np.asarray(info.draws.converged)))
     z = (np.asarray(d2)[0] - small["a_wf"]) @ small["L"]  # L^T (a - a_wf) for each draw
-    zk = np.stack([np.asarray(jax.random.normal(k, (1, small["P"].shape[0])))[0]
-                   for k in jax.random.split(key, 8)])
+    zk = np.stack([np.asarray(jax.random.normal(k, (1, small["P"].shape[0])))[0]  # one bucket of 8: fold_in(key, 0)
+                   for k in jax.random.split(jax.random.fold_in(key, 0), 8)])
     np.testing.assert_allclose(z, zk, rtol=0, atol=1e-6)

@@ -54,7 +54,7 @@ from ..model.operator import apply
 from ..model.prior import isotropic_prior
 from ..model.problem import build_problem
 from ..model.system import LinearSystem, fluctuation_rhs, precision_matrix, wiener_rhs
-from ..solvers.options import SolverOptions
+from ..solvers.registry import SolverOptions
 from ..sphere.frames import hours_to_rad
 from ..sphere.modes import lmax_from_nparams, mode_table
 

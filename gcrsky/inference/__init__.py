@@ -1,6 +1,6 @@
 """Inference on the GCR system: posterior means, exact draws, batches and the Gibbs kernel.
 
-- ``posterior``: the system tier: :func:`prepare_sampler`, :func:`draw`, :func:`sample_system`, :func:`wiener_filter_system` on a chosen exact path (pure; usable inside ``jit``)
+- ``posterior``: the system tier: :func:`prepare_system`, :func:`draw` (optionally for new data), :func:`condition`, :func:`sample_system`, :func:`wiener_filter_system` on a chosen exact path (pure; usable inside ``jit`` and ``vmap``); the draw layout and key scheme
 - ``api``: the user tier on a :class:`~gcrsky.model.Problem`: :func:`wiener_filter`, :func:`sample`, :func:`prepare` (path chosen by size, memory checked, unconverged solves logged)
 - ``batches``: :func:`draw_batches`: many draws in fixed batches with a key scheme independent of the total
 - ``gibbs``: :func:`gcr_init` / :func:`gcr_step`: the GCR step as a kernel for a user's Gibbs loop;
@@ -26,7 +26,7 @@ of a fixed-key draw depends on ``method``; the Wiener filter's and the evidence'
 not.  C_l steps will live here too.
 """
 
-from .api import Method, as_system, prepare, sample, warn_unconverged, wiener_filter
+from .api import Method, as_system, fixed_path, prepare, sample, warn_unconverged, wiener_filter
 from .batches import KEY_SCHEME, BatchedDraws, batch_key, draw_batches
 from .cl import CL_PRIORS, cl_hat, power_law_log_marginal, sample_cl, sample_power_law
 from .collapsed import (
@@ -52,7 +52,18 @@ from .gibbs import (
     sky_step,
 )
 from .hyper import FitResult, fit_hyperparameters, objective
-from .posterior import SamplerState, draw, prepare_sampler, sample_system, wiener_filter_system
+from .posterior import (
+    DRAW_BATCH,
+    SamplerState,
+    condition,
+    draw,
+    draw_bucket,
+    draw_exactly,
+    prepare_sampler,
+    prepare_system,
+    sample_system,
+    wiener_filter_system,
+)
 from .sources import (
     FluxBlock,
     SkySourceState,
@@ -67,6 +78,7 @@ from .sources import (
 
 __all__ = [
     "CL_PRIORS",
+    "DRAW_BATCH",
     "KEY_SCHEME",
     "BatchedDraws",
     "CollapsedInfo",
@@ -85,12 +97,16 @@ __all__ = [
     "as_system",
     "batch_key",
     "cl_hat",
+    "condition",
     "draw",
     "draw_batches",
+    "draw_bucket",
+    "draw_exactly",
     "draw_given_hyperparameters",
     "effective_sample_size",
     "evidence_terms",
     "fit_hyperparameters",
+    "fixed_path",
     "flux_posterior",
     "flux_setup",
     "flux_step",
@@ -106,6 +122,7 @@ __all__ = [
     "power_law_log_marginal",
     "prepare",
     "prepare_sampler",
+    "prepare_system",
     "sample",
     "sample_cl",
     "sample_fluxes",

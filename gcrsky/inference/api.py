@@ -2,33 +2,42 @@
 
 ``wiener_filter``, ``sample`` and ``prepare`` accept a Problem or its
 :class:`~gcrsky.model.LinearSystem` (e.g. from :func:`gcrsky.model.compress_system`).
-They run host-side: the system is checked first (:func:`gcrsky.model.check_system`
+On concrete arrays the system is checked first (:func:`gcrsky.model.check_system`
 names what is wrong with a hand-edited one), ``method="auto"`` (the default) picks
-the cheapest exact path
-that fits in memory (:func:`gcrsky.solvers.choose_path`), an explicit ``method`` is
-checked against the memory first, and unconverged solves are logged as warnings.
-``tol`` is the CG tolerance in posterior-sigma units; every other knob of a path
-lives in its options object (:mod:`gcrsky.solvers.options`), passed as
+the cheapest exact path that fits in memory (:func:`gcrsky.solvers.choose_path`), an
+explicit ``method`` is checked against the memory first, and unconverged solves are
+logged as warnings.  ``tol`` is the CG tolerance in posterior-sigma units; every other
+knob of a path lives in its options object (:mod:`gcrsky.solvers.options`), passed as
 ``options=`` (which also selects the path).
+
+Under ``jax.jit`` / ``jax.vmap`` / ``jax.grad`` (a traced system) the same functions work
+once the path is fixed: choose it on concrete inputs (``opts = gcrsky.choose_path(problem)``)
+and pass ``options=opts``, or pass ``method=``; ``method="auto"`` alone is refused with
+that advice.  The host-side checks are skipped there (the paths judge their own accuracy:
+see :class:`~gcrsky.solvers.SolveInfo`), and unconverged solves are logged from inside the
+computation (``jax.debug.callback``).
 """
 
 from __future__ import annotations
 
 import logging
-from typing import Literal
 
 import jax
 import numpy as np
 
 from ..model.problem import Problem
 from ..model.system import LinearSystem, check_system
-from ..solvers.options import SolverOptions
+from ..solvers.info import SolveInfo
+from ..solvers.path import is_traced
 from ..solvers.plan import choose_path
-from .posterior import SamplerState, draw, prepare_sampler, wiener_filter_system
+from ..solvers.registry import SolverOptions, options_for, path_of
+from .posterior import SamplerState, draw, prepare_system, wiener_filter_system
 
-__all__ = ["Method", "prepare", "sample", "wiener_filter"]
+__all__ = ["Method", "fixed_path", "prepare", "sample", "wiener_filter"]
 
-Method = Literal["auto", "cg", "cholesky", "eigh", "mmode", "dataspace"]
+#: ``method=`` of the user tier: ``"auto"`` or the name of a path in :data:`gcrsky.solvers.METHODS`
+#: (``"cg"``, ``"cholesky"``, ``"eigh"``, ``"mmode"``, ``"dataspace"``; the registry is the list).
+Method = str
 
 
 def wiener_filter(
@@ -49,7 +58,7 @@ def wiener_filter(
     and is flagged in the info.
     """
     system = as_system(problem)
-    opts = choose_path(system, method, options=options, tol=tol, memory_budget=memory_budget)
+    opts = fixed_path(system, method, options=options, tol=tol, memory_budget=memory_budget)
     a, info = wiener_filter_system(system, options=opts)
     warn_unconverged(info, "Wiener filter")
     return (a, info) if return_info else a
@@ -91,8 +100,10 @@ def sample(
             :func:`gcrsky.base.available_memory_bytes`).
 
     Returns:
-        draws (Nf, ndraws, n) realified, Kelvin; info dict with ``"wiener"`` and
-        ``"draws"`` :class:`~gcrsky.solvers.SolveInfo` and ``"a_wf"``.
+        draws (Nf, ndraws, n) realified, Kelvin (the draw layout and key scheme of
+        :mod:`gcrsky.inference.posterior`: batches of a bucketed size, so a new ``ndraws``
+        in the same bucket does not recompile); a :class:`~gcrsky.solvers.DrawInfo`
+        (``wiener``, ``draws``: :class:`~gcrsky.solvers.SolveInfo`, ``a_wf``).
     """
     if int(ndraws) != ndraws or ndraws < 1:
         raise ValueError(f"ndraws must be a positive integer, got {ndraws}")
@@ -123,15 +134,45 @@ def prepare(
         :class:`~gcrsky.solvers.MModeState` or :class:`~gcrsky.solvers.DataSpaceState`).
     """
     system = as_system(problem)
-    opts = choose_path(system, method, options=options, tol=tol, ndraws=int(ndraws), memory_budget=memory_budget)
-    prepared = prepare_sampler(system, options=opts)
+    opts = fixed_path(system, method, options=options, tol=tol, ndraws=int(ndraws), memory_budget=memory_budget)
+    prepared = prepare_system(system, options=opts)
     warn_unconverged(prepared.wiener, "Wiener filter")
     return prepared
 
 
+def fixed_path(
+    system: LinearSystem,
+    method: Method = "auto",
+    *,
+    options: SolverOptions | None = None,
+    tol: float | None = None,
+    ndraws: int = 1,
+    memory_budget: float | None = None,
+) -> SolverOptions:
+    """The options of the path the user tier will run.
+
+    On concrete arrays: :func:`gcrsky.solvers.choose_path` (planned for ``"auto"``, checked
+    against the system and the memory otherwise).  Under a trace: the path given by
+    ``method`` or ``options`` (resolved as far as shapes allow); ``"auto"`` without options
+    is a ``ValueError`` that says how to fix the path outside the transformation.
+    """
+    if not is_traced(system):
+        return choose_path(system, method, options=options, tol=tol, ndraws=ndraws, memory_budget=memory_budget)
+    if method == "auto" and options is None:
+        raise ValueError(
+            "method='auto' chooses a path from the values of the system, but they are traced here (inside "
+            "jax.jit, jax.vmap or jax.grad): choose it on concrete inputs, e.g. opts = gcrsky.choose_path(problem) "
+            "outside the transformation, and pass options=opts (or pass method='cholesky', 'cg', ...)")
+    opts = options_for(path_of(options).name if method == "auto" else method, options, tol=tol)
+    return path_of(opts).resolve(system, opts)
+
+
 def as_system(problem: Problem | LinearSystem, *, check: bool = True) -> LinearSystem:
     """A :class:`Problem`'s linear system, or the system itself, checked by
-    :func:`gcrsky.model.check_system` (host-side; traced systems pass unchecked)."""
+    :func:`gcrsky.model.check_system` (host-side; traced systems pass unchecked).  A prepared
+    state (:func:`prepare`) gives its own system."""
+    if hasattr(problem, "a_wf") and isinstance(getattr(problem, "system", None), LinearSystem):
+        problem = problem.system
     if isinstance(problem, Problem):
         problem = problem.system()
     if not isinstance(problem, LinearSystem):
@@ -139,11 +180,22 @@ def as_system(problem: Problem | LinearSystem, *, check: bool = True) -> LinearS
     return check_system(problem) if check else problem
 
 
-def warn_unconverged(info, what: str) -> None:
-    """Log a warning naming how many solves in ``info`` did not converge, and the worst error."""
-    bad = ~np.asarray(info.converged)
+def warn_unconverged(info: SolveInfo, what: str) -> None:
+    """Log a warning naming how many solves in ``info`` did not converge, and the worst error.
+
+    Host-side on concrete arrays; under a trace the check runs inside the computation
+    (``jax.debug.callback``), so ``jit``-ed and ``vmap``-ed calls warn too.
+    """
+    if is_traced(info):
+        jax.debug.callback(lambda c, e: _log_unconverged(np.asarray(c), np.asarray(e), what), info.converged,
+                           info.err_sigma)
+    else:
+        _log_unconverged(np.asarray(info.converged), np.asarray(info.err_sigma), what)
+
+
+def _log_unconverged(converged: np.ndarray, err: np.ndarray, what: str) -> None:
+    bad = ~converged
     if bad.any():
-        err = np.asarray(info.err_sigma)
         worst = float(np.max(np.where(np.isfinite(err), err, np.inf)))
         logging.getLogger("gcrsky").warning(
             "%s: %d of %d solves did not converge (worst error estimate %.3g posterior sigma; "

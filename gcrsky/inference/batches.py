@@ -17,7 +17,7 @@ import jax
 import numpy as np
 
 from ..solvers.info import SolveInfo
-from .posterior import SamplerState, draw
+from .posterior import SamplerState, draw_exactly
 
 __all__ = ["BatchedDraws", "KEY_SCHEME", "batch_key", "draw_batches"]
 
@@ -77,7 +77,7 @@ def draw_batches(
     chunks, infos, seconds = [], [], []
     for b in batches:
         t0 = time.perf_counter()
-        d, info = draw(batch_key(key, b), prepared, batch)
+        d, info = draw_exactly(batch_key(key, b), prepared, batch)
         d = np.asarray(jax.block_until_ready(d))
         take = min(batch, nsamples - b * batch)
         chunks.append(d[:, :take])

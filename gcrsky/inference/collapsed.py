@@ -56,7 +56,8 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
 from ..base.extras import require
-from ..solvers.options import CholeskyOptions, SolverOptions
+from ..solvers.options import CholeskyOptions
+from ..solvers.registry import SolverOptions
 from .evidence import log_evidence_system
 from .posterior import sample_system
 

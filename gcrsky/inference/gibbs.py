@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import warnings
 from typing import NamedTuple
 
 import equinox as eqx
@@ -42,6 +43,7 @@ from ..solvers.cg import cg_solve, freq_slice, resolve_cg_options, solve_cg
 from ..solvers.info import SolveInfo, direct_info
 from ..solvers.options import CGOptions, CholeskyOptions
 from ..solvers.preconditioners import make_preconditioner, nystrom_preconditioner
+from ..solvers.registry import path_of
 from ..sphere.modes import lmax_from_nparams, mode_table
 from .cl import sample_cl, sample_power_law
 
@@ -114,7 +116,7 @@ def gcr_step(
     options = resolve_cg_options(system, options)
     precision = precision_matrix(system) if options.dense else None
     if pc is None:
-        pc = make_preconditioner(system, options.preconditioner, precision, options.rank, options.pc_dtype)
+        pc = make_preconditioner(system, options.preconditioner, precision, options.sketch_size, options.pc_dtype)
     b = wiener_rhs(system) + fluctuation_rhs(key, system)
     x, info = solve_cg(system, precision, pc, b, state.position, options)
     return GCRState(x), info
@@ -176,28 +178,29 @@ class GibbsInfo(NamedTuple):
     solve: SolveInfo
 
 
-#: ``rank="auto"``: the sketch's size, and the share of the posterior precision (in the system's
+#: ``sketch_size="auto"``: the sketch's size, and the share of the posterior precision (in the system's
 #: own prior-whitened frame) below which a direction is left to CG.
 AUTO_SKETCH, AUTO_THRESHOLD = 512, 1e-2
 
 
 def _auto_rank(lam) -> int:
-    """The CG path's sketch rank for ``rank="auto"`` from the Nystrom eigenvalues (Nf, k0) (host-side)."""
+    """The CG path's sketch size for ``sketch_size="auto"`` from the Nystrom eigenvalues (Nf, k0) (host-side)."""
     try:
         lam = np.asarray(lam)
     except jax.errors.ConcretizationTypeError:
-        raise ValueError("gibbs_setup(rank='auto') reads the sketch's eigenvalues on the host: call it outside "
-                         "jit, or pass an integer rank") from None
+        raise ValueError("gibbs_setup(sketch_size='auto') reads the sketch's eigenvalues on the host: call it "
+                         "outside jit, or pass an integer sketch_size") from None
     k0 = lam.shape[-1]
     count = int(np.max(np.sum(lam >= AUTO_THRESHOLD, axis=-1)))
     if count >= k0:
-        log.warning("gibbs_setup: all %d sketched directions of the data term are above %g: pass a larger rank "
+        log.warning("gibbs_setup: all %d sketched directions of the data term are above %g: pass a larger sketch_size "
                     "if CG needs many iterations", k0, AUTO_THRESHOLD)
     return min(k0, max(32, 16 * int(np.ceil(1.25 * count / 16))))
 
 
-def gibbs_setup(system: LinearSystem, *, options=None, rank: int | str = "auto", key=None) -> GibbsFixed:
-    """Build the a-step's fixed data term once (pure for an integer ``rank``).
+def gibbs_setup(system: LinearSystem, *, options=None, sketch_size: int | str = "auto", key=None,
+                rank: int | str | None = None) -> GibbsFixed:
+    """Build the a-step's fixed data term once (pure for an integer ``sketch_size``).
 
     Args:
         system: the linear system (data, noise, response and prior; the prior's mean is
@@ -205,35 +208,71 @@ def gibbs_setup(system: LinearSystem, *, options=None, rank: int | str = "auto",
             uses when given no ``C_l``, and the scale of the CG preconditioner's sketch).
         options: ``CholeskyOptions()`` (default: dense ``H``, one Cholesky per step) or
             ``CGOptions(...)`` (its ``dense``, tolerance and iteration cap are used; the
-            preconditioner is the Woodbury update of a rank-``rank`` sketch of H).
-        rank: sketch size k of the CG path's approximation ``H ~ G G^T``, or ``"auto"``
+            preconditioner is the Woodbury update of a rank-``sketch_size`` sketch of H).
+        sketch_size: sketch size k of the CG path's approximation ``H ~ G G^T``, or ``"auto"``
             (host-side, not under ``jit``): sketch ``min(n, 512)`` directions, then keep
             1.25 x the number whose eigenvalue in the system's prior-whitened frame is
             ``>= 0.01`` (at least 32): measured, 112 at the standard case (2 CG iterations a
             step) and 240 at lmax 50 with 8 h of data (2 iterations, where a fixed 128 needed
             80).  Per step the preconditioner costs ``O(lmax k^2 + k^3)``.
         key: PRNG key of that sketch (default PRNGKey(0)).
+        rank: deprecated name of ``sketch_size``.
     """
+    if rank is not None:
+        warnings.warn("gibbs_setup(rank=...) is deprecated: use sketch_size=", DeprecationWarning, stacklevel=2)
+        sketch_size = rank
     options = CholeskyOptions() if options is None else options
-    if not isinstance(options, (CholeskyOptions, CGOptions)):
-        raise TypeError(f"gibbs_setup takes CholeskyOptions or CGOptions, got {type(options).__name__}")
+    sky = _sky_solver(options)
     check_float64(system.op.response, system.inv_noise)
     data_rhs = adjoint(system.op, system.inv_noise * system.data)
-    dense = isinstance(options, CholeskyOptions) or options.dense
-    diag = jax.vmap(jnp.diag)(system.prior.inv_var)
-    H = precision_matrix(system) - diag if dense else None
-    F = G = B = None
-    if isinstance(options, CholeskyOptions):
-        factor = jnp.linalg.cholesky(H + diag)
-    else:
-        if dense:
+    return GibbsFixed(system, data_rhs, *sky.setup(system, options, sketch_size, key), options)
+
+
+class _DenseSky:
+    """The a-step on the Cholesky path: dense ``H``, one Cholesky of ``H + S^-1`` per prior."""
+
+    def setup(self, system, options, size, key):
+        diag = jax.vmap(jnp.diag)(system.prior.inv_var)
+        H = precision_matrix(system) - diag
+        return H, None, None, None, jnp.linalg.cholesky(H + diag)
+
+    def factor(self, fixed, cl, inv_var):
+        return jnp.linalg.cholesky(fixed.data_term + jax.vmap(jnp.diag)(inv_var))
+
+    def mean(self, fixed, cond, rhs):
+        m = _dense_mean(cond, rhs)
+        zeros = jnp.zeros(m.shape[0])
+        return m, direct_info(zeros, zeros, jnp.all(jnp.isfinite(m), axis=1), fixed.options.tol)
+
+    def draw(self, key, fixed, cond, rhs0, x0):
+        mean = fixed.system.prior.mean
+        z = jax.random.normal(key, mean.shape, mean.dtype)
+
+        def one(Lf, bf, zf):
+            m = jax.scipy.linalg.cho_solve((Lf, True), bf)
+            return m + jax.scipy.linalg.solve_triangular(Lf.T, zf, lower=False)
+
+        a = jax.vmap(one)(cond.factor, rhs0, z)
+        zeros = jnp.zeros(mean.shape[0])
+        return a, direct_info(zeros, zeros, jnp.all(jnp.isfinite(a), axis=1), fixed.options.tol)
+
+
+class _CGSky:
+    """The a-step on the CG path: a rank-k sketch ``H ~ G G^T`` built once, a Woodbury
+    preconditioner per prior, CG warm-started at the previous draw."""
+
+    def setup(self, system, options, size, key):
+        diag = jax.vmap(jnp.diag)(system.prior.inv_var)
+        H = precision_matrix(system) - diag if options.dense else None
+        F = None
+        if options.dense:
             lam, V = jnp.linalg.eigh(H)
             F = V * jnp.sqrt(jnp.maximum(lam, 0.0))[:, None, :]  # H is PSD: negative lam are rounding
-        auto = isinstance(rank, str)
-        if auto and rank != "auto":
-            raise ValueError(f"rank must be an integer or 'auto', got {rank!r}")
+        auto = isinstance(size, str)
+        if auto and size != "auto":
+            raise ValueError(f"sketch_size must be an integer or 'auto', got {size!r}")
         n = system.prior.mean.shape[1]
-        pc = nystrom_preconditioner(system, min(n, AUTO_SKETCH) if auto else rank, key,
+        pc = nystrom_preconditioner(system, min(n, AUTO_SKETCH) if auto else size, key,
                                     None if H is None else H + diag)
         U, lam = pc.U, pc.lam
         if auto:  # the sketch's eigenpairs come sorted, largest first: keep the leading ones
@@ -241,13 +280,39 @@ def gibbs_setup(system: LinearSystem, *, options=None, rank: int | str = "auto",
             U, lam = U[..., :k], lam[..., :k]
             log.info("gibbs_setup: rank-%d sketch of the data term (of %d sketched)", k, pc.lam.shape[-1])
         G = U * (jnp.sqrt(lam)[:, None, :] / pc.scale[..., None])  # H ~ S^-1/2 U lam U^T S^-1/2
-        lmax = lmax_from_nparams(n)
-        tab = mode_table(lmax)
-        pattern = np.zeros((lmax + 1, n))
+        tab = mode_table(lmax_from_nparams(n))
+        pattern = np.zeros((tab.ell.max() + 1, n))
         pattern[tab.ell, np.arange(n)] = np.where(tab.m == 0, 1.0, 0.5)  # Var(a_i) = C_l(i) * pattern
         B = jnp.einsum("fik,li,fij->flkj", G, jnp.asarray(pattern), G)
-        factor = jax.vmap(_core_factor)(G, 1.0 / system.prior.inv_var)
-    return GibbsFixed(system, data_rhs, H, F, G, B, factor, options)
+        return H, F, G, B, jax.vmap(_core_factor)(G, 1.0 / system.prior.inv_var)
+
+    def factor(self, fixed, cl, inv_var):
+        if cl is None:
+            return jax.vmap(_core_factor)(fixed.lowrank, 1.0 / inv_var)
+        mean = fixed.system.prior.mean  # Woodbury core from the per-l blocks: O(lmax k^2 + k^3)
+        k = fixed.lowrank.shape[-1]
+        cls = jnp.broadcast_to(cl, (mean.shape[0], cl.shape[-1]))
+        return jnp.linalg.cholesky(jnp.eye(k, dtype=mean.dtype) + jnp.einsum("fl,flkj->fkj", cls,
+                                                                            fixed.lowrank_blocks))
+
+    def mean(self, fixed, cond, rhs):
+        return _cg_solve(fixed, cond, rhs, fixed.system.prior.mean)
+
+    def draw(self, key, fixed, cond, rhs0, x0):
+        return _cg_solve(fixed, cond, rhs0 + _fluctuation(key, fixed, cond.inv_var), x0)
+
+
+#: The a-step of each solver path that has one (by the registry's names).
+_SKY_SOLVERS = {"cholesky": _DenseSky(), "cg": _CGSky()}
+
+
+def _sky_solver(options):
+    """The a-step of ``options``' path (:func:`gcrsky.solvers.path_of`)."""
+    name = path_of(options).name if not isinstance(options, str) else options
+    if name not in _SKY_SOLVERS:
+        raise TypeError(f"gibbs_setup takes CholeskyOptions or CGOptions, got {type(options).__name__} "
+                        f"(the {name!r} path has no hierarchical a-step)")
+    return _SKY_SOLVERS[name]
 
 
 def gibbs_init(fixed: GibbsFixed, cl, *, position=None, alpha=None, amplitude=None) -> GibbsState:
@@ -312,17 +377,7 @@ def _conditional(fixed: GibbsFixed, cl=None, inv_var=None) -> _Conditional:
         cl = jnp.asarray(cl, mean.dtype)
         inv_var = jnp.broadcast_to(prior_from_cl(cl).inv_var, mean.shape)
     inv_var = jnp.broadcast_to(jnp.asarray(inv_var, mean.dtype), mean.shape)
-    if isinstance(fixed.options, CholeskyOptions):
-        factor = jnp.linalg.cholesky(fixed.data_term + jax.vmap(jnp.diag)(inv_var))
-    elif cl is not None:  # Woodbury core from the per-l blocks: O(lmax k^2 + k^3)
-        k = fixed.lowrank.shape[-1]
-        core = jnp.eye(k, dtype=mean.dtype) + jnp.einsum("fl,flkj->fkj", jnp.broadcast_to(cl, (mean.shape[0],
-                                                                                            cl.shape[-1])),
-                                                          fixed.lowrank_blocks)
-        factor = jnp.linalg.cholesky(core)
-    else:
-        factor = jax.vmap(_core_factor)(fixed.lowrank, 1.0 / inv_var)
-    return _Conditional(inv_var, factor)
+    return _Conditional(inv_var, _sky_solver(fixed.options).factor(fixed, cl, inv_var))
 
 
 def _data_rhs(fixed: GibbsFixed, data):
@@ -358,20 +413,8 @@ def _cg_solve(fixed: GibbsFixed, cond: _Conditional, b, x0):
 
 def _draw(key, fixed: GibbsFixed, cond: _Conditional, data_rhs, x0):
     """Exact draw of ``a | d, S`` for the prior ``cond``: (Nf, n) and SolveInfo."""
-    mean = fixed.system.prior.mean
-    rhs0 = data_rhs + cond.inv_var * mean
-    if isinstance(fixed.options, CholeskyOptions):
-        z = jax.random.normal(key, mean.shape, mean.dtype)
-
-        def one(Lf, bf, zf):
-            m = jax.scipy.linalg.cho_solve((Lf, True), bf)
-            return m + jax.scipy.linalg.solve_triangular(Lf.T, zf, lower=False)
-
-        a = jax.vmap(one)(cond.factor, rhs0, z)
-        finite = jnp.all(jnp.isfinite(a), axis=1)
-        zeros = jnp.zeros(mean.shape[0])
-        return a, direct_info(zeros, zeros, finite)
-    return _cg_solve(fixed, cond, rhs0 + _fluctuation(key, fixed, cond.inv_var), x0)
+    rhs0 = data_rhs + cond.inv_var * fixed.system.prior.mean
+    return _sky_solver(fixed.options).draw(key, fixed, cond, rhs0, x0)
 
 
 def sky_step(
@@ -508,13 +551,8 @@ def _rescale(rescale, cond, cond_new, mean, mean_new, a):
 def _wiener_mean(fixed: GibbsFixed, cond: _Conditional):
     """The Wiener filter for the prior ``cond``: (Nf, n) and SolveInfo (CG from the prior mean, so a
     deterministic function of the spectrum and the move exactly reversible)."""
-    system = fixed.system
-    rhs = fixed.data_rhs + cond.inv_var * system.prior.mean
-    if isinstance(fixed.options, CholeskyOptions):
-        m = _dense_mean(cond, rhs)
-        zeros = jnp.zeros(m.shape[0])
-        return m, direct_info(zeros, zeros, jnp.all(jnp.isfinite(m), axis=1))
-    return _cg_solve(fixed, cond, rhs, system.prior.mean)
+    rhs = fixed.data_rhs + cond.inv_var * fixed.system.prior.mean
+    return _sky_solver(fixed.options).mean(fixed, cond, rhs)
 
 
 def _proposal(key, state: GibbsState, family, proposal, lmin, alpha_range, cl_prior, hyper, dtype):
@@ -610,7 +648,7 @@ def joint_step(
         raise ValueError(f"family must be 'free' or 'power_law', got {family!r}")
     if rescale not in RESCALINGS:
         raise ValueError(f"rescale must be one of {RESCALINGS}, got {rescale!r}")
-    if rescale == "posterior" and not isinstance(fixed.options, CholeskyOptions):
+    if rescale == "posterior" and not isinstance(_sky_solver(fixed.options), _DenseSky):
         raise ValueError("rescale='posterior' needs the Cholesky path (gibbs_setup(..., options=CholeskyOptions()))")
     if family == "free" and cl_prior not in ("jeffreys", "uniform", "inverse_gamma"):
         raise ValueError(f"cl_prior must be 'jeffreys', 'uniform' or 'inverse_gamma', got {cl_prior!r}")

@@ -24,34 +24,47 @@ import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
-from ..solvers.options import CholeskyOptions, SLQOptions, SolverOptions
+from ..solvers.options import CholeskyOptions, SLQOptions
+from ..solvers.registry import SolverOptions
 from .evidence import log_evidence_system
 
 __all__ = ["FitResult", "fit_hyperparameters", "objective"]
 
 
 class FitResult(NamedTuple):
-    """What :func:`fit_hyperparameters` found.
+    """What :func:`fit_hyperparameters` found (a PyTree: every field is an array, so the fit jits).
 
     Attributes:
         theta: the maximiser, shaped like ``theta0``.
         log_evidence: ``sum_f log p(d | theta)`` there (without the log prior).
         objective: ``log_evidence + log_prior(theta)``.
-        covariance: (k, k) Laplace covariance of the flattened theta.
-        std: (k,) its square-root diagonal (the Laplace error bars).
-        converged: the optimiser reported success and the Hessian is positive definite.
-        num_steps: optimiser steps taken.
-        result: optimistix's result message.
+        covariance: (k, k) Laplace covariance of the flattened theta (the order of
+            ``jax.flatten_util.ravel_pytree(theta0)``).
+        std: the Laplace error bars (square-root diagonal of ``covariance``), shaped like ``theta``.
+        converged: (bool array) the optimiser reported success and the Hessian is positive definite.
+        num_steps: (int array) optimiser steps taken.
+        result: optimistix's result (``optimistix.RESULTS`` item); :attr:`message` says it in words.
     """
 
     theta: Any
     log_evidence: jax.Array
     objective: jax.Array
     covariance: jax.Array
-    std: jax.Array
-    converged: bool
-    num_steps: int
-    result: str
+    std: Any
+    converged: jax.Array
+    num_steps: jax.Array
+    result: Any
+
+    @property
+    def message(self) -> str:
+        """The outcome in words (host-side): ``"successful"``, optimistix's message, or
+        that the Hessian at the optimum is not positive definite."""
+        import optimistix as optx
+
+        if bool(self.converged):
+            return "successful"
+        text = optx.RESULTS[self.result]
+        return text or "the optimiser stopped, but the Hessian at the optimum is not positive definite"
 
 
 def objective(make_system: Callable, theta, *, options: SolverOptions, log_prior: Callable | None = None,
@@ -89,7 +102,9 @@ def fit_hyperparameters(
         max_steps: cap on BFGS steps.
 
     Returns:
-        :class:`FitResult`.
+        :class:`FitResult`.  Pure: the optimiser runs inside JAX, so
+        ``jax.jit(lambda t0: fit_hyperparameters(make_system, t0))`` works (``make_system`` and
+        ``log_prior`` are closed over; the evidence path must then be fixed, as ``options`` is).
     """
     import optimistix as optx
 
@@ -103,21 +118,19 @@ def fit_hyperparameters(
 
     sol = optx.minimise(negative, optx.BFGS(rtol=rtol, atol=atol), flat0, max_steps=max_steps, throw=False)
     flat = sol.value
-    final = jax.jit(lambda x: objective(make_system, unravel(x), options=options, log_prior=log_prior, slq=slq,
-                                        key=key))
-    obj, lz = final(flat)
-    hess = jax.jit(jax.hessian(lambda x: negative(x, None)))(flat)
+    obj, lz = objective(make_system, unravel(flat), options=options, log_prior=log_prior, slq=slq, key=key)
+    hess = jax.hessian(lambda x: negative(x, None))(flat)
     hess = 0.5 * (hess + hess.T)
     evals = jnp.linalg.eigvalsh(hess)
     cov = jnp.linalg.inv(hess)
-    ok = bool(sol.result == optx.RESULTS.successful) and bool(jnp.all(evals > 0))
+    ok = (sol.result == optx.RESULTS.successful) & jnp.all(evals > 0)
     return FitResult(
         theta=unravel(flat),
         log_evidence=lz,
         objective=obj,
         covariance=cov,
-        std=jnp.sqrt(jnp.abs(jnp.diagonal(cov))),
+        std=unravel(jnp.sqrt(jnp.abs(jnp.diagonal(cov)))),
         converged=ok,
-        num_steps=int(sol.stats["num_steps"]),
-        result=str(optx.RESULTS[sol.result]) if not ok else "successful",
+        num_steps=sol.stats["num_steps"],
+        result=sol.result,
     )

@@ -56,7 +56,7 @@ import numpy as np
 
 from ..inference.api import prepare
 from ..inference.batches import KEY_SCHEME, batch_key
-from ..inference.posterior import draw
+from ..inference.posterior import draw_exactly as draw
 from ..instrument.beams import beam_fwhm_rad
 from ..io.atomic import atomic_path, is_temporary
 from ..io.fits import write_alm_fits, write_healpix_fits
@@ -81,8 +81,8 @@ from ..parallel.channels import (
 )
 from ..parallel.runtime import CompileStats, compile_cache_dir, compile_stats
 from ..sim.standard import beam_for_config
-from ..solvers.options import method_of, options_for
 from ..solvers.plan import choose_path
+from ..solvers.registry import method_of, options_for
 from ..sphere.maps import alm_to_map, posterior_maps
 from . import metrics as M
 

@@ -60,7 +60,6 @@ one process runs, and the gather moves bits.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 import zlib
@@ -75,12 +74,12 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from ..inference.batches import batch_key
-from ..inference.posterior import draw, prepare_sampler
+from ..inference.posterior import draw_exactly, prepare_system
 from ..model.system import LinearSystem
 from ..solvers.cg import freq_slice
 from ..solvers.info import SolveInfo
-from ..solvers.options import CGOptions, DataSpaceOptions, MModeOptions, SolverOptions
 from ..solvers.plan import choose_path
+from ..solvers.registry import SolverOptions, path_of
 from .runtime import effective_pool_size, safe_pool_size
 
 __all__ = [
@@ -174,38 +173,25 @@ def resolve_channel_path(
 
     :func:`gcrsky.solvers.choose_path` on the one-channel system ``freq_slice(system, 0)``
     (memory is checked for one channel and ``ndraws`` draws), then the whole-system
-    checks that a one-channel choice cannot make: CG's ``preconditioner="auto"`` is
-    resolved on all channels' priors (m-blocks if any channel has a flat direction);
-    ``"mmode"`` requires :func:`gcrsky.solvers.mmode_check` on the whole system;
-    ``"dataspace"`` a proper prior in every channel.
+    checks that a one-channel choice cannot make, by the path
+    (:meth:`gcrsky.solvers.SolverPath.resolve` on the whole system): CG's
+    ``preconditioner="auto"`` is resolved on all channels' priors (m-blocks if any channel
+    has a flat direction, :meth:`gcrsky.solvers.CGPath.resolve_channels`); ``"mmode"``
+    requires :func:`gcrsky.solvers.mmode_check` on the whole system; ``"dataspace"`` a
+    proper prior in every channel.
     """
-    from ..solvers.dataspace import check_proper_prior
-    from ..solvers.mmode import mmode_check
-    from ..solvers.preconditioners import resolve_preconditioner
-
     opts = choose_path(freq_slice(system, 0), method, options=options, tol=tol, ndraws=int(ndraws),
                        memory_budget=memory_budget)
-    if isinstance(opts, CGOptions):
-        requested = options.preconditioner if isinstance(options, CGOptions) else "auto"
-        kind = resolve_preconditioner(system, requested, warn=False)
-        if kind != opts.preconditioner:
-            opts = dataclasses.replace(opts, preconditioner=kind)
-    elif isinstance(opts, MModeOptions):
-        res = mmode_check(system, atol=opts.atol, rtol=opts.rtol)
-        if not res.ok:
-            raise ValueError(f"P is not block-diagonal in m: {res.reason}")
-    elif isinstance(opts, DataSpaceOptions):
-        check_proper_prior(system)
-    return opts
+    return path_of(opts).resolve_channels(system, opts, options)
 
 
 def _draw_channel(key_f, state, ndraws: int, batch: int | None):
     """Draws of one prepared one-channel path by the key scheme; (1, ndraws, n), SolveInfo (1, ndraws)."""
     if batch is None:
-        d, info = draw(key_f, state, ndraws)
+        d, info = draw_exactly(key_f, state, ndraws)
         return d, info.draws
     nb = -(-ndraws // batch)
-    parts = [draw(batch_key(key_f, b), state, batch) for b in range(nb)]
+    parts = [draw_exactly(batch_key(key_f, b), state, batch) for b in range(nb)]
     d = jnp.concatenate([p[0] for p in parts], axis=1)[:, :ndraws]
     info = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a, axis=1)[:, :ndraws], *[p[1].draws for p in parts])
     return d, info
@@ -230,7 +216,7 @@ def sample_channels(
 ) -> ChannelDraws:
     """Exact draws and Wiener filters, one channel at a time (host loop), by :data:`CHANNEL_KEY_SCHEME`.
 
-    For each ``f`` in ``channels``: ``prepare_sampler(freq_slice(system, f), options=opts)``
+    For each ``f`` in ``channels``: ``prepare_system(freq_slice(system, f), options=opts)``
     then draws with ``channel_key(key, f)``; ``opts`` from :func:`resolve_channel_path`
     (one compiled program serves every channel).  Memory: one channel's path at a time.
 
@@ -259,7 +245,7 @@ def _loop(key, system, ndraws, opts, batch, chans, progress) -> ChannelDraws:
     draws, a_wf, winfo, dinfo, secs = [], [], [], [], []
     for f in chans:
         t0 = time.perf_counter()
-        state = prepare_sampler(freq_slice(system, int(f)), options=opts)
+        state = prepare_system(freq_slice(system, int(f)), options=opts)
         d, info = _draw_channel(channel_key(key, int(f)), state, ndraws, batch)
         d = np.asarray(jax.block_until_ready(d))
         draws.append(d[0])
@@ -326,7 +312,7 @@ def _sharded_program(mesh: Mesh, opts: SolverOptions, ndraws: int, batch: int | 
         def one(args):
             f, per_f = args
             sys1 = _assemble(tuple(x[None] for x in per_f), shared)
-            state = prepare_sampler(sys1, options=opts)
+            state = prepare_system(sys1, options=opts)
             d, dinfo = _draw_channel(channel_key(key, f), state, ndraws, batch)
             first = lambda t: jax.tree_util.tree_map(lambda x: x[0], t)  # noqa: E731
             return d[0], state.a_wf[0], first(state.wiener), first(dinfo)

@@ -8,18 +8,25 @@
 - ``mmode``: block-by-block solves for uniform full-day coverage
 - ``dataspace``: everything through the ``N_d x N_d`` matrix ``I + W^1/2 X S X^T W^1/2``
   (fewer data than parameters): :func:`prepare_dataspace`, :func:`draw_dataspace`
+- ``slq``: stochastic Lanczos quadrature of the whitened log-determinant (CG's evidence)
+- ``path``: :class:`SolverPath`, what every path answers (applicability, memory and cost,
+  prepare / draw / condition on new data, the evidence's pieces)
+- ``registry``: :data:`PATHS`, every path by name, and :func:`path_of`
 - ``plan``: :func:`plan_sampler` / :func:`choose_path`: the cheapest exact path that fits in memory
 
-Every path is a pair ``prepare_*(system, options) -> State`` (set up once: factor or
-preconditioner and the Wiener filter) and ``draw_*(key, state, ndraws)`` (exact
-posterior draws), with one typed state per path (:class:`CGState`,
+Every path is one :class:`SolverPath` object in :data:`PATHS` (:class:`CGPath`,
+:class:`CholeskyPath`, :class:`EighPath`, :class:`MModePath`, :class:`DataSpacePath`),
+with its options (:class:`CGOptions`, ...) and its typed state (:class:`CGState`,
 :class:`CholeskyState`, :class:`EighState`, :class:`MModeState`,
-:class:`DataSpaceState`, each an equinox
-Module whose ``method`` names the path).  :mod:`gcrsky.inference` dispatches on them.
+:class:`DataSpaceState`, each an equinox Module whose ``method`` names the path).
+:mod:`gcrsky.inference`, :mod:`gcrsky.parallel` and the planner find a path with
+:func:`path_of` and ask it; nothing else tests path names.
 """
 
-from .cg import CGState, cg_solve, draw_cg, pcg, prepare_cg, resolve_cg_options, solve_cg, wiener_cg
+from .cg import CGPath, CGState, cg_solve, draw_cg, pcg, prepare_cg, resolve_cg_options, solve_cg, wiener_cg
 from .dataspace import (
+    DATASPACE_MAX_ND,
+    DataSpacePath,
     DataSpaceState,
     data_size,
     dataspace_evidence_parts,
@@ -29,7 +36,10 @@ from .dataspace import (
     prepare_dataspace,
 )
 from .dense import (
+    DENSE_MAX_N,
+    CholeskyPath,
     CholeskyState,
+    EighPath,
     EighState,
     cholesky_logdet,
     cholesky_solve,
@@ -40,24 +50,19 @@ from .dense import (
     prepare_eigh,
 )
 from .info import DrawInfo, Result, SolveInfo, result_names
-from .mmode import MModeState, draw_mmode, mmode_blocks, mmode_check, prepare_mmode
+from .mmode import MModePath, MModeState, draw_mmode, mmode_blocks, mmode_check, prepare_mmode
 from .options import (
     DEFAULT_TOL,
     EIGH_RCOND,
-    METHODS,
     CGOptions,
     CholeskyOptions,
     DataSpaceOptions,
     EighOptions,
     MModeOptions,
     SLQOptions,
-    SolverOptions,
-    method_of,
-    options_for,
 )
+from .path import EvidenceParts, SolverPath
 from .plan import (
-    DATASPACE_MAX_ND,
-    DENSE_MAX_N,
     DENSE_MEMORY_FRACTION,
     PLAN_DRAWS,
     SamplerPlan,
@@ -76,6 +81,7 @@ from .preconditioners import (
     nystrom_preconditioner,
     resolve_preconditioner,
 )
+from .registry import METHODS, PATHS, SolverOptions, method_of, options_for, path_of
 
 __all__ = [
     "DATASPACE_MAX_ND",
@@ -84,18 +90,25 @@ __all__ = [
     "DENSE_MEMORY_FRACTION",
     "EIGH_RCOND",
     "METHODS",
+    "PATHS",
     "PLAN_DRAWS",
     "CGOptions",
+    "CGPath",
     "CGState",
     "CholeskyOptions",
+    "CholeskyPath",
     "CholeskyState",
     "DataSpaceOptions",
+    "DataSpacePath",
     "DataSpaceState",
     "DrawInfo",
     "EighOptions",
+    "EighPath",
     "EighState",
+    "EvidenceParts",
     "MBlockPreconditioner",
     "MModeOptions",
+    "MModePath",
     "MModeState",
     "NystromPreconditioner",
     "Result",
@@ -103,6 +116,7 @@ __all__ = [
     "SamplerPlan",
     "SolveInfo",
     "SolverOptions",
+    "SolverPath",
     "apply_preconditioner",
     "cg_solve",
     "cholesky_logdet",
@@ -126,6 +140,7 @@ __all__ = [
     "mmode_check",
     "nystrom_preconditioner",
     "options_for",
+    "path_of",
     "path_cost_flop",
     "path_memory_bytes",
     "pcg",

@@ -32,14 +32,23 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..base.dtypes import check_float64
 from ..model.system import LinearSystem, fluctuation_rhs, precision_apply, precision_matrix, wiener_rhs
 from .info import DrawInfo, Result, SolveInfo, result_code
-from .options import CGOptions
-from .preconditioners import inverse_bound, make_preconditioner, precondition_one, resolve_preconditioner
+from .options import CGOptions, SLQOptions
+from .path import EvidenceParts, SolverPath
+from .preconditioners import (
+    NystromPreconditioner,
+    inverse_bound,
+    make_preconditioner,
+    precondition_one,
+    resolve_preconditioner,
+)
+from .slq import whitened_logdet_slq
 
-__all__ = ["CGState", "cg_solve", "draw_cg", "freq_slice", "pcg", "prepare_cg", "resolve_cg_options", "solve_cg",
+__all__ = ["CGPath", "CGState", "cg_solve", "draw_cg", "freq_slice", "pcg", "prepare_cg", "resolve_cg_options", "solve_cg",
            "wiener_cg"]
 
 
@@ -214,7 +223,7 @@ def _setup(system: LinearSystem, options: CGOptions):
     if options.preconditioner == "auto":
         raise ValueError("resolve preconditioner='auto' first (resolve_cg_options)")
     precision = precision_matrix(system) if options.dense else None
-    pc = make_preconditioner(system, options.preconditioner, precision, options.rank, options.pc_dtype)
+    pc = make_preconditioner(system, options.preconditioner, precision, options.sketch_size, options.pc_dtype)
     return precision, pc
 
 
@@ -274,11 +283,86 @@ def draw_cg(key: jax.Array, state: CGState, ndraws: int):
     Draw ``i`` uses ``jax.random.split(key, ndraws)[i]``.
 
     Returns:
-        draws (Nf, ndraws, n); info dict ``"wiener"``, ``"draws"`` (SolveInfo over
-        (Nf, ndraws)) and ``"a_wf"``.
+        draws (Nf, ndraws, n); a :class:`~gcrsky.solvers.DrawInfo` (``wiener``, ``draws`` a SolveInfo over
+        (Nf, ndraws), ``a_wf``).
     """
     system, a_wf = state.system, state.a_wf
     keys = jax.random.split(key, ndraws)
     fl = jax.vmap(lambda k: fluctuation_rhs(k, system), out_axes=1)(keys)  # (Nf, ndraws, n)
     delta, dinfo = solve_cg(system, state.precision, state.pc, fl, jnp.zeros_like(fl), state.options)
     return a_wf[:, None, :] + delta, DrawInfo(state.wiener, dinfo, a_wf)
+
+
+# ---------------------------------------------------------------- new data, same preconditioner
+
+
+@jax.jit
+def _condition_cg(state: CGState, data: jax.Array) -> CGState:
+    """The Wiener filter for new data, by CG from the old one with the state's P and preconditioner."""
+    system = state.system._replace(data=jnp.asarray(data, state.system.data.dtype))
+    a_wf, winfo = solve_cg(system, state.precision, state.pc, wiener_rhs(system), state.a_wf, state.options)
+    return CGState(system, a_wf, winfo, state.precision, state.pc, state.options)
+
+
+# ---------------------------------------------------------------- the path
+
+
+def _slq_parts(state: CGState, terms, slq: SLQOptions | None, key) -> EvidenceParts:
+    slq = SLQOptions() if slq is None else slq
+    key = jax.random.PRNGKey(slq.seed) if key is None else key
+    pc = state.pc
+    if not isinstance(pc, NystromPreconditioner):
+        raise ValueError("the matrix-free evidence needs the Nystrom preconditioner (a proper prior)")
+    logdet, sem = whitened_logdet_slq(state.system, pc, slq, key, freq_slice)
+    chi2 = terms["rWr"] - jnp.sum(terms["b_res"] * (state.a_wf - state.system.prior.mean), axis=-1)
+    return EvidenceParts(chi2, logdet, 0.5 * sem, state.wiener)  # log p carries -1/2 log det: so does its error
+
+
+class CGPath(SolverPath):
+    """Preconditioned CG, matrix-free or on a dense P (:func:`prepare_cg`): the iterative fallback."""
+
+    name = "cg"
+    options_type = CGOptions
+    state_type = CGState
+    direct = False
+
+    def resolve(self, system, options):
+        return resolve_cg_options(system, options)
+
+    def resolve_channels(self, system, options, requested):
+        """The preconditioner chosen on all channels' priors from what the user asked for."""
+        asked = requested.preconditioner if isinstance(requested, CGOptions) else "auto"
+        kind = resolve_preconditioner(system, asked, warn=False)
+        return options if kind == options.preconditioner else dataclasses.replace(options, preconditioner=kind)
+
+    def memory_bytes(self, system, options, ndraws=1):
+        nf, n = int(system.data.shape[0]), int(system.prior.mean.shape[-1])
+        lmax = int(round(np.sqrt(n))) - 1
+        vec = 6.0 * 8 * nf * max(1, ndraws) * n  # CG state per draw
+        sketch = max(3.0 * 8 * nf * n * min(n, options.sketch_size), 8.0 * nf * (lmax + 1) * (2 * lmax + 2) ** 2)
+        return (8.0 * nf * n * n if options.dense else 0.0) + sketch + vec
+
+    def describe(self, system, options, memory):
+        return f"matrix-free CG, {options.preconditioner} preconditioner" if not options.dense else \
+            f"CG on the dense P, {options.preconditioner} preconditioner"
+
+    def prepare(self, system, options):
+        return prepare_cg(system, options)
+
+    def draw(self, key, state, ndraws):
+        return draw_cg(key, state, ndraws)
+
+    def condition(self, state, data):
+        return _condition_cg(state, data)
+
+    def wiener(self, system, options):
+        return wiener_cg(system, options)
+
+    def evidence_parts(self, system, options, terms, *, slq=None, key=None):
+        if options.preconditioner not in ("auto", "nystrom"):
+            raise ValueError("the matrix-free evidence needs the Nystrom preconditioner (a proper prior)")
+        state = prepare_cg(system, dataclasses.replace(options, preconditioner="nystrom"))
+        return _slq_parts(state, terms, slq, key)
+
+    def state_evidence_parts(self, state, terms, *, slq=None, key=None):
+        return _slq_parts(state, terms, slq, key)

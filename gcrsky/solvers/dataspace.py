@@ -72,15 +72,18 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..base.dtypes import check_float64
-from ..base.memory import check_memory
+from ..base.memory import check_memory, format_bytes
 from ..model.operator import adjoint, apply, response_at
 from ..model.system import LinearSystem, precision_apply, wiener_rhs
 from ..sphere.rotation import rotate
 from .dense import cholesky_logdet, cholesky_solve
 from .info import DrawInfo, SolveInfo, direct_info, exact_info
 from .options import DataSpaceOptions
+from .path import AUTO_MEMORY_FRACTION, EvidenceParts, SolverPath, is_traced
 
 __all__ = [
+    "DATASPACE_MAX_ND",
+    "DataSpacePath",
     "DataSpaceState",
     "CHUNK_BYTES",
     "LAG_TOL",
@@ -124,6 +127,7 @@ class DataSpaceState(eqx.Module):
     gram: jax.Array
     chol: jax.Array
     rows: jax.Array | None = None
+    options: DataSpaceOptions = eqx.field(static=True, default=DataSpaceOptions())
 
     method: ClassVar[str] = "dataspace"
 
@@ -164,20 +168,24 @@ def dataspace_memory_bytes(system: LinearSystem, ndraws: int = 1, materialize: b
             + max(1, ndraws) * per_draw)
 
 
+def _improper_prior(system: LinearSystem) -> str:
+    """``""`` if every prior direction is proper (concrete arrays), else what is flat."""
+    iv = np.asarray(system.prior.inv_var)
+    bad = ~(iv > 0)
+    if not bad.any():
+        return ""
+    f, k = np.argwhere(bad)[0]
+    return (f"the data-space path needs a proper prior (S = 1 / inv_var), but the prior is flat or non-positive in "
+            f"{int(bad.sum())} directions (first: frequency {f}, parameter {k}, inv_var = {float(iv[f, k])!r}); "
+            "use method='eigh' (dense) or method='cg' (m-block preconditioner) for a flat prior")
+
+
 def check_proper_prior(system: LinearSystem) -> None:
     """Refuse a flat (or non-positive) prior direction on concrete arrays: the data-space path needs S."""
-    iv = system.prior.inv_var
-    if isinstance(iv, jax.core.Tracer):
-        return
-    bad = ~(np.asarray(iv) > 0)
-    if bad.any():
-        f, k = np.argwhere(bad)[0]
-        raise ValueError(
-            f"the data-space path needs a proper prior (S = 1 / inv_var), but the prior is flat or non-positive in "
-            f"{int(bad.sum())} directions (first: frequency {f}, parameter {k}, "
-            f"inv_var = {float(np.asarray(iv)[f, k])!r}); use method='eigh' (dense) or method='cg' (m-block "
-            "preconditioner) for a flat prior"
-        )
+    if not isinstance(system.prior.inv_var, jax.core.Tracer):
+        why = _improper_prior(system)
+        if why:
+            raise ValueError(why)
 
 
 # ---------------------------------------------------------------- D = I + Y S Y^T
@@ -374,13 +382,10 @@ def materialize_rows(system: LinearSystem, options: DataSpaceOptions) -> bool:
     return 8.0 * nf * data_size(system) * int(system.prior.mean.shape[-1]) <= ROWS_MAX_BYTES
 
 
-@partial(jax.jit, static_argnames=("options", "materialize"))
-def _prepare_dataspace(system: LinearSystem, options: DataSpaceOptions = DataSpaceOptions(),
-                       lags: LagStructure | None = None, materialize: bool = False) -> DataSpaceState:
-    check_float64(system.op.response, system.inv_noise)
+def _dataspace_wiener(system: LinearSystem, D, L, options: DataSpaceOptions):
+    """``a_wf = a0 + S Y^T D^-1 r~`` and its info from the true (matrix-free) primal residual."""
     sqrt_w = _sqrt_w(system)
     s = 1.0 / system.prior.inv_var
-    D, L = _factor(system, options.time_chunk, lags)
     x = cholesky_solve(D, L, _whitened_residual(system, sqrt_w))
     a_wf = system.prior.mean + s * _y_adjoint(system, sqrt_w, x)
     # how good is it: the true (matrix-free) residual of P a = b, in posterior-sigma units
@@ -389,16 +394,33 @@ def _prepare_dataspace(system: LinearSystem, options: DataSpaceOptions = DataSpa
     b = wiener_rhs(ssys)
     r = b - precision_apply(ssys, a)
     err = jnp.sqrt(jnp.abs(jnp.sum(r * _posterior_cov_apply(ssys, sg(sqrt_w), Dc, Lc, r), axis=-1)))
-    finite = jnp.all(jnp.isfinite(Lc), axis=(1, 2)) & jnp.all(jnp.isfinite(a), axis=-1) & jnp.isfinite(err)
-    info = direct_info(err, jnp.linalg.norm(r, axis=-1) / jnp.linalg.norm(b, axis=-1), finite)
+    finite = jnp.all(jnp.isfinite(Lc), axis=(1, 2)) & jnp.all(jnp.isfinite(a), axis=-1)
+    info = direct_info(err, jnp.linalg.norm(r, axis=-1) / jnp.linalg.norm(b, axis=-1), finite, options.tol)
     if options.throw:
         a_wf = eqx.error_if(a_wf, ~info.converged, "gcrsky data space: D is not positive definite or the Wiener "
-                                                    "filter is not finite (a flat prior direction?)")
+                                                    "filter is not finite (a flat prior direction?) or missed "
+                                                    "DataSpaceOptions.tol")
+    return a_wf, info
+
+
+@partial(jax.jit, static_argnames=("options", "materialize"))
+def _prepare_dataspace(system: LinearSystem, options: DataSpaceOptions = DataSpaceOptions(),
+                       lags: LagStructure | None = None, materialize: bool = False) -> DataSpaceState:
+    check_float64(system.op.response, system.inv_noise)
+    D, L = _factor(system, options.time_chunk, lags)
+    a_wf, info = _dataspace_wiener(system, D, L, options)
     rows = None
     if materialize:
         nt = system.data.shape[1]
-        rows = _chunk_rows(system.op, sqrt_w, jnp.arange(nt))  # (Nf, N_d, n)
-    return DataSpaceState(system, a_wf, info, D, L, rows)
+        rows = _chunk_rows(system.op, _sqrt_w(system), jnp.arange(nt))  # (Nf, N_d, n)
+    return DataSpaceState(system, a_wf, info, D, L, rows, options)
+
+
+@jax.jit
+def _condition_dataspace(state: DataSpaceState, data: jax.Array) -> DataSpaceState:
+    system = state.system._replace(data=jnp.asarray(data, state.system.data.dtype))
+    a_wf, info = _dataspace_wiener(system, state.gram, state.chol, state.options)
+    return DataSpaceState(system, a_wf, info, state.gram, state.chol, state.rows, state.options)
 
 
 def prepare_dataspace(system: LinearSystem, options: DataSpaceOptions | None = None, *,
@@ -416,8 +438,7 @@ def prepare_dataspace(system: LinearSystem, options: DataSpaceOptions | None = N
     options = DataSpaceOptions() if options is None else options
     if not isinstance(options, DataSpaceOptions):
         raise TypeError(f"the data-space path takes DataSpaceOptions, got {type(options).__name__}")
-    concrete = not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(system))
-    if concrete:
+    if not is_traced(system):
         check_proper_prior(system)
         nd, nf = data_size(system), int(system.data.shape[0])
         check_memory(dataspace_memory_bytes(system, 1, materialize_rows(system, options)),
@@ -437,8 +458,8 @@ def draw_dataspace(key: jax.Array, state: DataSpaceState, ndraws: int):
     unflagged rows, though flagged rows drop out of the product anyway).
 
     Returns:
-        draws (Nf, ndraws, n); info dict ``"wiener"``, ``"draws"`` (SolveInfo over
-        (Nf, ndraws)) and ``"a_wf"``.
+        draws (Nf, ndraws, n); a :class:`~gcrsky.solvers.DrawInfo` (``wiener``, ``draws`` a SolveInfo over
+        (Nf, ndraws), ``a_wf``).
     """
     system, a_wf, D, L = state.system, state.a_wf, state.gram, state.chol
     nf, n = a_wf.shape
@@ -465,8 +486,8 @@ def draw_dataspace(key: jax.Array, state: DataSpaceState, ndraws: int):
     else:
         corr = s * jnp.einsum("fak,dfa->dfk", Y, x)
     out = a_wf[:, None, :] + jnp.moveaxis(delta - corr, 0, 1)
-    ok = state.wiener.converged[:, None] & jnp.all(jnp.isfinite(out), axis=-1)
-    return out, DrawInfo(state.wiener, exact_info(ok, (nf, ndraws)), a_wf)
+    finite = jnp.all(jnp.isfinite(out), axis=-1)
+    return out, DrawInfo(state.wiener, exact_info(state.wiener, finite, (nf, ndraws)), a_wf)
 
 
 # ---------------------------------------------------------------- evidence
@@ -490,3 +511,83 @@ def dataspace_evidence_parts(system: LinearSystem, chunk: int | None = None, lag
     q = jnp.sum(rt * cholesky_solve(D, L, rt), axis=-1)
     finite = jnp.all(jnp.isfinite(jax.lax.stop_gradient(L)), axis=(1, 2))
     return q, cholesky_logdet(D, L), finite
+
+
+# ---------------------------------------------------------------- the path
+
+#: Largest number of real data values per channel for which ``method="auto"`` forms and
+#: factorises the data-space matrix D (the same ~1 min factorisation bound as ``DENSE_MAX_N``).
+DATASPACE_MAX_ND = 12000
+
+
+def _parts(system: LinearSystem, options: DataSpaceOptions, terms, q, logdet, finite) -> EvidenceParts:
+    zeros = jnp.zeros(q.shape)
+    info = direct_info(zeros, zeros, finite, options.tol)
+    if options.throw:
+        q = eqx.error_if(q, ~finite, "gcrsky data space: D is not positive definite (a flat prior direction?)")
+    return EvidenceParts(q, logdet, zeros, info)
+
+
+class DataSpacePath(SolverPath):
+    """Everything through ``D = I + W^1/2 X S X^T W^1/2`` (:func:`prepare_dataspace`): fewer data than
+    parameters, a proper prior."""
+
+    name = "dataspace"
+    options_type = DataSpaceOptions
+    state_type = DataSpaceState
+
+    def check(self, system, options):
+        return _improper_prior(system)
+
+    def memory_bytes(self, system, options, ndraws=1):
+        return dataspace_memory_bytes(system, ndraws, materialize_rows(system, options))
+
+    def cost_flop(self, system, options, ndraws):
+        """D (``4 Nf N_d^2 n``, or ``8 Nf k (2 Nbl)^2 n`` for ``k`` distinct lags on the stationary
+        shortcut) and its factor (``Nf N_d^3 / 3``), then per draw the products with X and ``X^T``
+        (``16 Nf Nt Nbl n`` plus ``~8 Nf Nt (lmax+1)^3`` for the rotations; ``4 Nf N_d n`` with Y
+        materialised) and two triangular solves (``2 Nf N_d^2``)."""
+        nf, nt, nbl = (int(x) for x in system.data.shape)
+        n = int(system.prior.mean.shape[-1])
+        nd = 2.0 * nt * nbl
+        lags = lag_structure(system) if options.stationary else None
+        build = 4.0 * nf * nd * nd * n if lags is None else 8.0 * nf * lags.lags.shape[0] * (2.0 * nbl) ** 2 * n
+        rot = 8.0 * nf * nt * np.sqrt(n) ** 3
+        per_draw = 4.0 * nf * nd * n if materialize_rows(system, options) else 16.0 * nf * nt * nbl * n + rot
+        return build + nf * nd**3 / 3.0 + ndraws * (per_draw + 2.0 * nf * nd * nd)
+
+    def auto_limits(self, system, options, budget, ndraws):
+        nd, n = data_size(system), int(system.prior.mean.shape[-1])
+        if nd >= n:
+            return f"N_d = {nd} real data values per channel >= n = {n}"
+        if nd > DATASPACE_MAX_ND:
+            return f"N_d = {nd} > {DATASPACE_MAX_ND} (DATASPACE_MAX_ND)"
+        mem = self.memory_bytes(system, options, ndraws)
+        if mem > AUTO_MEMORY_FRACTION * budget:
+            return f"D + factor would need {format_bytes(mem)}, more than {AUTO_MEMORY_FRACTION:.0%} of " \
+                   f"{format_bytes(budget)}"
+        return ""
+
+    def describe(self, system, options, memory):
+        return (f"N_d = {data_size(system)} real data values per channel < n = {int(system.prior.mean.shape[-1])}: "
+                f"data space (D + factor {format_bytes(memory)})")
+
+    def prepare(self, system, options):
+        return prepare_dataspace(system, options)
+
+    def draw(self, key, state, ndraws):
+        return draw_dataspace(key, state, ndraws)
+
+    def condition(self, state, data):
+        return _condition_dataspace(state, data)
+
+    def evidence_parts(self, system, options, terms, *, slq=None, key=None):
+        lags = lag_structure(system) if options.stationary else None  # None under a trace
+        q, logdet, finite = dataspace_evidence_parts(system, options.time_chunk, lags)
+        return _parts(system, options, terms, q, logdet, finite)
+
+    def state_evidence_parts(self, state, terms, *, slq=None, key=None):
+        rt = _whitened_residual(state.system, _sqrt_w(state.system))
+        q = jnp.sum(rt * cholesky_solve(state.gram, state.chol, rt), axis=-1)
+        finite = jnp.all(jnp.isfinite(jax.lax.stop_gradient(state.chol)), axis=(1, 2))
+        return _parts(state.system, state.options, terms, q, cholesky_logdet(state.gram, state.chol), finite)

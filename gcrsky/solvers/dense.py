@@ -10,7 +10,7 @@
   prior, and the only path that handles a singular P (a flat prior, ``S^-1 = 0``,
   leaves directions the data do not see): it samples the posterior restricted to the
   directions with eigenvalue ``> rcond * max``; the others have no information and
-  are pinned at 0 (the minimum-norm solution), and ``EighState.rank`` says how many
+  are pinned at 0 (the minimum-norm solution), and ``EighState.kept`` says how many
   were kept.
 
 Differentiation.  The Cholesky Wiener filter differentiates implicitly
@@ -37,13 +37,18 @@ import jax
 import jax.numpy as jnp
 
 from ..base.dtypes import check_float64
+from ..base.memory import format_bytes
 from ..model.operator import n_in
 from ..model.system import LinearSystem, precision_matrix, wiener_rhs
-from .info import DrawInfo, SolveInfo, direct_info, exact_info
+from .info import DrawInfo, Result, SolveInfo, direct_info, exact_info
 from .options import CholeskyOptions, EighOptions
+from .path import AUTO_MEMORY_FRACTION, EvidenceParts, SolverPath, has_flat_prior, quadratic_from_state
 
 __all__ = [
     "CHOLESKY_INVERSE_MAX_N",
+    "DENSE_MAX_N",
+    "CholeskyPath",
+    "EighPath",
     "OPENBLAS_SAFE_N",
     "CholeskyState",
     "EighState",
@@ -70,6 +75,7 @@ class CholeskyState(eqx.Module):
         chol_inv_t: ``L^-T`` (Nf, n, n): draws are then one matrix product (~3x faster
             than a triangular solve per batch); None where it was not formed
             (``CholeskyOptions.inverse``), and draws solve with ``L^T``.
+        options: the :class:`CholeskyOptions` (static).
     """
 
     system: LinearSystem
@@ -78,6 +84,7 @@ class CholeskyState(eqx.Module):
     precision: jax.Array
     chol: jax.Array
     chol_inv_t: jax.Array | None
+    options: CholeskyOptions = eqx.field(static=True, default=CholeskyOptions())
 
     method: ClassVar[str] = "cholesky"
 
@@ -91,7 +98,9 @@ class EighState(eqx.Module):
         wiener: SolveInfo of the Wiener solve, (Nf,) fields.
         precision: dense P (Nf, n, n).
         sqrt_cov: (Nf, n, n) the symmetric ``T = (P^+)^1/2``, ``T T = P^+`` (``delta = T z``).
-        rank: (Nf,) number of directions sampled (n unless P is singular).
+        kept: (Nf,) number of directions sampled (n unless P is singular: those with
+            eigenvalue above ``rcond`` times the largest).
+        eigenvalues: (Nf, n) the eigenvalues of P, ascending (the evidence's ``log det P``).
         options: the :class:`EighOptions` (static).
     """
 
@@ -100,8 +109,18 @@ class EighState(eqx.Module):
     wiener: SolveInfo
     precision: jax.Array
     sqrt_cov: jax.Array
-    rank: jax.Array
+    kept: jax.Array
+    eigenvalues: jax.Array
     options: EighOptions = eqx.field(static=True)
+
+    @property
+    def rank(self) -> jax.Array:
+        """Deprecated name of :attr:`kept` (the number of directions sampled)."""
+        import warnings
+
+        warnings.warn("EighState.rank is deprecated: use EighState.kept (directions sampled)", DeprecationWarning,
+                      stacklevel=2)
+        return self.kept
 
     method: ClassVar[str] = "eigh"
 
@@ -159,38 +178,46 @@ CHOLESKY_INVERSE_MAX_N = 12000
 OPENBLAS_SAFE_N = 14000
 
 
-@partial(jax.jit, static_argnames=("throw", "inverse"))
-def _prepare_cholesky(system: LinearSystem, throw: bool = False, inverse: bool = True) -> CholeskyState:
+@partial(jax.jit, static_argnames=("options", "inverse"))
+def _prepare_cholesky(system: LinearSystem, options: CholeskyOptions, inverse: bool = True) -> CholeskyState:
     check_float64(system.op.response, system.inv_noise)
-    return _factor_cholesky(system, precision_matrix(system), throw, inverse)
+    return _factor_cholesky(system, precision_matrix(system), options, inverse)
 
 
-@partial(jax.jit, static_argnames=("throw",))
-def _factor_cholesky_jit(system: LinearSystem, P: jax.Array, throw: bool):
+@partial(jax.jit, static_argnames=("options",))
+def _factor_cholesky_jit(system: LinearSystem, P: jax.Array, options: CholeskyOptions):
     """The factor and the Wiener filter of a given P, without L^-T; returns only what is new
     (an input passed through a jit's outputs would be copied: 8 n^2 bytes more)."""
-    st = _factor_cholesky(system, P, throw, False)
+    st = _factor_cholesky(system, P, options, False)
     return st.a_wf, st.wiener, st.chol
 
 
-def _factor_cholesky(system: LinearSystem, P: jax.Array, throw: bool, inverse: bool) -> CholeskyState:
-    b = wiener_rhs(system)
-    # the large-n path factors P's lower triangle as it is (P is symmetric to rounding):
-    # no symmetrised copy, 8 n^2 bytes less at the peak
-    L = jnp.linalg.cholesky(P) if inverse else jax.lax.linalg.cholesky(P, symmetrize_input=False)
+def _cholesky_wiener(system: LinearSystem, P, L, b, options: CholeskyOptions):
+    """``a_wf = P^-1 b`` through the factor, with its info from the true residual ``b - P a_wf``."""
     cho = jax.vmap(lambda l, v: jax.scipy.linalg.cho_solve((l, True), v))
     a_wf = cholesky_solve(P, L, b)
     r = jax.lax.stop_gradient(b - jnp.einsum("fij,fj->fi", P, a_wf))
     err = jnp.sqrt(jnp.abs(jnp.einsum("fi,fi->f", r, cho(jax.lax.stop_gradient(L), r))))
     finite = jnp.all(jnp.isfinite(jax.lax.stop_gradient(L)), axis=(1, 2))
-    winfo = direct_info(err, jnp.linalg.norm(r, axis=1) / jnp.linalg.norm(jax.lax.stop_gradient(b), axis=1), finite)
-    if throw:
-        a_wf = eqx.error_if(a_wf, ~winfo.converged, "gcrsky Cholesky: P is not positive definite (non-finite factor)")
+    winfo = direct_info(err, jnp.linalg.norm(r, axis=1) / jnp.linalg.norm(jax.lax.stop_gradient(b), axis=1), finite,
+                        options.tol)
+    if options.throw:
+        a_wf = eqx.error_if(a_wf, ~winfo.converged, "gcrsky Cholesky: P is not positive definite (non-finite "
+                            "factor) or the solve missed CholeskyOptions.tol")
+    return a_wf, winfo
+
+
+def _factor_cholesky(system: LinearSystem, P: jax.Array, options: CholeskyOptions, inverse: bool) -> CholeskyState:
+    b = wiener_rhs(system)
+    # the large-n path factors P's lower triangle as it is (P is symmetric to rounding):
+    # no symmetrised copy, 8 n^2 bytes less at the peak
+    L = jnp.linalg.cholesky(P) if inverse else jax.lax.linalg.cholesky(P, symmetrize_input=False)
+    a_wf, winfo = _cholesky_wiener(system, P, L, b, options)
     if not inverse:
-        return CholeskyState(system, a_wf, winfo, P, L, None)
+        return CholeskyState(system, a_wf, winfo, P, L, None, options)
     eye = jnp.eye(L.shape[-1], dtype=L.dtype)
     linv = jax.vmap(lambda l: jax.scipy.linalg.solve_triangular(l, eye, lower=True))(L)
-    return CholeskyState(system, a_wf, winfo, P, L, jnp.swapaxes(linv, -1, -2))
+    return CholeskyState(system, a_wf, winfo, P, L, jnp.swapaxes(linv, -1, -2), options)
 
 
 def prepare_cholesky(system: LinearSystem, options: CholeskyOptions | None = None) -> CholeskyState:
@@ -212,14 +239,14 @@ def prepare_cholesky(system: LinearSystem, options: CholeskyOptions | None = Non
             "called before numpy/scipy/jax are imported")
     inverse = n <= CHOLESKY_INVERSE_MAX_N if options.inverse is None else bool(options.inverse)
     if inverse:
-        return _prepare_cholesky(system, options.throw, inverse)
+        return _prepare_cholesky(system, options, inverse)
     # two programs: P, then its factor -- one program holds the P being built, its copy
     # for LAPACK and the factor at once (5.25 n^2 doubles at the peak against 3 n^2;
     # measured with ``memory_analysis``).  Inside a caller's jit they fuse again.
     check_float64(system.op.response, system.inv_noise)
     P = precision_matrix(system)
-    a_wf, winfo, L = _factor_cholesky_jit(system, P, options.throw)
-    return CholeskyState(system, a_wf, winfo, P, L, None)
+    a_wf, winfo, L = _factor_cholesky_jit(system, P, options)
+    return CholeskyState(system, a_wf, winfo, P, L, None, options)
 
 
 def _eigh_fns(lam, rcond):
@@ -284,11 +311,11 @@ def _prepare_eigh(system: LinearSystem, options: EighOptions) -> EighState:
     err = jnp.sqrt(jnp.sum(inv * r_coef**2, axis=1))
     finite = jnp.all(jnp.isfinite(jax.lax.stop_gradient(sqrt_cov)), axis=(1, 2)) & jnp.isfinite(err)
     winfo = direct_info(err, jnp.linalg.norm(r_coef, axis=1) / jnp.linalg.norm(jax.lax.stop_gradient(b), axis=1),
-                        finite)
+                        finite, options.tol)
     if options.throw:
-        a_wf = eqx.error_if(a_wf, ~winfo.converged, "gcrsky eigh: non-finite eigen-decomposition of P")
-    rank = jnp.sum(keep, axis=1)
-    return EighState(system, a_wf, winfo, P, sqrt_cov, rank, options)
+        a_wf = eqx.error_if(a_wf, ~winfo.converged, "gcrsky eigh: non-finite eigen-decomposition of P, or the solve "
+                            "missed EighOptions.tol")
+    return EighState(system, a_wf, winfo, P, sqrt_cov, jnp.sum(keep, axis=1), lam, options)
 
 
 def prepare_eigh(system: LinearSystem, options: EighOptions | None = None) -> EighState:
@@ -317,8 +344,8 @@ def draw_cholesky(key: jax.Array, state: CholeskyState, ndraws: int):
     """``ndraws`` exact draws ``a_wf + L^-T z``; draw ``i`` uses ``split(key, ndraws)[i]``.
 
     Returns:
-        draws (Nf, ndraws, n); info dict ``"wiener"``, ``"draws"`` (SolveInfo over
-        (Nf, ndraws)) and ``"a_wf"``.
+        draws (Nf, ndraws, n); a :class:`~gcrsky.solvers.DrawInfo` (``wiener``, ``draws`` a SolveInfo over
+        (Nf, ndraws), ``a_wf``).
     """
     a_wf = state.a_wf
     nf, n = a_wf.shape
@@ -330,8 +357,8 @@ def draw_cholesky(key: jax.Array, state: CholeskyState, ndraws: int):
         delta = solve(state.chol, z)
     else:
         delta = upper_triangular_product(state.chol_inv_t, z)
-    ok = state.wiener.converged[:, None] & jnp.all(jnp.isfinite(delta), axis=-1)
-    return a_wf[:, None, :] + delta, DrawInfo(state.wiener, exact_info(ok, (nf, ndraws)), a_wf)
+    finite = jnp.all(jnp.isfinite(delta), axis=-1)
+    return a_wf[:, None, :] + delta, DrawInfo(state.wiener, exact_info(state.wiener, finite, (nf, ndraws)), a_wf)
 
 
 @partial(jax.jit, static_argnames=("ndraws",))
@@ -345,5 +372,186 @@ def draw_eigh(key: jax.Array, state: EighState, ndraws: int):
     nf, n = a_wf.shape
     z = jax.random.normal(key, (nf, n, ndraws), a_wf.dtype)
     delta = jnp.einsum("fij,fjd->fdi", state.sqrt_cov, z)  # (Nf, ndraws, n)
-    ok = state.wiener.converged[:, None] & jnp.all(jnp.isfinite(delta), axis=-1)
-    return a_wf[:, None, :] + delta, DrawInfo(state.wiener, exact_info(ok, (nf, ndraws)), a_wf)
+    finite = jnp.all(jnp.isfinite(delta), axis=-1)
+    return a_wf[:, None, :] + delta, DrawInfo(state.wiener, exact_info(state.wiener, finite, (nf, ndraws)), a_wf)
+
+
+# ---------------------------------------------------------------- new data, same factor
+
+
+@jax.jit
+def _condition_cholesky(state: CholeskyState, data: jax.Array) -> CholeskyState:
+    system = state.system._replace(data=jnp.asarray(data, state.system.data.dtype))
+    a_wf, winfo = _cholesky_wiener(system, state.precision, state.chol, wiener_rhs(system), state.options)
+    return CholeskyState(system, a_wf, winfo, state.precision, state.chol, state.chol_inv_t, state.options)
+
+
+@jax.jit
+def _condition_eigh(state: EighState, data: jax.Array) -> EighState:
+    system = state.system._replace(data=jnp.asarray(data, state.system.data.dtype))
+    b = wiener_rhs(system)
+    T = state.sqrt_cov
+    a_wf = jnp.einsum("fij,fj->fi", T, jnp.einsum("fij,fj->fi", T, b))  # P^+ b = T T b
+    r = jax.lax.stop_gradient(b - jnp.einsum("fij,fj->fi", state.precision, a_wf))
+    tr = jnp.einsum("fij,fj->fi", jax.lax.stop_gradient(T), r)  # ||T r||^2 = r^T P^+ r: the sampled subspace
+    err = jnp.linalg.norm(tr, axis=1)
+    finite = jnp.all(jnp.isfinite(a_wf), axis=1) & jnp.isfinite(err)
+    winfo = direct_info(err, jnp.linalg.norm(r, axis=1) / jnp.linalg.norm(b, axis=1), finite, state.options.tol)
+    if state.options.throw:
+        a_wf = eqx.error_if(a_wf, ~winfo.converged, "gcrsky eigh: the solve missed EighOptions.tol")
+    return EighState(system, a_wf, winfo, state.precision, T, state.kept, state.eigenvalues, state.options)
+
+
+# ---------------------------------------------------------------- the evidence's pieces
+
+
+def _whitened_precision(system: LinearSystem):
+    sh = 1.0 / jnp.sqrt(system.prior.inv_var)  # S^1/2
+    return sh[:, :, None] * precision_matrix(system) * sh[:, None, :], sh
+
+
+def _evidence_info(finite, options) -> SolveInfo:
+    zeros = jnp.zeros(finite.shape)
+    return direct_info(zeros, zeros, finite, options.tol)
+
+
+def _cholesky_evidence(system: LinearSystem, options: CholeskyOptions, terms) -> EvidenceParts:
+    """``log det(I + H)`` and ``b'^T P^-1 b'`` from the Cholesky factor of the whitened precision."""
+    b_res = terms["b_res"]
+    Pw, sh = _whitened_precision(system)
+    L = jnp.linalg.cholesky(Pw)
+    x = cholesky_solve(Pw, L, sh * b_res)  # S^-1/2 (a_wf - a0)
+    finite = jnp.all(jnp.isfinite(jax.lax.stop_gradient(L)), axis=(1, 2))
+    chi2 = terms["rWr"] - jnp.sum(sh * b_res * x, axis=1)
+    return EvidenceParts(chi2, cholesky_logdet(Pw, L), jnp.zeros(finite.shape), _evidence_info(finite, options))
+
+
+def _eigh_evidence(system: LinearSystem, options: EighOptions, terms) -> EvidenceParts:
+    """The same pieces from the eigen-decomposition (finite gradients at degenerate eigenvalues)."""
+    b_res = terms["b_res"]
+    Pw, sh = _whitened_precision(system)
+    x, _, lam, _ = jax.vmap(lambda p, bb: _eigh_parts(p, bb, 0.0))(Pw, sh * b_res)  # every direction is proper
+    finite = jnp.all(jax.lax.stop_gradient(lam) > 0, axis=1)
+    logdet = jnp.sum(jnp.log(jnp.where(lam > 0, lam, 1.0)), axis=1)
+    chi2 = terms["rWr"] - jnp.sum(sh * b_res * x, axis=1)
+    return EvidenceParts(chi2, logdet, jnp.zeros(finite.shape), _evidence_info(finite, options))
+
+
+def _state_evidence(state, terms, logdet_p, finite) -> EvidenceParts:
+    """Pieces from a prepared dense state: ``log det(I + H) = log det P - sum log S^-1``."""
+    logdet = logdet_p - jnp.sum(jnp.log(state.system.prior.inv_var), axis=-1)
+    chi2 = terms["rWr"] - quadratic_from_state(state, terms["b_res"])
+    ok = finite & state.wiener.converged
+    info = state.wiener._replace(converged=ok, result=jnp.where(finite, state.wiener.result, Result.NONFINITE))
+    return EvidenceParts(chi2, logdet, jnp.zeros(logdet.shape), info)
+
+
+# ---------------------------------------------------------------- the two dense paths
+
+#: Largest n for which ``method="auto"`` forms and factorises the dense P.
+DENSE_MAX_N = 24000
+
+
+def _dense_limits(system: LinearSystem, memory: float, budget: float) -> str:
+    n = n_in(system.op)
+    if n > DENSE_MAX_N:
+        return f"n = {n} > {DENSE_MAX_N} (DENSE_MAX_N)"
+    if memory > AUTO_MEMORY_FRACTION * budget:
+        return (f"the dense P + factor would need {format_bytes(memory)} (n = {n}), more than "
+                f"{AUTO_MEMORY_FRACTION:.0%} of {format_bytes(budget)}")
+    if n > OPENBLAS_SAFE_N and os.environ.get("OPENBLAS_NUM_THREADS") != "1":
+        return f"n = {n} > {OPENBLAS_SAFE_N} needs OPENBLAS_NUM_THREADS=1 (threaded dpotrf crashed)"
+    return ""
+
+
+def _dense_build_flop(system: LinearSystem) -> float:
+    nf, nt, nbl = (int(x) for x in system.data.shape)
+    n = n_in(system.op)
+    return 8.0 * nf * min(1.0, nt / 2.0) * nbl * n * n  # P by m-blocks, whatever Nt
+
+
+class CholeskyPath(SolverPath):
+    """Dense Cholesky of P (:func:`prepare_cholesky`): the exact reference, fast where n^2 fits."""
+
+    name = "cholesky"
+    options_type = CholeskyOptions
+    state_type = CholeskyState
+
+    def memory_bytes(self, system, options, ndraws=1):
+        # the set-up's peak (XLA memory_analysis, in n^2 doubles): one program holding P, its factor,
+        # L^-T and their transients (7.25); for n > CHOLESKY_INVERSE_MAX_N two programs, the
+        # factor's holding P, L and LAPACK's working copy (3.4)
+        nf, n = int(system.data.shape[0]), n_in(system.op)
+        copies = 3.5 if n > CHOLESKY_INVERSE_MAX_N else 7.5
+        return copies * 8 * nf * n * n + 8.0 * nf * max(1, ndraws) * n
+
+    def cost_flop(self, system, options, ndraws):
+        nf, n = int(system.data.shape[0]), n_in(system.op)
+        return _dense_build_flop(system) + nf * n**3 / 3.0 + ndraws * 2.0 * nf * n * n
+
+    def auto_limits(self, system, options, budget, ndraws):
+        if has_flat_prior(system):
+            return "a flat prior direction: P may be singular"
+        return _dense_limits(system, self.memory_bytes(system, options, ndraws), budget)
+
+    def describe(self, system, options, memory):
+        return f"n = {n_in(system.op)}: dense P + Cholesky factor ({format_bytes(memory)})"
+
+    def prepare(self, system, options):
+        return prepare_cholesky(system, options)
+
+    def draw(self, key, state, ndraws):
+        return draw_cholesky(key, state, ndraws)
+
+    def condition(self, state, data):
+        return _condition_cholesky(state, data)
+
+    def evidence_parts(self, system, options, terms, *, slq=None, key=None):
+        return _cholesky_evidence(system, options, terms)
+
+    def state_evidence_parts(self, state, terms, *, slq=None, key=None):
+        L = jax.lax.stop_gradient(state.chol)
+        finite = jnp.all(jnp.isfinite(L), axis=(1, 2))
+        return _state_evidence(state, terms, 2.0 * jnp.sum(jnp.log(jnp.diagonal(L, axis1=-2, axis2=-1)), -1), finite)
+
+
+class EighPath(SolverPath):
+    """Eigen-decomposition of the dense P (:func:`prepare_eigh`): exact, and the path for a singular P."""
+
+    name = "eigh"
+    options_type = EighOptions
+    state_type = EighState
+
+    def memory_bytes(self, system, options, ndraws=1):  # P, eigenvectors, sqrt_cov
+        nf, n = int(system.data.shape[0]), n_in(system.op)
+        return 3.0 * 8 * nf * n * n + 8.0 * nf * max(1, ndraws) * n
+
+    def cost_flop(self, system, options, ndraws):  # a symmetric eigensolver with vectors: ~9 n^3
+        nf, n = int(system.data.shape[0]), n_in(system.op)
+        return _dense_build_flop(system) + 9.0 * nf * n**3 + ndraws * 2.0 * nf * n * n
+
+    def auto_limits(self, system, options, budget, ndraws):
+        if not has_flat_prior(system):
+            return "a proper prior: the Cholesky path is as exact and ~27x cheaper"
+        return _dense_limits(system, self.memory_bytes(system, options, ndraws), budget)
+
+    def describe(self, system, options, memory):
+        flat = "; flat prior: P may be singular" if has_flat_prior(system) else ""
+        return f"n = {n_in(system.op)}: dense P + eigen-decomposition ({format_bytes(memory)}){flat}"
+
+    def prepare(self, system, options):
+        return prepare_eigh(system, options)
+
+    def draw(self, key, state, ndraws):
+        return draw_eigh(key, state, ndraws)
+
+    def condition(self, state, data):
+        return _condition_eigh(state, data)
+
+    def evidence_parts(self, system, options, terms, *, slq=None, key=None):
+        return _eigh_evidence(system, options, terms)
+
+    def state_evidence_parts(self, state, terms, *, slq=None, key=None):
+        lam = jax.lax.stop_gradient(state.eigenvalues)
+        finite = jnp.all(lam > 0, axis=1)
+        return _state_evidence(state, terms, jnp.sum(jnp.log(jnp.where(lam > 0, lam, 1.0)), axis=1), finite)

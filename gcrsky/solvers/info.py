@@ -3,7 +3,12 @@
 Codes (:class:`Result`): ``SUCCESS`` (0), ``MAX_ITERATIONS`` (1: CG hit ``maxiter``
 before reaching ``tol``), ``BREAKDOWN`` (2: non-positive curvature ``p^T P p <= 0``,
 i.e. a singular or indefinite P, e.g. a flat prior), ``NONFINITE`` (3: NaN or Inf in
-the residual, the factor or the answer).  ``SolveInfo.converged`` is ``result == 0``.
+the residual, the factor or the answer), ``INACCURATE`` (4: a direct path's factor is
+finite but its solve misses the tolerance, measured by the true residual: e.g. the
+m-mode path on coverage that is not block-diagonal in m, which a trace cannot check
+beforehand, or a factor that lost its accuracy to rounding).  ``SolveInfo.converged``
+is ``result == 0``: on every path it is *measured* (CG's error bound, the direct paths'
+true residual against their ``tol``), never assumed.
 :func:`result_names` turns codes into words for messages.
 """
 
@@ -25,8 +30,9 @@ class Result:
     MAX_ITERATIONS = 1
     BREAKDOWN = 2
     NONFINITE = 3
+    INACCURATE = 4
 
-    NAMES = ("success", "max_iterations", "breakdown", "nonfinite")
+    NAMES = ("success", "max_iterations", "breakdown", "nonfinite", "inaccurate")
 
 
 class SolveInfo(NamedTuple):
@@ -85,23 +91,38 @@ def result_code(ok, *, finite, broke=None) -> jax.Array:
     return jnp.where(finite, code, Result.NONFINITE)
 
 
-def direct_info(err, rel, finite) -> SolveInfo:
-    """Info of a direct (factorised) solve: no iterations; converged iff everything is finite."""
-    code = jnp.where(finite, Result.SUCCESS, Result.NONFINITE)
+def direct_info(err, rel, finite, tol) -> SolveInfo:
+    """Info of a direct (factorised) solve, judged by its achieved accuracy.
+
+    Args:
+        err: (...) the error estimate ``sqrt(r^T P^-1 r)`` from the *true* residual
+            ``r = b - P x`` (posterior-sigma units), P^-1 applied with the path's factor.
+        rel: (...) ``||r|| / ||b||``.
+        finite: (...) the factor and the answer are finite.
+        tol: the path's tolerance (posterior sigma): ``err <= tol`` is success, a finite
+            answer above it :data:`Result.INACCURATE`.
+    """
+    code = jnp.where(err <= tol, Result.SUCCESS, Result.INACCURATE)
+    code = jnp.where(finite & jnp.isfinite(err), code, Result.NONFINITE)
     return SolveInfo(jnp.zeros(jnp.shape(err), int), err, rel, code == Result.SUCCESS, code)
 
 
-def exact_info(ok: jax.Array, shape: tuple[int, ...]) -> SolveInfo:
-    """Info of draws by an exact factor: no iterations, no residual, ``converged = ok``.
+def exact_info(wiener: SolveInfo, finite: jax.Array, shape: tuple[int, ...]) -> SolveInfo:
+    """Info of draws by an exact factor: no iterations; the factor's measured accuracy.
+
+    A direct path's draws use the factor its Wiener solve used, so they carry that solve's
+    error estimate and result code (broadcast over the draws), and ``NONFINITE`` where a
+    draw is not finite.
 
     Args:
-        ok: boolean array broadcastable to ``shape`` (e.g. the Wiener solve's status
-            per frequency combined with the draws' finiteness).
-        shape: batch shape, e.g. (Nf, ndraws).
+        wiener: the set-up's :class:`SolveInfo`, (Nf,) fields.
+        finite: boolean (Nf, ndraws), each draw finite.
+        shape: batch shape (Nf, ndraws).
     """
-    zeros = jnp.zeros(shape)
-    ok = jnp.broadcast_to(ok, shape)
-    return SolveInfo(jnp.zeros(shape, int), zeros, zeros, ok, jnp.where(ok, Result.SUCCESS, Result.NONFINITE))
+    expand = lambda x: jnp.broadcast_to(jnp.asarray(x)[:, None], shape)  # noqa: E731
+    code = jnp.where(jnp.broadcast_to(finite, shape), expand(wiener.result), Result.NONFINITE)
+    return SolveInfo(jnp.zeros(shape, int), expand(wiener.err_sigma), expand(wiener.rel_residual),
+                     code == Result.SUCCESS, code)
 
 
 def result_names(info: SolveInfo) -> dict[str, int]:

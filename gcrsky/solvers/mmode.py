@@ -48,15 +48,18 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..base.dtypes import check_float64
+from ..base.memory import format_bytes
 from ..model.operator import n_in
 from ..model.system import LinearSystem, precision_apply, wiener_rhs
 from ..sphere.modes import lmax_from_nparams, mode_table, n_alm
 from .info import DrawInfo, SolveInfo, direct_info, exact_info
 from .options import MModeOptions
+from .path import EvidenceParts, SolverPath, has_flat_prior, is_traced, quadratic_from_state
 
 __all__ = [
     "MModeCheck",
     "MModeLayout",
+    "MModePath",
     "MModeState",
     "block_solve",
     "blocks_to_dense",
@@ -248,12 +251,14 @@ class MModeState(eqx.Module):
             residual ``b - P a_wf`` (matrix-free P), so it also exposes any off-block
             part the structural check missed.
         chol: (Nf, lmax+1, B, B) lower Cholesky factors of the blocks.
+        options: the :class:`MModeOptions` (static).
     """
 
     system: LinearSystem
     a_wf: jax.Array
     wiener: SolveInfo
     chol: jax.Array
+    options: MModeOptions = eqx.field(static=True, default=MModeOptions())
 
     method: ClassVar[str] = "mmode"
 
@@ -274,9 +279,8 @@ def block_solve(chol: jax.Array, b: jax.Array) -> jax.Array:
     return _scatter(_block_solve(chol, _gather(b, lay)[..., None])[..., 0], lay)
 
 
-@partial(jax.jit, static_argnames=("throw",))
-def _prepare(system: LinearSystem, throw: bool = False) -> MModeState:
-    L = jnp.linalg.cholesky(mmode_blocks(system))
+def _mmode_wiener(system: LinearSystem, L: jax.Array, options: MModeOptions):
+    """``a_wf`` through the block factors, with its info from the *true* (matrix-free) residual."""
     b = wiener_rhs(system)  # (Nf, n), matrix-free O(Nt Nbl n)
     Lc = jax.lax.stop_gradient(L)
     # Implicit differentiation against the true (matrix-free) P: the derivative is that of
@@ -286,12 +290,27 @@ def _prepare(system: LinearSystem, throw: bool = False) -> MModeState:
     a_wf = jax.lax.custom_linear_solve(lambda x: precision_apply(system, x), b, solve, symmetric=True)
     r = jax.lax.stop_gradient(b - precision_apply(system, a_wf))
     err = jnp.sqrt(jnp.abs(jnp.sum(r * block_solve(Lc, r), axis=-1)))
-    finite = jnp.all(jnp.isfinite(Lc), axis=(1, 2, 3)) & jnp.isfinite(err)
+    finite = jnp.all(jnp.isfinite(Lc), axis=(1, 2, 3))
     rel = jnp.linalg.norm(r, axis=-1) / jnp.linalg.norm(jax.lax.stop_gradient(b), axis=-1)
-    info = direct_info(err, rel, finite)
-    if throw:
-        a_wf = eqx.error_if(a_wf, ~info.converged, "gcrsky m-mode: a block is not positive definite")
-    return MModeState(system, a_wf, info, L)
+    info = direct_info(err, rel, finite, options.tol)
+    if options.throw:
+        a_wf = eqx.error_if(a_wf, ~info.converged, "gcrsky m-mode: a block is not positive definite, or P is not "
+                            "block-diagonal in m (the solve missed MModeOptions.tol against the true P)")
+    return a_wf, info
+
+
+@partial(jax.jit, static_argnames=("options",))
+def _prepare(system: LinearSystem, options: MModeOptions) -> MModeState:
+    L = jnp.linalg.cholesky(mmode_blocks(system))
+    a_wf, info = _mmode_wiener(system, L, options)
+    return MModeState(system, a_wf, info, L, options)
+
+
+@jax.jit
+def _condition(state: MModeState, data: jax.Array) -> MModeState:
+    system = state.system._replace(data=jnp.asarray(data, state.system.data.dtype))
+    a_wf, info = _mmode_wiener(system, state.chol, state.options)
+    return MModeState(system, a_wf, info, state.chol, state.options)
 
 
 def prepare_mmode(system: LinearSystem, options: MModeOptions | None = None, *, check: bool = True) -> MModeState:
@@ -299,19 +318,21 @@ def prepare_mmode(system: LinearSystem, options: MModeOptions | None = None, *, 
 
     Raises ``ValueError`` naming the reason unless :func:`mmode_check` passes with
     ``options``' tolerances.  ``check=False`` skips the check (it needs concrete
-    arrays; inside ``jit`` it is skipped anyway), at your own risk: the result is
-    then the exact posterior of the block-diagonal part of P only.
+    arrays; inside ``jit`` it is skipped anyway).  Either way the Wiener solve is judged
+    against the *true* (matrix-free) P: where P is not block-diagonal in m, its error
+    exceeds ``options.tol`` and the solve (and every draw) is reported
+    :data:`~gcrsky.solvers.Result.INACCURATE` (``options.throw``: an error), never
+    converged.
     """
     options = MModeOptions() if options is None else options
     if not isinstance(options, MModeOptions):
         raise TypeError(f"the m-mode path takes MModeOptions, got {type(options).__name__}")
     check_float64(system.op.response, system.inv_noise)
-    concrete = not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(system))
-    if check and concrete:
+    if check and not is_traced(system):
         res = mmode_check(system, atol=options.atol, rtol=options.rtol)
         if not res.ok:
             raise ValueError(f"P is not block-diagonal in m: {res.reason}")
-    return _prepare(system, options.throw)
+    return _prepare(system, options)
 
 
 @partial(jax.jit, static_argnames=("ndraws",))
@@ -319,8 +340,8 @@ def draw_mmode(key: jax.Array, prepared: MModeState, ndraws: int):
     """``ndraws`` exact posterior draws ``a_wf + L_m^-T z`` block by block.
 
     Returns:
-        draws (Nf, ndraws, n) in the realified layout; info dict ``"wiener"``,
-        ``"draws"`` (SolveInfo (Nf, ndraws)) and ``"a_wf"`` as :func:`gcrsky.draw`.
+        draws (Nf, ndraws, n) in the realified layout; a :class:`~gcrsky.solvers.DrawInfo`
+        (``wiener``, ``draws``: SolveInfo (Nf, ndraws), ``a_wf``) as :func:`gcrsky.draw`.
     """
     L, a_wf = prepared.chol, prepared.a_wf
     nf, M, B, _ = L.shape
@@ -328,10 +349,73 @@ def draw_mmode(key: jax.Array, prepared: MModeState, ndraws: int):
     delta = jax.vmap(jax.vmap(lambda l, v: _tri(l, v, "T")))(L, z)  # (Nf, M, B, ndraws)
     lay = mmode_layout(M - 1)
     delta = _scatter(jnp.moveaxis(delta, -1, 1), lay)  # (Nf, ndraws, n)
-    ok = prepared.wiener.converged[:, None] & jnp.all(jnp.isfinite(delta), axis=-1)
-    return a_wf[:, None, :] + delta, DrawInfo(prepared.wiener, exact_info(ok, (nf, ndraws)), a_wf)
+    finite = jnp.all(jnp.isfinite(delta), axis=-1)
+    return a_wf[:, None, :] + delta, DrawInfo(prepared.wiener, exact_info(prepared.wiener, finite, (nf, ndraws)), a_wf)
 
 
 def mmode_wiener_and_draws(key: jax.Array, system: LinearSystem, ndraws: int, options: MModeOptions | None = None):
     """:func:`prepare_mmode` then :func:`draw_mmode`: (draws (Nf, ndraws, n), info)."""
     return draw_mmode(key, prepare_mmode(system, options), ndraws)
+
+
+# ---------------------------------------------------------------- the path
+
+
+def _mmode_evidence(state: MModeState, terms) -> EvidenceParts:
+    diag = jnp.diagonal(state.chol, axis1=-2, axis2=-1)  # padding rows are identity: log 1 = 0
+    logdet = 2.0 * jnp.sum(jnp.log(diag), axis=(1, 2)) - jnp.sum(jnp.log(state.system.prior.inv_var), axis=1)
+    chi2 = terms["rWr"] - quadratic_from_state(state, terms["b_res"])
+    return EvidenceParts(chi2, logdet, jnp.zeros(logdet.shape), state.wiener)
+
+
+class MModePath(SolverPath):
+    """Block-by-block exact solves for uniform full-day coverage (:func:`prepare_mmode`)."""
+
+    name = "mmode"
+    options_type = MModeOptions
+    state_type = MModeState
+
+    def check(self, system, options):
+        return mmode_check(system, atol=options.atol, rtol=options.rtol).reason
+
+    def resolve(self, system, options):
+        if not is_traced(system):
+            why = self.check(system, options)
+            if why:
+                raise ValueError(f"method='mmode' needs P block-diagonal in m, but {why}; use method='auto'")
+        return options
+
+    def memory_bytes(self, system, options, ndraws=1):
+        nf, n = int(system.data.shape[0]), n_in(system.op)
+        lmax = lmax_from_nparams(n)
+        return 2.0 * 8 * nf * (lmax + 1) * (2 * lmax + 2) ** 2 + 6.0 * 8 * nf * max(1, ndraws) * n
+
+    def cost_flop(self, system, options, ndraws):
+        nf, _, nbl = (int(x) for x in system.data.shape)
+        B = 2 * (lmax_from_nparams(n_in(system.op)) + 1)
+        blocks = B // 2 * (2.0 * nf * nbl * B * B + nf * B**3 / 3.0)
+        return blocks + ndraws * nf * B // 2 * B * B
+
+    def auto_limits(self, system, options, budget, ndraws):
+        if has_flat_prior(system):
+            return "a flat prior direction: blocks may be singular"
+        mem = self.memory_bytes(system, options, ndraws)
+        return "" if mem <= budget else f"its blocks need {format_bytes(mem)}, more than {format_bytes(budget)}"
+
+    def describe(self, system, options, memory):
+        return "uniform full-day coverage, stationary noise: P is block-diagonal in m"
+
+    def prepare(self, system, options):
+        return prepare_mmode(system, options)
+
+    def draw(self, key, state, ndraws):
+        return draw_mmode(key, state, ndraws)
+
+    def condition(self, state, data):
+        return _condition(state, data)
+
+    def evidence_parts(self, system, options, terms, *, slq=None, key=None):
+        return _mmode_evidence(prepare_mmode(system, options), terms)
+
+    def state_evidence_parts(self, state, terms, *, slq=None, key=None):
+        return _mmode_evidence(state, terms)

@@ -29,13 +29,16 @@ Paths (all exact; they differ only in cost):
   flat one.
 
 Rule of :func:`plan_sampler` (``method="auto"`` in :func:`gcrsky.prepare` /
-:func:`gcrsky.sample`): m-mode when its check passes; else, of the direct paths that
-apply and fit -- dense (Cholesky, or the eigen sampler for a flat prior) when the dense
-P and its factor fit in :data:`DENSE_MEMORY_FRACTION` of the available memory and
-``n <= DENSE_MAX_N``; data space for a proper prior when ``N_d < n``,
-``N_d <= DATASPACE_MAX_ND`` and D and its factor fit in the same fraction -- the one
-with the smaller estimated cost of set-up plus :data:`PLAN_DRAWS` draws
-(:func:`path_cost_flop`); else matrix-free CG.  The crossovers are measured in ``benchmarks/scale.py``: at lmax 50
+:func:`gcrsky.sample`), over the paths of :mod:`gcrsky.solvers.registry`: of the direct
+paths that are exact for the system (:meth:`~gcrsky.solvers.path.SolverPath.check`) and
+within the planner's limits (:meth:`~gcrsky.solvers.path.SolverPath.auto_limits`: m-mode
+and Cholesky need a proper prior; dense paths ``n <= DENSE_MAX_N`` and their set-up
+within :data:`DENSE_MEMORY_FRACTION` of the available memory; data space ``N_d < n``,
+``N_d <= DATASPACE_MAX_ND`` and D within the same fraction), the one with the smallest
+estimated cost of set-up plus :data:`PLAN_DRAWS` draws
+(:meth:`~gcrsky.solvers.path.SolverPath.cost_flop`); else matrix-free CG.  So m-mode
+wins wherever it is exact, Cholesky over the eigen sampler for a proper prior, the eigen
+sampler for a flat one.  The crossovers are measured in ``benchmarks/scale.py``: at lmax 50
 (n = 2601) Cholesky set-up is 2-9 s and a draw 2-3 ms against 40-600 ms per draw for
 matrix-free CG, so dense wins wherever it fits; ``DENSE_MAX_N`` = 24000 keeps the
 ``n^3 / 3`` factorisation under ~2.5 min (n = 22801: P 94 s, factor 127 s on one
@@ -45,30 +48,17 @@ dense path is only chosen there when ``OPENBLAS_NUM_THREADS=1``).
 
 from __future__ import annotations
 
-import dataclasses
 import logging
-import os
 from typing import NamedTuple
 
-import numpy as np
-
-from ..base.memory import available_memory_bytes, check_memory, format_bytes
+from ..base.memory import available_memory_bytes, check_memory
 from ..model.operator import n_in
 from ..model.system import LinearSystem
-from .dataspace import check_proper_prior, dataspace_memory_bytes, lag_structure, materialize_rows
-from .dense import CHOLESKY_INVERSE_MAX_N, OPENBLAS_SAFE_N
-from .mmode import mmode_check
-from .options import (
-    CGOptions,
-    CholeskyOptions,
-    DataSpaceOptions,
-    EighOptions,
-    MModeOptions,
-    SolverOptions,
-    method_of,
-    options_for,
-)
-from .preconditioners import resolve_preconditioner
+from .cg import CGOptions
+from .dataspace import DATASPACE_MAX_ND
+from .dense import DENSE_MAX_N
+from .path import AUTO_MEMORY_FRACTION, SolverPath, has_flat_prior
+from .registry import PATHS, SolverOptions, method_of, options_for, path_of
 
 __all__ = [
     "DATASPACE_MAX_ND",
@@ -84,13 +74,8 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: Largest n for which ``method="auto"`` forms and factorises the dense P.
-DENSE_MAX_N = 24000
-#: Fraction of the available memory the dense path's set-up peak may take under "auto".
-DENSE_MEMORY_FRACTION = 0.75
-#: Largest number of real data values per channel for which ``method="auto"`` forms and
-#: factorises the data-space matrix D (the same ~1 min factorisation bound as ``DENSE_MAX_N``).
-DATASPACE_MAX_ND = 12000
+#: Fraction of the available memory a direct path's set-up peak may take under "auto".
+DENSE_MEMORY_FRACTION = AUTO_MEMORY_FRACTION
 #: Draws the planner's cost comparison assumes (set-up plus this many draws).
 PLAN_DRAWS = 200
 
@@ -115,65 +100,60 @@ class SamplerPlan(NamedTuple):
         return method_of(self.options)
 
 
-def _sizes(system: LinearSystem) -> tuple[int, int, int, int]:
-    nf, nbl, _ = system.op.response.shape
-    return int(nf), int(system.data.shape[1]), int(nbl), int(n_in(system.op))
+def path_memory_bytes(system: LinearSystem, method: str, *, dense: bool = True, ndraws: int = 1,
+                      sketch_size: int | None = None, rank: int | None = None) -> float:
+    """Estimated peak bytes of a path's large arrays (float64), beyond the system
+    (:meth:`gcrsky.solvers.path.SolverPath.memory_bytes` with the path's default options).
 
-
-def path_memory_bytes(
-    system: LinearSystem, method: str, *, dense: bool = True, ndraws: int = 1, rank: int = CGOptions.rank
-) -> float:
-    """Estimated peak bytes of a path's large arrays (float64), beyond the system itself.
-
-    ``dense`` and ``rank`` describe the CG path (:class:`~gcrsky.solvers.CGOptions`).
-    Counts the dense P, its factor and inverse factor / eigenvectors (``8 Nf n^2`` each; for
-    Cholesky the set-up's measured peak with LAPACK's copies, 7.5 or 3.5 of them), the m-blocks,
-    the Nystrom sketch and the per-draw CG work vectors (``~6 x 8 Nf ndraws n``).
+    ``dense`` and ``sketch_size`` describe the CG path (:class:`~gcrsky.solvers.CGOptions`;
+    ``rank`` is the deprecated name of ``sketch_size``).
     """
-    nf, nt, nbl, n = _sizes(system)
-    lmax = int(round(np.sqrt(n))) - 1
-    vec = 6.0 * 8 * nf * max(1, ndraws) * n  # CG state per draw
-    if method == "mmode":
-        return 2.0 * 8 * nf * (lmax + 1) * (2 * lmax + 2) ** 2 + vec
-    if method == "cholesky":  # the peak of the set-up (XLA memory_analysis, in n^2 doubles): one program
-        # holding P, its factor, L^-T and their transients (7.25); for n > CHOLESKY_INVERSE_MAX_N two
-        # programs, the factor's holding P, L and LAPACK's working copy (3.4)
-        copies = 3.5 if n > CHOLESKY_INVERSE_MAX_N else 7.5
-        return copies * 8 * nf * n * n + 8.0 * nf * max(1, ndraws) * n
-    if method == "eigh":  # P, eigenvectors, sqrt_cov
-        return 3.0 * 8 * nf * n * n + 8.0 * nf * max(1, ndraws) * n
-    if method == "dataspace":  # D, its factor, the assembly's transients, per-time responses, per-draw vectors
-        return dataspace_memory_bytes(system, ndraws, materialize_rows(system, DataSpaceOptions()))
-    if method == "cg":
-        sketch = max(3.0 * 8 * nf * n * min(n, rank), 8.0 * nf * (lmax + 1) * (2 * lmax + 2) ** 2)
-        return (8.0 * nf * n * n if dense else 0.0) + sketch + vec
-    raise ValueError(f"unknown method {method!r}")
+    path = path_of(method)
+    options = path.options_type()
+    if not path.direct:
+        size = sketch_size if sketch_size is not None else (rank if rank is not None else options.sketch_size)
+        options = CGOptions(dense=dense, sketch_size=size)
+    return path.memory_bytes(system, options, ndraws)
 
 
 def path_cost_flop(system: LinearSystem, method: str, *, ndraws: int = PLAN_DRAWS) -> float:
-    """Estimated floating-point operations of a direct path's set-up plus ``ndraws`` draws (all channels).
+    """Estimated floating-point operations of a direct path's set-up plus ``ndraws`` draws (all channels)
+    (:meth:`gcrsky.solvers.path.SolverPath.cost_flop` with the path's default options).
 
     Rough but of the right order (the planner compares them): ``"cholesky"`` / ``"eigh"``:
-    P by m-blocks (``8 Nf Nbl n^2``, :func:`gcrsky.model.precision_matrix`) and its factor (``Nf n^3 / 3``), then
-    ``2 n^2`` per draw; ``"dataspace"``: D (``4 Nf N_d^2 n`` with ``N_d = 2 Nt Nbl``, or
-    ``8 Nf k (2 Nbl)^2 n`` for ``k`` distinct lags on the stationary shortcut,
-    :func:`gcrsky.solvers.dataspace.lag_structure`) and its
-    factor (``Nf N_d^3 / 3``), then per draw the products with X and ``X^T``
-    (``16 Nf Nt Nbl n`` plus ``~8 Nf Nt (lmax+1)^3`` for the rotations; ``4 Nf N_d n`` with
-    ``Y = W^1/2 X`` materialised) and two triangular solves (``2 Nf N_d^2``).
+    P by m-blocks (``8 Nf Nbl n^2``, :func:`gcrsky.model.precision_matrix`) and its factor
+    (``Nf n^3 / 3``; ``9 Nf n^3`` for the eigen-decomposition), then ``2 n^2`` per draw;
+    ``"dataspace"``: :meth:`gcrsky.solvers.dataspace.DataSpacePath.cost_flop`; ``"mmode"``: the
+    blocks and their factors.
     """
-    nf, nt, nbl, n = _sizes(system)
-    if method in ("cholesky", "eigh"):
-        return 8.0 * nf * min(1.0, nt / 2.0) * nbl * n * n + nf * n**3 / 3.0 + ndraws * 2.0 * nf * n * n
-    if method == "dataspace":
-        nd = 2.0 * nt * nbl
-        rot = 8.0 * nf * nt * (np.sqrt(n)) ** 3
-        lags = lag_structure(system)
-        build = 4.0 * nf * nd * nd * n if lags is None else 8.0 * nf * lags.lags.shape[0] * (2.0 * nbl) ** 2 * n
-        per_draw = (4.0 * nf * nd * n if materialize_rows(system, DataSpaceOptions()) else
-                    16.0 * nf * nt * nbl * n + rot)
-        return build + nf * nd**3 / 3.0 + ndraws * (per_draw + 2.0 * nf * nd * nd)
-    raise ValueError(f"no cost model for method {method!r} (direct paths only: 'cholesky', 'eigh', 'dataspace')")
+    path = path_of(method)
+    return path.cost_flop(system, path.options_type(), ndraws)
+
+
+def _candidates(system: LinearSystem, ndraws: int, avail: float):
+    """The direct paths ``method="auto"`` may choose, ``(cost, path, options, memory)``, and why not the others."""
+    chosen, notes = [], []
+    for path in PATHS.values():
+        if not path.direct:
+            continue
+        opts = path.options_type()
+        why = path.check(system, opts) or path.auto_limits(system, opts, avail, ndraws)
+        if why:
+            notes.append(f"not {path.name}: {why}")
+            continue
+        chosen.append((path.cost_flop(system, opts, PLAN_DRAWS), path, opts, path.memory_bytes(system, opts, ndraws)))
+    return chosen, notes
+
+
+def _fallback(system: LinearSystem, ndraws: int, avail: float, notes) -> SamplerPlan:
+    """Matrix-free CG (m-blocks for a flat prior), memory checked."""
+    nf, n = int(system.data.shape[0]), n_in(system.op)
+    path: SolverPath = next(p for p in PATHS.values() if not p.direct)
+    opts = path.options_type(dense=False, preconditioner="mblock" if has_flat_prior(system) else "nystrom")
+    mem = path.memory_bytes(system, opts, ndraws)
+    check_memory(mem, f"matrix-free CG ({ndraws} draws per batch, n = {n}, Nf = {nf})",
+                 "draw in smaller batches (ndraws) or shard the baselines (gcrsky.parallel)", budget=avail)
+    return SamplerPlan(opts, mem, "; ".join([path.describe(system, opts, mem), *notes]))
 
 
 def plan_sampler(system: LinearSystem, *, ndraws: int = 1, budget: float | None = None) -> SamplerPlan:
@@ -185,51 +165,21 @@ def plan_sampler(system: LinearSystem, *, ndraws: int = 1, budget: float | None 
         budget: bytes available; default :func:`available_memory_bytes`.
 
     Returns:
-        a :class:`SamplerPlan`; raises :class:`~gcrsky.base.InsufficientMemoryError` if
-        even the matrix-free path does not fit.
+        a :class:`SamplerPlan` whose reason names the chosen path's sizes, its estimated cost
+        against the other candidates, and why each other direct path was not chosen; raises
+        :class:`~gcrsky.base.InsufficientMemoryError` if even the matrix-free path does not fit.
     """
     avail = available_memory_bytes() if budget is None else float(budget)
-    nf, nt, nbl, n = _sizes(system)
-    flat = bool(np.any(np.asarray(system.prior.inv_var) <= 0))
-    chk = mmode_check(system)
-    if chk.ok and not flat:
-        mem = path_memory_bytes(system, "mmode", ndraws=ndraws)
-        if mem <= avail:
-            return SamplerPlan(MModeOptions(), mem, "uniform full-day coverage, stationary noise: P is block-diagonal in m")
-    dense_mem = path_memory_bytes(system, "cholesky", ndraws=ndraws)
-    ds_mem = path_memory_bytes(system, "dataspace", ndraws=ndraws)
-    nd = 2 * nt * nbl
-    dense_ok = (n <= DENSE_MAX_N and dense_mem <= DENSE_MEMORY_FRACTION * avail
-                and (n <= OPENBLAS_SAFE_N or os.environ.get("OPENBLAS_NUM_THREADS") == "1"))
-    ds_ok = (not flat) and nd < n and nd <= DATASPACE_MAX_ND and ds_mem <= DENSE_MEMORY_FRACTION * avail
-    if ds_ok and (not dense_ok or path_cost_flop(system, "dataspace") < path_cost_flop(system, "cholesky")):
-        why = (f"N_d = {nd} real data values per channel < n = {n}: data space (D + factor "
-               f"{format_bytes(ds_mem)}; est. {path_cost_flop(system, 'dataspace'):.2g} flop for set-up + "
-               f"{PLAN_DRAWS} draws")
-        why += (f" against {path_cost_flop(system, 'cholesky'):.2g} dense)" if dense_ok else
-                f"; the dense P + factor would need {format_bytes(dense_mem)} (n = {n}))")
-        if not chk.ok:
-            why += f"; not m-mode: {chk.reason}"
-        return SamplerPlan(DataSpaceOptions(), ds_mem, why)
-    if dense_ok:
-        why = (f"n = {n} <= {DENSE_MAX_N} and the dense P + factor ({format_bytes(dense_mem)}) fit in "
-               f"{DENSE_MEMORY_FRACTION:.0%} of {format_bytes(avail)}")
-        if flat:
-            why += "; flat prior: eigen sampler (P may be singular)"
-        elif ds_ok:
-            why += (f"; cheaper than data space (N_d = {nd}: est. {path_cost_flop(system, 'cholesky'):.2g} against "
-                    f"{path_cost_flop(system, 'dataspace'):.2g} flop for set-up + {PLAN_DRAWS} draws)")
-        if not chk.ok:
-            why += f"; not m-mode: {chk.reason}"
-        return SamplerPlan(EighOptions() if flat else CholeskyOptions(), dense_mem, why)
-    pc = "mblock" if flat else "nystrom"
-    mem = path_memory_bytes(system, "cg", dense=False, ndraws=ndraws)
-    check_memory(mem, f"matrix-free CG ({ndraws} draws per batch, n = {n}, Nf = {nf})",
-                 "draw in smaller batches (ndraws) or shard the baselines (gcrsky.parallel)", budget=avail)
-    why = (f"dense P + factor would need {format_bytes(dense_mem)} (n = {n}); "
-           + ("flat prior (no data space)" if flat else f"data space N_d = {nd} (D + factor {format_bytes(ds_mem)})")
-           + f"; matrix-free CG, {pc} preconditioner")
-    return SamplerPlan(CGOptions(dense=False, preconditioner=pc), mem, why)
+    candidates, notes = _candidates(system, ndraws, avail)
+    if not candidates:
+        return _fallback(system, ndraws, avail, notes)
+    candidates.sort(key=lambda c: c[0])
+    cost, path, opts, mem = candidates[0]
+    others = [f"{p.name} ({c:.2g})" for c, p, _, _ in candidates[1:]]
+    why = f"{path.describe(system, opts, mem)}; est. {cost:.2g} flop for set-up + {PLAN_DRAWS} draws"
+    if others:
+        why += f", cheaper than {', '.join(others)}"
+    return SamplerPlan(opts, mem, "; ".join([why, *notes]))
 
 
 def choose_path(
@@ -243,23 +193,23 @@ def choose_path(
 ) -> SolverOptions:
     """Resolve a user's ``method`` / ``options`` / ``tol`` into one path's options (host-side).
 
-    * ``method="auto"`` without options follows :func:`plan_sampler` (m-mode, else
-      the cheaper of dense Cholesky/eigen and data space where they fit, else
-      matrix-free CG) and logs its choice and the reason at INFO.
+    * ``method="auto"`` without options follows :func:`plan_sampler` (the cheapest exact
+      path that fits, else matrix-free CG) and logs its choice and the reason at INFO.
     * Options alone (``method="auto"``) select their path; ``method`` and options of
       another path are an error.
-    * An explicit path is used as given, after checking that its large arrays fit
-      (:class:`~gcrsky.base.InsufficientMemoryError` otherwise, naming the
-      alternative); ``"mmode"`` raises ``ValueError`` with the reason when P is not
-      block-diagonal in m.
-    * ``tol`` sets the CG tolerance (the direct paths are exact and ignore it).
+    * An explicit path is used as given, after checking that it applies
+      (:meth:`~gcrsky.solvers.path.SolverPath.resolve`: e.g. ``"mmode"`` raises
+      ``ValueError`` with the reason when P is not block-diagonal in m, ``"dataspace"`` for a
+      flat prior) and that its large arrays fit
+      (:class:`~gcrsky.base.InsufficientMemoryError` otherwise, naming the alternative).
+    * ``tol`` sets the CG tolerance (the direct paths keep their options' ``tol``).
 
     CG options come back with ``preconditioner`` resolved (Nystrom for a proper
     prior, m-blocks for a flat one; a warning is logged for a flat prior).
 
     Args:
         system: the linear system (concrete arrays).
-        method: ``"auto"``, ``"cg"``, ``"cholesky"``, ``"eigh"``, ``"mmode"`` or ``"dataspace"``.
+        method: ``"auto"`` or a path name (:data:`gcrsky.solvers.METHODS`).
         options: options of one path (:mod:`gcrsky.solvers.options`).
         tol: CG tolerance in posterior-sigma units.
         ndraws: draws per batch (sizes the memory check).
@@ -273,20 +223,13 @@ def choose_path(
         chosen = options_for(plan.method, plan.options, tol=tol)
     else:
         chosen = options_for(method, options, tol=tol)
-        if method == "mmode":
-            chk = mmode_check(system, atol=chosen.atol, rtol=chosen.rtol)
-            if not chk.ok:
-                raise ValueError(f"method='mmode' needs P block-diagonal in m, but {chk.reason}; use method='auto'")
-        if method == "dataspace":
-            check_proper_prior(system)
-        dense = chosen.dense if isinstance(chosen, CGOptions) else True
-        rank = chosen.rank if isinstance(chosen, CGOptions) else CGOptions.rank
-        need = path_memory_bytes(system, method, dense=dense, ndraws=ndraws, rank=rank)
+        path = path_of(chosen)
+        chosen = path.resolve(system, chosen)
+        need = path.memory_bytes(system, chosen, ndraws)
+        dense = getattr(chosen, "dense", True)
         alt = ("use method='cg' with options=CGOptions(dense=False) (matrix-free) or method='auto'"
-               if (method != "cg" or dense) else "draw in smaller batches or shard the baselines (gcrsky.parallel)")
-        check_memory(need, f"method={method!r}" + (" (dense P)" if method == "cg" and dense else ""), alt,
+               if (path.direct or dense) else "draw in smaller batches or shard the baselines (gcrsky.parallel)")
+        check_memory(need, f"method={method!r}" + (" (dense P)" if not path.direct and dense else ""), alt,
                      budget=memory_budget)
-    if isinstance(chosen, CGOptions):  # validates the choice and warns about a flat prior
-        pc = resolve_preconditioner(system, chosen.preconditioner)
-        chosen = dataclasses.replace(chosen, preconditioner=pc)
-    return chosen
+        return chosen
+    return path_of(chosen).resolve(system, chosen)

@@ -152,19 +152,20 @@ class NystromPreconditioner(NamedTuple):
     scale: jax.Array
 
 
-@partial(jax.jit, static_argnames=("rank",))
-def nystrom_preconditioner(system: LinearSystem, rank: int = 128, key: jax.Array | None = None, precision=None):
-    """Build a :class:`NystromPreconditioner` with ``rank`` matrix-free (or dense) products.
+@partial(jax.jit, static_argnames=("sketch_size",))
+def nystrom_preconditioner(system: LinearSystem, sketch_size: int = 128, key: jax.Array | None = None,
+                           precision=None):
+    """Build a :class:`NystromPreconditioner` with ``sketch_size`` matrix-free (or dense) products.
 
     Args:
         system: the linear system; every ``prior.inv_var`` must be > 0.
-        rank: sketch size k (clipped to n).  The standard case's whitened data term has
+        sketch_size: sketch size k (clipped to n).  The standard case's whitened data term has
             ~55 eigenvalues above 2, so 128 leaves CG a handful of iterations.
         key: PRNG key of the random test matrix (default PRNGKey(0)).
         precision: optional dense P (Nf, n, n) to use instead of matrix-free products.
     """
     nf, n = system.prior.mean.shape
-    k = min(int(rank), n)
+    k = min(int(sketch_size), n)
     key = jax.random.PRNGKey(0) if key is None else key
     sh = 1.0 / jnp.sqrt(system.prior.inv_var)  # (Nf, n); inf where flat
     om = jax.random.normal(key, (nf, n, k), sh.dtype)
@@ -183,7 +184,8 @@ def nystrom_preconditioner(system: LinearSystem, rank: int = 128, key: jax.Array
     return NystromPreconditioner(U, lam, sh)
 
 
-def make_preconditioner(system: LinearSystem, kind: str, precision=None, rank: int = 128, pc_dtype: str = "float64"):
+def make_preconditioner(system: LinearSystem, kind: str, precision=None, sketch_size: int = 128,
+                        pc_dtype: str = "float64"):
     """Build the named preconditioner: ``"nystrom"`` (proper prior needed) or ``"mblock"``.
 
     Args:
@@ -191,7 +193,7 @@ def make_preconditioner(system: LinearSystem, kind: str, precision=None, rank: i
         kind: ``"nystrom"`` or ``"mblock"`` (resolve ``"auto"`` first with
             :func:`resolve_preconditioner`).
         precision: optional dense P (Nf, n, n) for the Nystrom sketch's products.
-        rank: Nystrom sketch size.
+        sketch_size: Nystrom sketch size.
         pc_dtype: ``"float32"`` stores and applies it in single precision (built in
             float64, then rounded).  That is safe: CG's iterates, products and the
             convergence test stay float64, so the answer is as exact as with a float64
@@ -199,7 +201,7 @@ def make_preconditioner(system: LinearSystem, kind: str, precision=None, rank: i
             ``benchmarks/float32.py``).
     """
     if kind == "nystrom":
-        pc = nystrom_preconditioner(system, rank=rank, precision=precision)
+        pc = nystrom_preconditioner(system, sketch_size=sketch_size, precision=precision)
     elif kind == "mblock":
         pc = m_block_preconditioner(system)
     else:

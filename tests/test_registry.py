@@ -1,0 +1,133 @@
+"""One object per solver path, one registry: a new path is its own module plus one registry line.
+
+The check: a toy path defined here (a Cholesky factor of the prior-whitened precision, with its own
+options and state types) is added to ``gcrsky.solvers.registry.PATHS`` and nothing else; the user
+tier, the system tier, new data, the evidence, the planner and the channel code then use it.  The
+reference is the built-in Cholesky path (same posterior: Wiener filter to 1e-10 relative, evidence
+to 1e-9).  A negative control: without the registry line, its options are refused by name.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import gcrsky
+from gcrsky.inference import condition
+from gcrsky.model import build_problem, isotropic_prior, precision_matrix, wiener_rhs
+from gcrsky.parallel import resolve_channel_path, sample_channels
+from gcrsky.solvers import PATHS, CholeskyOptions, EvidenceParts, SolveInfo, SolverPath, plan_sampler
+from gcrsky.solvers.info import DrawInfo, direct_info, exact_info
+from gcrsky.solvers.options import DEFAULT_TOL
+
+
+@dataclasses.dataclass(frozen=True)
+class WhitenedOptions:
+    throw: bool = False
+    tol: float = DEFAULT_TOL
+    method = "whitened"
+
+
+class WhitenedState(eqx.Module):
+    system: gcrsky.LinearSystem
+    a_wf: jax.Array
+    wiener: SolveInfo
+    chol: jax.Array  # of S^1/2 P S^1/2
+    method: ClassVar[str] = "whitened"
+
+
+def _wiener(system, L):
+    sh = 1.0 / jnp.sqrt(system.prior.inv_var)
+    b = wiener_rhs(system)
+    a = sh * jax.vmap(lambda l, v: jax.scipy.linalg.cho_solve((l, True), v))(L, sh * b)
+    r = b - jnp.einsum("fij,fj->fi", precision_matrix(system), a)
+    err = jnp.sqrt(jnp.abs(jnp.sum(r * sh * jax.vmap(lambda l, v: jax.scipy.linalg.cho_solve((l, True), v))(L, sh * r),
+                                   axis=-1)))
+    return a, direct_info(err, jnp.linalg.norm(r, axis=-1) / jnp.linalg.norm(b, axis=-1),
+                          jnp.all(jnp.isfinite(L), axis=(1, 2)), DEFAULT_TOL)
+
+
+class WhitenedPath(SolverPath):
+    """A toy path: Cholesky of the whitened precision, written against SolverPath only."""
+
+    name = "whitened"
+    options_type = WhitenedOptions
+    state_type = WhitenedState
+
+    def memory_bytes(self, system, options, ndraws=1):
+        nf, n = system.prior.mean.shape
+        return 3.0 * 8 * nf * n * n
+
+    def cost_flop(self, system, options, ndraws):
+        return 1.0  # cheaper than anything: the planner must pick it
+
+    def prepare(self, system, options):
+        sh = 1.0 / jnp.sqrt(system.prior.inv_var)
+        L = jnp.linalg.cholesky(sh[:, :, None] * precision_matrix(system) * sh[:, None, :])
+        a, info = _wiener(system, L)
+        return WhitenedState(system, a, info, L)
+
+    def draw(self, key, state, ndraws):
+        nf, n = state.a_wf.shape
+        z = jax.random.normal(key, (nf, n, ndraws))
+        sh = 1.0 / jnp.sqrt(state.system.prior.inv_var)
+        delta = jax.vmap(lambda l, zz: jax.scipy.linalg.solve_triangular(l, zz, lower=True, trans="T"))(state.chol, z)
+        d = state.a_wf[:, None, :] + sh[:, None, :] * jnp.moveaxis(delta, -1, 1)
+        return d, DrawInfo(state.wiener, exact_info(state.wiener, jnp.all(jnp.isfinite(d), -1), (nf, ndraws)),
+                           state.a_wf)
+
+    def condition(self, state, data):
+        system = state.system._replace(data=data)
+        a, info = _wiener(system, state.chol)
+        return WhitenedState(system, a, info, state.chol)
+
+    def state_evidence_parts(self, state, terms, *, slq=None, key=None):
+        logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(state.chol, axis1=-2, axis2=-1)), axis=-1)
+        chi2 = terms["rWr"] - jnp.sum(terms["b_res"] * (state.a_wf - state.system.prior.mean), axis=-1)
+        return EvidenceParts(chi2, logdet, jnp.zeros(logdet.shape), state.wiener)
+
+    def evidence_parts(self, system, options, terms, *, slq=None, key=None):
+        return self.state_evidence_parts(self.prepare(system, options), terms)
+
+
+@pytest.fixture(scope="module")
+def system(small_array, small_response):
+    lmax, nside, freqs = small_response.lmax, small_response.nside, small_response.freqs_hz
+    n, nf = (lmax + 1) ** 2, freqs.size
+    cl = np.tile(50.0 / (1.0 + np.arange(lmax + 1)) ** 2, (nf, 1))
+    prior = isotropic_prior(cl, n)
+    truth = np.asarray(prior.inv_var) ** -0.5 * np.random.default_rng(3).standard_normal((nf, n))
+    return build_problem(small_array, freqs, np.linspace(0.0, 2.0, 9), lmax, nside, a_true=truth, sigma=0.05,
+                         prior=prior, key=jax.random.PRNGKey(3)).system()
+
+
+def test_a_new_path_is_one_module_plus_one_registry_line(system, monkeypatch, getkey):
+    with pytest.raises(TypeError, match="expected a path name, options"):  # not registered: refused by name
+        gcrsky.prepare(system, options=WhitenedOptions())
+    monkeypatch.setitem(PATHS, "whitened", WhitenedPath())  # the one registry line
+
+    ref = gcrsky.prepare(system, method="cholesky")
+    st = gcrsky.prepare(system, options=WhitenedOptions())
+    assert type(st) is WhitenedState
+    scale = np.abs(np.asarray(ref.a_wf)).max()
+    assert np.abs(np.asarray(st.a_wf) - np.asarray(ref.a_wf)).max() < 1e-10 * scale
+    draws, info = gcrsky.draw(getkey(), st, 5)
+    assert draws.shape == (2, 5, system.prior.mean.shape[-1]) and bool(np.all(np.asarray(info.draws.converged)))
+    d2 = system.data * 1.1
+    assert np.abs(np.asarray(condition(st, d2).a_wf) - np.asarray(condition(ref, d2).a_wf)).max() \
+        < 1e-10 * scale
+    np.testing.assert_allclose(np.asarray(gcrsky.log_evidence(st)), np.asarray(gcrsky.log_evidence(system)),
+                               rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(gcrsky.log_evidence(system, options=WhitenedOptions())),
+                               np.asarray(gcrsky.log_evidence(system)), rtol=1e-9)
+    assert plan_sampler(system).method == "whitened"  # the planner sees it (the cheapest by its cost model)
+    opts = resolve_channel_path(system, options=WhitenedOptions())
+    ch = sample_channels(getkey(), system, 3, options=opts)
+    assert np.abs(ch.a_wf - np.asarray(ref.a_wf)).max() < 1e-10 * scale
+    assert isinstance(CholeskyOptions(), PATHS["cholesky"].options_type)
