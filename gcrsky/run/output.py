@@ -17,6 +17,7 @@ from ..io.atomic import is_temporary
 from ..io.results import read_results_state
 from .resume import ResumeError, check_resumable, settings_differences
 from .spec import EXISTING
+from .summary import versions
 
 __all__ = [
     "FIGURE_FILES",
@@ -193,8 +194,6 @@ def open_run(prob, spec) -> OpenRun:
     Raises:
         RunExistsError, ResumeError: as :func:`check_output` and ``check_resumable``.
     """
-    from .summary import versions
-
     out = spec.output.out
     out.mkdir(parents=True, exist_ok=True)
     settings = spec.settings(prob.config)

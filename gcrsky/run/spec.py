@@ -15,6 +15,7 @@ import dataclasses
 import json
 import math
 import numbers
+import os
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -92,7 +93,7 @@ class Output:
     plots: bool = True
 
     def __post_init__(self):
-        if not isinstance(self.out, (str, Path)) or not str(self.out):
+        if not isinstance(self.out, (str, os.PathLike)) or not os.fspath(self.out):
             raise ValueError(f"output.out must be a directory path, got {self.out!r}")
         object.__setattr__(self, "out", Path(self.out))
         _choice("output.existing", self.existing, EXISTING)
