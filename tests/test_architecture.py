@@ -30,8 +30,8 @@ from gcrsky.checks.imports import (
 )
 
 PKG = Path(gcrsky.__file__).parent
-SUBPACKAGES = ("base", "sphere", "instrument", "model", "solvers", "inference", "parallel", "io", "sim", "paper",
-               "checks")
+SUBPACKAGES = ("base", "sphere", "instrument", "model", "solvers", "inference", "parallel", "io", "run", "sim", "paper",
+               "checks", "cli")
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +44,7 @@ def test_every_module_is_in_a_known_layer(graph):
     assert layers <= set(LAYERS) | {"facade"}, layers - set(LAYERS)
     for sub in SUBPACKAGES:
         assert (PKG / sub / "__init__.py").is_file()
-    assert not [p.name for p in PKG.glob("*.py") if p.stem not in ("__init__", "__main__", "cli")], (
+    assert not [p.name for p in PKG.glob("*.py") if p.stem not in ("__init__", "__main__")], (
         "top-level modules belong in a subpackage"
     )
 
@@ -84,7 +84,39 @@ def test_floors_are_finite_and_the_core_is_below_the_apps(graph):
     fl = floors(modules_only(graph))
     assert min(fl.values()) == 0
     core_top = max(f for m, f in fl.items() if layer_of(m) in CORE)
-    assert fl["gcrsky.cli"] > core_top
+    assert max(f for m, f in fl.items() if layer_of(m) == "cli") > core_top
+
+
+def test_the_run_layer_imports_only_the_core_below_it(graph):
+    """gcrsky.run (one run to disk) sits on io: it imports base .. io and itself, no application."""
+    assert CORE[-2:] == ("io", "run") and APPS[0] == "sim"
+    below = set(CORE)
+    mods = [m for m in graph if layer_of(m) == "run"]
+    assert "gcrsky.run.runner" in mods and "gcrsky.run.spec" in mods
+    bad = [(m, d) for m in mods for d in graph[m] if layer_of(d) not in below]
+    assert bad == []
+    assert not [(m, d) for m in mods for d in graph[m] if layer_of(d) in ("sim", "checks", "paper", "cli")]
+
+
+def _reach(graph, start: str) -> set[str]:
+    seen, todo = set(), [start]
+    while todo:
+        m = todo.pop()
+        if m not in seen:
+            seen.add(m)
+            todo.extend(graph.get(m, ()))
+    return seen
+
+
+def test_a_run_on_a_file_reaches_the_paper_only_through_its_hook(graph):
+    """``gcrsky run --data``'s code (gcrsky.cli.cmd_data and all it imports) never imports gcrsky.sim, and of
+    gcrsky.paper only the report hook it passes (with the metrics and figures that hook draws on)."""
+    reached = _reach(graph, "gcrsky.cli.cmd_data")
+    assert "gcrsky.run.runner" in reached and "gcrsky.paper.report" in reached
+    assert not [m for m in reached if layer_of(m) == "sim"]
+    assert {m for m in reached if layer_of(m) == "paper"} <= {
+        "gcrsky.paper", "gcrsky.paper.report", "gcrsky.paper.metrics", "gcrsky.paper.figures"}
+    assert not _reach(graph, "gcrsky.paper.report") & {"gcrsky.paper.pipeline", "gcrsky.paper.scenarios"}
 
 
 def test_import_gcrsky_stays_lean():

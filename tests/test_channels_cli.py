@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 
 from gcrsky import cli
+from gcrsky.cli.options import channel_mode
 from gcrsky.io.results import read_draws
 from gcrsky.parallel import CHANNEL_KEY_SCHEME, sample_channels
 
@@ -116,7 +117,7 @@ def test_channel_options_are_checked(capsys):
             cli.main(["run", "--out", "x", *bad])
         assert "--process-id" in capsys.readouterr().err
     p = cli.build_parser()
-    assert cli._channel_mode(p.parse_args(["run"])) is None
-    assert cli._channel_mode(p.parse_args(["run", "--by-channel"])) == "loop"
-    assert cli._channel_mode(p.parse_args(["run", "--devices", "2"])) == "devices"
-    assert cli._channel_mode(p.parse_args(["run", "--devices", "1", "--by-channel"])) == "loop"
+    assert channel_mode(p.parse_args(["run"])) is None
+    assert channel_mode(p.parse_args(["run", "--by-channel"])) == "loop"
+    assert channel_mode(p.parse_args(["run", "--devices", "2"])) == "devices"
+    assert channel_mode(p.parse_args(["run", "--devices", "1", "--by-channel"])) == "loop"

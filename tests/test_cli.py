@@ -144,15 +144,15 @@ def test_no_command_is_an_error(capsys):
 @pytest.mark.slow
 def test_nan_draws_exit_nonzero(monkeypatch, tmp_path, capsys):
     """Non-finite draws: results are still written, the exit status is 1, with a message."""
-    import gcrsky.paper.pipeline
+    import gcrsky.run.draws
 
-    real = gcrsky.paper.pipeline.draw  # the pipeline draws batch by batch (draw_batch)
+    real = gcrsky.run.draws.draw  # the run draws batch by batch (draw_batch)
 
     def poisoned(*a, **k):
         d, info = real(*a, **k)
         return d.at[0, 0, 0].set(np.nan), info
 
-    monkeypatch.setattr(gcrsky.paper.pipeline, "draw", poisoned)
+    monkeypatch.setattr(gcrsky.run.draws, "draw", poisoned)
     rc = cli.main(["run", "--out", str(tmp_path), "--nsamples", "4", "--no-plots", *SMALL])
     assert rc == 1
     assert "NaN" in capsys.readouterr().err

@@ -86,14 +86,15 @@ def test_no_compile_cache_writes_nothing(tmp_path):
 
 @pytest.mark.slow
 def test_the_command_defaults_to_the_user_cache_dir(tmp_path):
-    """Without --compile-cache the command's set-up (``cli._setup_jax``, before any computation) uses
+    """Without --compile-cache the command's set-up (``setup_jax``, before any computation) uses
     $GCRSKY_COMPILE_CACHE, else $XDG_CACHE_HOME/gcrsky/jax, with no compile-time floor."""
     code = textwrap.dedent(
         """
         import json
         from gcrsky import cli
+        from gcrsky.cli.setup import setup_jax
         args = cli.build_parser().parse_args(["run"])
-        cli._setup_jax(args)
+        setup_jax(args)
         import jax
         print(json.dumps([jax.config.jax_compilation_cache_dir, jax.config.jax_enable_compilation_cache,
                           jax.config.jax_persistent_cache_min_compile_time_secs]))
@@ -117,7 +118,7 @@ def test_importing_gcrsky_does_not_enable_the_cache(tmp_path):
         import jax
         jax.config.update("jax_enable_x64", True)
         import gcrsky
-        import gcrsky.parallel, gcrsky.paper.pipeline
+        import gcrsky.parallel, gcrsky.paper.pipeline, gcrsky.run
         prob = gcrsky.standard_case(lmax=4, nside=16)
         gcrsky.wiener_filter(prob).block_until_ready()
         print(json.dumps([jax.config.jax_compilation_cache_dir, jax.config.jax_persistent_cache_min_compile_time_secs]))

@@ -26,14 +26,18 @@ import pytest
 
 from gcrsky import cli
 from gcrsky.io import append_batch, atomic_path, finalize_results_h5, read_draws, read_results_state, write_json
-from gcrsky.paper.pipeline import (
+from gcrsky.run import (
     PRODUCT_FILES,
+    Draws,
+    Output,
     ResumeError,
     RunExistsError,
+    RunSpec,
+    Watch,
     check_output,
+    execute,
     existing_run_files,
     remove_run_files,
-    run_problem,
     run_settings,
 )
 
@@ -59,10 +63,10 @@ def stop_after(k):
     return wrap
 
 
-def run(prob, out, **kw):
-    args = dict(nsamples=NSAMPLES, seed=0, batch=BATCH, method="auto", plots=False, build_s=0.0)
-    args.update(kw)
-    return run_problem(prob, out, **args)
+def run(prob, out, *, nsamples=NSAMPLES, seed=0, batch=BATCH, existing="refuse", progress=None):
+    """The run layer without report hooks (the draws, maps and products are its own)."""
+    spec = RunSpec(Draws(nsamples, seed, batch), Output(out, existing, plots=False))
+    return execute(prob, spec, watch=Watch(progress=progress))
 
 
 def same_bits(a, b) -> bool:
@@ -95,7 +99,7 @@ def copy_run(src: Path, dst: Path) -> Path:
 
 @pytest.mark.slow
 def test_pipeline_batches_follow_the_key_scheme(problem, reference):
-    """The pipeline's batch loop gives exactly gcrsky.inference.draw_batches' draws (the documented scheme)."""
+    """The run layer's batch loop gives exactly gcrsky.inference.draw_batches' draws (the documented scheme)."""
     import jax
 
     from gcrsky import prepare
@@ -120,8 +124,8 @@ def test_interrupted_run_resumes_bit_for_bit(problem, reference, tmp_path):
         h["draws"][:, 8:13] = 1e30
     assert read_draws(tmp_path / "results.h5").draws.shape[1] == 8
     summary, prods = run(problem, tmp_path, existing="resume")
-    assert prods["resumed_at_batch"] == 1 and not prods["already_complete"]
-    assert summary["run"]["resumed_at_batch"] == 1
+    assert prods.resumed_at_batch == 1 and not prods.already_complete
+    assert summary.run["resumed_at_batch"] == 1
     a, b = read_draws(reference / "results.h5"), read_draws(tmp_path / "results.h5")
     assert same_bits(b.draws, a.draws)
     assert same_bits(b.wiener_filter, a.wiener_filter)
@@ -129,7 +133,7 @@ def test_interrupted_run_resumes_bit_for_bit(problem, reference, tmp_path):
         assert hb.attrs["complete"] and hb["draws"].shape == ha["draws"].shape
         for name in ("maps/std", "maps/mean", "maps/wiener", "mode_z"):
             assert same_bits(hb[name][()], ha[name][()]), name
-    assert len(summary["timings_s"]["draw_batches_s"]) == 3
+    assert len(summary.timings_s["draw_batches_s"]) == 3
     assert sorted(existing_run_files(tmp_path)) == sorted(existing_run_files(reference))
 
 
@@ -147,7 +151,7 @@ def test_resume_keeps_the_path_auto_chose(problem, tmp_path, monkeypatch):
         opts = json.loads(h.attrs["solver_options_json"])
     assert opts["method"] == "cg" and opts["fields"]["dense"] is False
     summary, _ = run(problem, out, nsamples=6, batch=2, existing="resume")
-    assert summary["solver"]["method"] == "cg" and summary["solver"]["draws"]["iterations_max"] > 0
+    assert summary.solver["method"] == "cg" and summary.solver["draws"]["iterations_max"] > 0
     assert same_bits(read_draws(out / "results.h5").draws, read_draws(ref / "results.h5").draws)
 
 
@@ -177,8 +181,8 @@ def test_resume_of_a_complete_run_rewrites_missing_files(problem, reference, tmp
     (out / "summary.json").unlink()
     before = (out / "results.h5").stat().st_mtime_ns
     summary, prods = run(problem, out, existing="resume")
-    assert prods["already_complete"]
-    assert sorted(prods["written"]) == sorted(["posterior_std.fits", "summary.json"])
+    assert prods.already_complete
+    assert sorted(prods.written) == sorted(["posterior_std.fits", "summary.json"])
     assert (out / "results.h5").stat().st_mtime_ns == before  # untouched
     assert sorted(existing_run_files(out)) == sorted(existing_run_files(reference))
     import healpy as hp
@@ -186,7 +190,7 @@ def test_resume_of_a_complete_run_rewrites_missing_files(problem, reference, tmp
     np.testing.assert_array_equal(hp.read_map(out / "posterior_std.fits", field=None, dtype=None),
                                   hp.read_map(reference / "posterior_std.fits", field=None, dtype=None))
     _, again = run(problem, out, existing="resume")
-    assert again["already_complete"] and again["written"] == []
+    assert again.already_complete and again.written == []
 
 
 def test_second_run_is_refused(tmp_path, capsys):

@@ -39,12 +39,12 @@ __all__ = [
 ]
 
 #: Subpackages (and top-level modules) from the bottom of the data flow to the top.
-LAYERS = ("base", "sphere", "instrument", "model", "solvers", "inference", "parallel", "io",
+LAYERS = ("base", "sphere", "instrument", "model", "solvers", "inference", "parallel", "io", "run",
           "sim", "checks", "paper", "cli")
 #: The library core: never imports an application layer.
-CORE = LAYERS[: LAYERS.index("io") + 1]
+CORE = LAYERS[: LAYERS.index("run") + 1]
 #: The applications built on the core.
-APPS = LAYERS[LAYERS.index("io") + 1 :]
+APPS = LAYERS[LAYERS.index("run") + 1 :]
 #: What the facade ``gcrsky/__init__.py`` may import.
 FACADE_ALLOWED = CORE + ("sim",)
 
@@ -107,8 +107,8 @@ def import_graph(root: Path | str | None = None, package: str = "gcrsky") -> dic
 
 
 def layer_of(module: str, package: str = "gcrsky") -> str:
-    """The layer of a module: its subpackage (``gcrsky.model.system`` -> ``"model"``),
-    ``"cli"`` for ``gcrsky.cli`` and ``gcrsky.__main__``, ``"facade"`` for ``gcrsky``."""
+    """The layer of a module: its subpackage (``gcrsky.model.system`` -> ``"model"``,
+    ``gcrsky.cli.parser`` -> ``"cli"``), ``"cli"`` for ``gcrsky.__main__``, ``"facade"`` for ``gcrsky``."""
     parts = module.split(".")
     if parts == [package]:
         return "facade"

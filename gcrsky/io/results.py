@@ -40,7 +40,7 @@ Layout (``layout_version`` 2):
 - attributes: ``units``, ``layout``, ``layout_version``, ``run_settings_json`` (what
   a resumed run must match), ``inputs_sha256`` (:func:`inputs_fingerprint`),
   ``nsamples``, ``batch``, ``n_batches``, ``batches_complete``, ``complete`` and
-  whatever the caller adds (:func:`gcrsky.paper.pipeline.run_problem`: configuration,
+  whatever the caller adds (:func:`gcrsky.run.execute`: configuration,
   seed, method and its resolved options, key scheme, versions).
 """
 

@@ -400,74 +400,16 @@ def plot_frac_slices(
     """
     from matplotlib.ticker import FuncFormatter
 
-    from .metrics import moving_average
-
     plt = _plt()
     start, width = _ra_range(ra_range_deg)
     full = width >= 360.0
-    if ra_limits is None:
-        pad = 2.0 * float(fwhm_deg)
-        if full or width + 2 * pad >= 360.0:
-            lo, hi = start + width / 2 - 180.0, start + width / 2 + 180.0
-        else:
-            lo, hi = start - pad, start + width + pad
-    else:
-        lo, hi = (float(x) for x in ra_limits)
+    lo, hi = _slice_window(start, width, fwhm_deg, ra_limits)
     fig, ax = plt.subplots(figsize=(10, 4.6), constrained_layout=True)
     fmt = FuncFormatter(lambda v, _pos: f"{v % 360:g}")
-    extra_axes = []
-    vis_max = 0.0
-    for i, cv in enumerate(curves):
-        if len(cv) not in (3, 4):
-            raise ValueError("each curve must be (label, ra_deg, absfrac) or (label, ra_deg, absfrac, ra_range_deg)")
-        label, ra, y = cv[0], np.asarray(cv[1], np.float64), np.asarray(cv[2], np.float64)
-        if ra.shape != y.shape or ra.ndim != 1:
-            raise ValueError(f"curve {label!r}: ra_deg and absfrac must be equal-length 1-d arrays")
-        own = len(cv) == 4 and cv[3] is not None
-        c_start, c_width = _ra_range(cv[3]) if own else (start, width)
-        order = np.argsort(ra % 360.0, kind="stable")  # ring order for the circular filter
-        ra, y = ra[order] % 360.0, y[order]
-        w = _default_window(ra) if window is None else int(window)
-        ys = moving_average(y, w, passes) if ra.size else y
-        # offset from the run's own start, unwrapped so [0, width] is contiguous and the
-        # unobserved rest of the circle is split evenly before and after it
-        o = (ra - c_start) % 360.0
-        o = np.where(o >= c_width + (360.0 - c_width) / 2.0, o - 360.0, o) if c_width < 360.0 else o
-        x = start + o
-        k = np.argsort(x)
-        x, ys = x[k], ys[k]
-        line, = ax.plot(x, 100.0 * ys, lw=1.5, label=str(label), color="k" if i == 0 else f"C{(i - 1) % 10}")
-        inwin = (x >= lo) & (x <= hi) & np.isfinite(ys)
-        if inwin.any():
-            vis_max = max(vis_max, float(np.max(ys[inwin])))
-        if own:
-            if abs(c_width - width) > 1e-6 and c_width < 360.0 and lo <= start + c_width <= hi:
-                ax.axvline(start + c_width, color=line.get_color(), ls=":", lw=1.2)
-            shift = ((c_start - start + 180.0) % 360.0) - 180.0
-            if abs(shift) > 1e-9:
-                extra_axes.append((shift, str(label), line.get_color()))
-    # shading relative to the reference range
+    vis_max, extra_axes = _plot_slice_curves(ax, curves, start, width, lo, hi, window, passes)
     if not full:
-        stop = start + width
-        f = float(fwhm_deg)
-        for a, b in ((start - f, start), (stop, stop + f)):
-            ax.axvspan(a, b, color="0.85", zorder=0, lw=0)
-        for a, b in ((lo - 360.0, start - f), (stop + f, hi + 360.0)):
-            ax.axvspan(a, b, color="0.6", zorder=0, lw=0)
-        for r in (start, stop):
-            ax.axvline(r, color="0.3", ls=":", lw=1.0)
-    if yscale == "auto":
-        yscale = "log" if vis_max > 0.50 else "linear"
-    if yscale == "log":
-        from matplotlib.ticker import LogFormatter
-
-        ax.set_yscale("log")
-        ax.yaxis.set_major_formatter(LogFormatter(labelOnlyBase=False))
-        ax.yaxis.set_minor_formatter(LogFormatter(labelOnlyBase=False))
-    elif yscale == "linear":
-        ax.set_ylim(0.0, max(12.0, 105.0 * vis_max))
-    else:
-        raise ValueError(f"yscale must be 'auto', 'linear' or 'log', got {yscale!r}")
+        _shade_reference(ax, start, width, float(fwhm_deg), lo, hi)
+    _slice_yscale(ax, yscale, vis_max)
     for ref in (5.0, 10.0):
         ax.axhline(ref, color="0.35", ls="--", lw=0.9, zorder=1)
     ax.set_xlim(lo, hi)
@@ -489,6 +431,88 @@ def plot_frac_slices(
     ax.set_title(f"{title}\n({smooth})" if title else f"|fractional difference| along the beam-centre ring ({smooth})",
                  fontsize=10)
     return _finish(fig, path)
+
+
+def _slice_window(start: float, width: float, fwhm_deg, ra_limits) -> tuple[float, float]:
+    """``(lo, hi)`` of the slice's x axis: ``ra_limits``, else the range +- 2 FWHM (at most 360 deg)."""
+    if ra_limits is not None:
+        lo, hi = (float(x) for x in ra_limits)
+        return lo, hi
+    pad = 2.0 * float(fwhm_deg)
+    if width >= 360.0 or width + 2 * pad >= 360.0:
+        return start + width / 2 - 180.0, start + width / 2 + 180.0
+    return start - pad, start + width + pad
+
+
+def _slice_curve(cv, start: float, width: float, window, passes: int):
+    """One curve of :func:`plot_frac_slices`: ``(label, x, smoothed y, own range or None)``, sorted by x."""
+    from .metrics import moving_average
+
+    if len(cv) not in (3, 4):
+        raise ValueError("each curve must be (label, ra_deg, absfrac) or (label, ra_deg, absfrac, ra_range_deg)")
+    label, ra, y = cv[0], np.asarray(cv[1], np.float64), np.asarray(cv[2], np.float64)
+    if ra.shape != y.shape or ra.ndim != 1:
+        raise ValueError(f"curve {label!r}: ra_deg and absfrac must be equal-length 1-d arrays")
+    own = len(cv) == 4 and cv[3] is not None
+    c_start, c_width = _ra_range(cv[3]) if own else (start, width)
+    order = np.argsort(ra % 360.0, kind="stable")  # ring order for the circular filter
+    ra, y = ra[order] % 360.0, y[order]
+    w = _default_window(ra) if window is None else int(window)
+    ys = moving_average(y, w, passes) if ra.size else y
+    # offset from the run's own start, unwrapped so [0, width] is contiguous and the
+    # unobserved rest of the circle is split evenly before and after it
+    o = (ra - c_start) % 360.0
+    o = np.where(o >= c_width + (360.0 - c_width) / 2.0, o - 360.0, o) if c_width < 360.0 else o
+    x = start + o
+    k = np.argsort(x)
+    return label, x[k], ys[k], ((c_start, c_width) if own else None)
+
+
+def _plot_slice_curves(ax, curves, start: float, width: float, lo: float, hi: float, window, passes: int):
+    """Draw the curves; returns (largest smoothed value inside ``[lo, hi]``, extra RA axes to add)."""
+    extra_axes = []
+    vis_max = 0.0
+    for i, cv in enumerate(curves):
+        label, x, ys, own = _slice_curve(cv, start, width, window, passes)
+        line, = ax.plot(x, 100.0 * ys, lw=1.5, label=str(label), color="k" if i == 0 else f"C{(i - 1) % 10}")
+        inwin = (x >= lo) & (x <= hi) & np.isfinite(ys)
+        if inwin.any():
+            vis_max = max(vis_max, float(np.max(ys[inwin])))
+        if own is not None:
+            c_start, c_width = own
+            if abs(c_width - width) > 1e-6 and c_width < 360.0 and lo <= start + c_width <= hi:
+                ax.axvline(start + c_width, color=line.get_color(), ls=":", lw=1.2)
+            shift = ((c_start - start + 180.0) % 360.0) - 180.0
+            if abs(shift) > 1e-9:
+                extra_axes.append((shift, str(label), line.get_color()))
+    return vis_max, extra_axes
+
+
+def _shade_reference(ax, start: float, width: float, f: float, lo: float, hi: float) -> None:
+    """Light shading over the FWHM margins of the reference range, dark beyond them, dotted ends."""
+    stop = start + width
+    for a, b in ((start - f, start), (stop, stop + f)):
+        ax.axvspan(a, b, color="0.85", zorder=0, lw=0)
+    for a, b in ((lo - 360.0, start - f), (stop + f, hi + 360.0)):
+        ax.axvspan(a, b, color="0.6", zorder=0, lw=0)
+    for r in (start, stop):
+        ax.axvline(r, color="0.3", ls=":", lw=1.0)
+
+
+def _slice_yscale(ax, yscale: str, vis_max: float) -> None:
+    """``"auto"``: log when a smoothed curve exceeds 50% in the window, else linear from 0."""
+    if yscale == "auto":
+        yscale = "log" if vis_max > 0.50 else "linear"
+    if yscale == "log":
+        from matplotlib.ticker import LogFormatter
+
+        ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(LogFormatter(labelOnlyBase=False))
+        ax.yaxis.set_minor_formatter(LogFormatter(labelOnlyBase=False))
+    elif yscale == "linear":
+        ax.set_ylim(0.0, max(12.0, 105.0 * vis_max))
+    else:
+        raise ValueError(f"yscale must be 'auto', 'linear' or 'log', got {yscale!r}")
 
 
 # ---------------------------------------------------------------- Fig. 7
@@ -637,15 +661,7 @@ def plot_corner(
     is_imag = is_imag.astype(bool)
     if draws.ndim != 2 or draws.shape[1] != truth.shape[-1] or truth.ndim != 1:
         raise ValueError(f"need draws (ndraws, n) and truth (n,), got {draws.shape} and {truth.shape}")
-    lmax = int(ell.max())
-    if not 0 <= m_value <= lmax:
-        raise ValueError(f"m_value must be in [0, {lmax}], got {m_value}")
-    if ells is None:
-        ells = list(dict.fromkeys(int(min(max(l, m_value), lmax)) for l in (2, 5, 10, 15, 20)))
-    ells = [int(l) for l in ells]
-    bad = [l for l in ells if not m_value <= l <= lmax]
-    if bad or not ells:
-        raise ValueError(f"ells must be non-empty with m_value <= l <= lmax ({m_value}..{lmax}), got {ells}")
+    ells = _corner_ells(int(ell.max()), m_value, ells)
     parts = [(False, "Re", "C4")] + ([(True, "Im", "C1")] if m_value >= 1 else [])
 
     def column(l, imag):
@@ -655,7 +671,47 @@ def plot_corner(
         return draws[:, j[0]] / truth[j[0]]
 
     cols = {(l, imag): column(l, imag) for l in ells for imag, _, _ in parts}
-    # one axis range per l covering both parts (central 99% of the draws, and the truth)
+    lims = _corner_limits(cols, ells)
+    k = len(ells)
+    size = max(1.9, min(2.6, 12.0 / k))
+    fig, axes = plt.subplots(k, k, figsize=(size * k + 0.6, size * k + 0.4), squeeze=False)
+    nd = draws.shape[0]
+    for i, li in enumerate(ells):
+        for j, lj in enumerate(ells):
+            if j > i:
+                axes[i, j].set_visible(False)
+                continue
+            for part in parts:
+                _corner_part(axes[i, j], part, cols[(li, part[0])], cols[(lj, part[0])], lims[li], lims[lj],
+                             diagonal=i == j, nd=nd)
+            _corner_frame(axes[i, j], i, j, k, li, lj, m_value, lims)
+    h0, l0 = axes[0, 0].get_legend_handles_labels()
+    from matplotlib.lines import Line2D
+
+    h0 = h0 + [Line2D([], [], color="0.3", ls="--"), Line2D([], [], color="k")]
+    l0 = l0 + ["median", "truth"]
+    fig.legend(h0, l0, loc="upper right", fontsize=9, frameon=False, bbox_to_anchor=(0.98, 0.98))
+    fig.suptitle(title if title else f"posterior marginals at $m = {m_value}$, normalised by the truth ({nd} draws)",
+                 fontsize=11)
+    fig.subplots_adjust(wspace=0.08, hspace=0.08, top=1.0 - 0.45 / fig.get_figheight())
+    return _finish(fig, path)
+
+
+def _corner_ells(lmax: int, m_value: int, ells) -> list[int]:
+    """The corner plot's degrees: ``ells`` checked, or ``2, 5, 10, 15, 20`` clipped to ``[m_value, lmax]``."""
+    if not 0 <= m_value <= lmax:
+        raise ValueError(f"m_value must be in [0, {lmax}], got {m_value}")
+    if ells is None:
+        ells = list(dict.fromkeys(int(min(max(l, m_value), lmax)) for l in (2, 5, 10, 15, 20)))
+    ells = [int(l) for l in ells]
+    bad = [l for l in ells if not m_value <= l <= lmax]
+    if bad or not ells:
+        raise ValueError(f"ells must be non-empty with m_value <= l <= lmax ({m_value}..{lmax}), got {ells}")
+    return ells
+
+
+def _corner_limits(cols: dict, ells) -> dict:
+    """One axis range per l covering both parts (central 99% of the draws, and the truth)."""
     lims = {}
     for l in ells:
         vals = [c for (ll, _), c in cols.items() if ll == l and c is not None]
@@ -667,59 +723,47 @@ def plot_corner(
             a, b = 0.0, 2.0
         pad = 0.08 * (b - a if b > a else 1.0)
         lims[l] = (a - pad, b + pad)
-    k = len(ells)
-    size = max(1.9, min(2.6, 12.0 / k))
-    fig, axes = plt.subplots(k, k, figsize=(size * k + 0.6, size * k + 0.4), squeeze=False)
-    nd = draws.shape[0]
-    for i, li in enumerate(ells):
-        for j, lj in enumerate(ells):
-            ax = axes[i, j]
-            if j > i:
-                ax.set_visible(False)
-                continue
-            for imag, name, color in parts:
-                ci, cj = cols[(li, imag)], cols[(lj, imag)]
-                if i == j:
-                    if ci is None:
-                        continue
-                    bins = np.linspace(*lims[li], 31)
-                    ax.hist(np.clip(ci, *lims[li]), bins=bins, histtype="step", color=color, lw=1.4, density=True,
-                            label=f"{name} $a_{{\\ell m}}$")
-                    ax.axvline(np.median(ci), color=color, ls="--", lw=1.1)
-                else:
-                    if ci is None or cj is None:
-                        continue
-                    ax.plot(cj, ci, ".", ms=1.5, color=color, alpha=0.25 if nd > 200 else 0.5, rasterized=True)
-                    if nd >= 50:
-                        h, xe, ye = np.histogram2d(cj, ci, bins=20, range=[lims[lj], lims[li]])
-                        lev = _credible_levels(h)
-                        if len(lev) >= 1:
-                            xc, yc = 0.5 * (xe[1:] + xe[:-1]), 0.5 * (ye[1:] + ye[:-1])
-                            ax.contour(xc, yc, h.T, levels=lev, colors=[color], linewidths=1.1)
-                    ax.plot(np.median(cj), np.median(ci), "+", color=color, ms=9, mew=1.6)
-            ax.axvline(1.0, color="k", lw=1.0)
-            if i != j:
-                ax.axhline(1.0, color="k", lw=1.0)
-                ax.set_ylim(*lims[li])
-            else:
-                ax.set_yticks([])
-            ax.set_xlim(*lims[lj])
-            ax.tick_params(labelsize=7)
-            if i == k - 1:
-                ax.set_xlabel(f"$a_{{{lj},{m_value}}}$ / truth", fontsize=9)
-            else:
-                ax.set_xticklabels([])
-            if j == 0 and i > 0:
-                ax.set_ylabel(f"$a_{{{li},{m_value}}}$ / truth", fontsize=9)
-            elif j > 0:
-                ax.set_yticklabels([])
-    h0, l0 = axes[0, 0].get_legend_handles_labels()
-    from matplotlib.lines import Line2D
+    return lims
 
-    h0 = h0 + [Line2D([], [], color="0.3", ls="--"), Line2D([], [], color="k")]
-    l0 = l0 + ["median", "truth"]
-    fig.legend(h0, l0, loc="upper right", fontsize=9, frameon=False, bbox_to_anchor=(0.98, 0.98))
-    fig.suptitle(title if title else f"posterior marginals at $m = {m_value}$, normalised by the truth ({nd} draws)",
-                 fontsize=11)
-    fig.subplots_adjust(wspace=0.08, hspace=0.08, top=1.0 - 0.45 / fig.get_figheight())
-    return _finish(fig, path)
+
+def _corner_part(ax, part, ci, cj, lim_i, lim_j, *, diagonal: bool, nd: int) -> None:
+    """One part (real or imaginary) of a corner panel: a histogram on the diagonal, else points and contours."""
+    _, name, color = part
+    if diagonal:
+        if ci is None:
+            return
+        bins = np.linspace(*lim_i, 31)
+        ax.hist(np.clip(ci, *lim_i), bins=bins, histtype="step", color=color, lw=1.4, density=True,
+                label=f"{name} $a_{{\\ell m}}$")
+        ax.axvline(np.median(ci), color=color, ls="--", lw=1.1)
+        return
+    if ci is None or cj is None:
+        return
+    ax.plot(cj, ci, ".", ms=1.5, color=color, alpha=0.25 if nd > 200 else 0.5, rasterized=True)
+    if nd >= 50:
+        h, xe, ye = np.histogram2d(cj, ci, bins=20, range=[lim_j, lim_i])
+        lev = _credible_levels(h)
+        if len(lev) >= 1:
+            xc, yc = 0.5 * (xe[1:] + xe[:-1]), 0.5 * (ye[1:] + ye[:-1])
+            ax.contour(xc, yc, h.T, levels=lev, colors=[color], linewidths=1.1)
+    ax.plot(np.median(cj), np.median(ci), "+", color=color, ms=9, mew=1.6)
+
+
+def _corner_frame(ax, i: int, j: int, k: int, li: int, lj: int, m_value: int, lims: dict) -> None:
+    """Truth lines, limits, ticks and labels of corner panel ``(i, j)`` of ``k x k``."""
+    ax.axvline(1.0, color="k", lw=1.0)
+    if i != j:
+        ax.axhline(1.0, color="k", lw=1.0)
+        ax.set_ylim(*lims[li])
+    else:
+        ax.set_yticks([])
+    ax.set_xlim(*lims[lj])
+    ax.tick_params(labelsize=7)
+    if i == k - 1:
+        ax.set_xlabel(f"$a_{{{lj},{m_value}}}$ / truth", fontsize=9)
+    else:
+        ax.set_xticklabels([])
+    if j == 0 and i > 0:
+        ax.set_ylabel(f"$a_{{{li},{m_value}}}$ / truth", fontsize=9)
+    elif j > 0:
+        ax.set_yticklabels([])

@@ -38,6 +38,8 @@ from typing import NamedTuple, Sequence
 import healpy as hp
 import numpy as np
 
+from ..run.maps import mode_z_scores  # the per-mode z-scores a run stores in results.h5
+
 __all__ = [
     "frac_diff_map",
     "pixel_radec_deg",
@@ -309,25 +311,6 @@ def std_metrics(std_map, centre_dec_deg: float, fwhm_deg: float, ra_range_deg: S
     }
     out["std_fwhm_over_sky"] = out["std_fwhm_median"] / out["std_sky_median"]
     return out
-
-
-def mode_z_scores(draws, truth):
-    """Per-mode ``z = (mean(draws) - truth) / std(draws)`` (the paper's Fig. 3).
-
-    Args:
-        draws: ``(..., ndraws, n)`` realified draws.
-        truth: ``(..., n)`` true coefficients.
-
-    Returns:
-        ``(..., n)`` dimensionless (std with ddof = 1; NaN where the std is 0).
-    """
-    draws = np.asarray(draws, np.float64)
-    truth = np.asarray(truth, np.float64)
-    mean = draws.mean(axis=-2)
-    std = draws.std(axis=-2, ddof=1) if draws.shape[-2] > 1 else np.zeros_like(mean)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        z = (mean - truth) / std
-    return np.where(std > 0, z, np.nan)
 
 
 def z_score_stats(z) -> dict:

@@ -25,7 +25,7 @@ D1          3 m dishes (beam FWHM 57.3 deg = lambda/D at 100 MHz, as Table 1)
 
 With ``S^-1 = 0`` the precision matrix is singular (the data leave most directions
 unconstrained): B5 and B6 use the eigen sampler, which samples the directions the
-data inform and pins the others at 0 (:func:`gcrsky.inference.prepare_sampler`).
+data inform and pins the others at 0 (:func:`gcrsky.inference.prepare_system`).
 
 Scenarios that share the instrument (array, beams, frequencies, lmax, nside) share
 the response at the reference angle: :func:`gcrsky.sim.instrument_key` is the cache key; the
@@ -42,6 +42,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..sim.config import Config
+from ..solvers.options import DEFAULT_TOL
 
 __all__ = [
     "Scenario",
@@ -75,7 +76,7 @@ class Scenario(NamedTuple):
     overrides: tuple
     nsamples: int = 200
     method: str = "cg"
-    tol: float = 1e-6
+    tol: float = DEFAULT_TOL
 
     @property
     def group(self) -> str:

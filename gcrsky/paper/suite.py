@@ -2,7 +2,8 @@
 
 :func:`run_suite` is what ``gcrsky scenarios`` does: each scenario is built
 (sharing the response wherever the instrument is shared) and run by
-:func:`gcrsky.paper.pipeline.run_problem` into ``out/NAME/``; then ``results.md``,
+:func:`gcrsky.run.execute` with the paper's hooks (:func:`gcrsky.paper.pipeline.paper_hooks`)
+into ``out/NAME/``; then ``results.md``,
 ``results.csv``, ``claims.md``, ``suite.json`` and the slice figures of Figs. 6 and 8
 are written to ``out``.  Nothing here prints; :class:`SuiteResult` carries the text.
 """
@@ -16,9 +17,10 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from ..io.results import write_json
+from ..run import Draws, Output, RunSpec, Solver, execute, versions
 from ..sim.standard import problem_from_config
 from . import metrics as M
-from .pipeline import run_problem, versions
+from .pipeline import paper_hooks
 from .scenarios import (
     SCENARIOS,
     claims_markdown,
@@ -62,7 +64,9 @@ def suite_names(names) -> list[str]:
 
 
 def slice_figures(prods: dict, out: Path) -> list[str]:
-    """The slice figures of every group with at least two runs present; returns the file names."""
+    """The slice figures of every group with at least two runs present; returns the file names.
+
+    ``prods``: ``{scenario name: gcrsky.run.RunProducts}``."""
     from . import figures as P
 
     written = []
@@ -74,13 +78,13 @@ def slice_figures(prods: dict, out: Path) -> list[str]:
         curves = []
         for n in have:
             p = prods[n]
-            nside = int(np.sqrt(p["mean_map"].size / 12))
-            absfrac = np.abs(M.frac_diff_map(p["mean_map"], p["truth_map"]))
-            ra, vals = M.ring_slice(absfrac, nside, p["centre_dec_deg"])
-            same = tuple(p["ra_range_deg"]) == tuple(ref["ra_range_deg"])
-            curves.append((n, ra, vals) if same else (n, ra, vals, p["ra_range_deg"]))
-        P.plot_frac_slices(curves, Path(out) / fname, fwhm_deg=ref["fwhm_deg"], ra_range_deg=ref["ra_range_deg"],
-                           dec_deg=ref["centre_dec_deg"],
+            nside = int(np.sqrt(p.mean_map.size / 12))
+            absfrac = np.abs(M.frac_diff_map(p.mean_map, p.truth_map))
+            ra, vals = M.ring_slice(absfrac, nside, p.centre_dec_deg)
+            same = tuple(p.ra_range_deg) == tuple(ref.ra_range_deg)
+            curves.append((n, ra, vals) if same else (n, ra, vals, p.ra_range_deg))
+        P.plot_frac_slices(curves, Path(out) / fname, fwhm_deg=ref.fwhm_deg, ra_range_deg=ref.ra_range_deg,
+                           dec_deg=ref.centre_dec_deg,
                            title="|posterior mean - truth| / truth along the beam-centre declination")
         written.append(fname)
     return written
@@ -110,7 +114,8 @@ def run_suite(
         plots: write the figures.
         argv: the command line (recorded).
         progress: wrapper of the scenario-name iterable (e.g. a tqdm bar).
-        on_result: called as ``on_result(name, row, summary)`` after each scenario.
+        on_result: called as ``on_result(name, row, summary)`` after each scenario
+            (``summary``: its :class:`gcrsky.run.RunSummary`).
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -123,17 +128,14 @@ def run_suite(
         prob = problem_from_config(scenario_config(name, nside=nside), response_cache=cache)
         build_s = time.perf_counter() - t0
         (out / name).mkdir(parents=True, exist_ok=True)
-        summary, prod = run_problem(
-            prob, out / name, nsamples=nsamples or sc.nsamples, seed=seed, batch=batch, method=sc.method,
-            plots=plots, build_s=build_s, argv=argv, scenario_name=name, tol=sc.tol,
-        )
-        row = result_row(name, summary, prod["z"])
-        reg = M.summary_metrics(prod["mean_map"], prod["truth_map"], prod["centre_dec_deg"], prod["fwhm_deg"],
-                                (0.0, 120.0))
+        spec = RunSpec(Draws(nsamples or sc.nsamples, seed, batch), Output(out / name, plots=plots),
+                       Solver(sc.method, sc.tol), scenario=name, argv=argv)
+        summary, prod = execute(prob, spec, hooks=paper_hooks(prob), build_s=build_s)
+        row = result_row(name, summary.to_json(), prod.z)
+        reg = M.summary_metrics(prod.mean_map, prod.truth_map, prod.centre_dec_deg, prod.fwhm_deg, (0.0, 120.0))
         row["fwhm_median_0_8h"] = reg["frac_diff_fwhm_median"]
         rows[name] = row
-        prod.pop("draws")  # keep the suite's memory small
-        prods[name] = prod
+        prods[name] = prod._replace(draws=None)  # keep the suite's memory small
         if on_result:
             on_result(name, row, summary)
     total = time.perf_counter() - t_suite

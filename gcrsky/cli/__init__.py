@@ -1,0 +1,87 @@
+"""The ``gcrsky`` command line (also ``python -m gcrsky``).
+
+``gcrsky run`` reproduces the paper's standard case (or a scenario of its Table 1,
+``--scenario NAME``, or a variant through options mirroring :class:`gcrsky.Config`):
+simulate, Wiener-filter, draw GCR samples, and write ``results.h5`` (draws
+appended batch by batch), the standard products ``posterior_mean.fits`` /
+``posterior_std.fits`` (HEALPix maps), ``posterior_mean_alm.fits`` (healpy alm) and
+``posterior_mean.skyh5`` (pyradiosky), ``summary.json`` and the paper's per-run
+figures (Figs. 3-7: mode z-scores, sky maps, beam region, beam-centre slice,
+correlation matrix and corner plot); see :mod:`gcrsky.run` (the run) and
+:mod:`gcrsky.paper.report` (the paper's metrics and figures).
+
+An output directory that already holds a run's files is refused unless
+``--overwrite`` (delete them, start again) or ``--resume`` (continue the run recorded
+in its ``results.h5`` from its first missing batch, ending with exactly the draws of
+an uninterrupted run; the options must equal the recorded ones, else it refuses and
+names the differing settings; a complete run only gets its missing files rewritten)
+is given.  ``--resume`` into a directory without a run starts a new one.
+
+``gcrsky scenarios [NAME ...]`` runs the whole suite (or a subset) into
+``--out/NAME/``, reusing the response between scenarios with the same
+instrument, and writes ``results.md`` / ``results.csv`` (one row per scenario),
+``claims.md`` (the paper's qualitative claims, checked with these numbers),
+``suite.json`` and the overlaid slice figures (Figs. 6 and 8).  A scenario
+directory that already holds a run's files is refused, before anything runs,
+unless ``--overwrite`` is given (the suite-level tables and figures are derived and
+always rewritten).  There is no ``--resume`` for the suite (its tables need every
+scenario in one process); a killed scenario is continued with ``gcrsky run --scenario
+NAME --resume --out OUT/NAME`` and the suite's ``--nside``, ``--nsamples``, ``--seed``
+and ``--batch`` (the same settings), then ``gcrsky scenarios --overwrite`` rebuilds the
+tables (re-running every scenario).
+
+Reproducibility: the simulated data and the prior mean depend on ``--data-seed``
+(``Config.seed``); the draws on ``--seed`` and ``--batch``.  Draws are made in
+batches of ``--batch``; batch ``b`` uses the key
+``jax.random.fold_in(jax.random.PRNGKey(seed), b)`` and always draws a *full*
+batch (the last one is truncated to ``--nsamples``).  So with the same seed and
+batch size, draw ``i`` is the same whatever ``--nsamples`` is (``--nsamples 20``
+gives the first 20 draws of ``--nsamples 200``), and one compiled program serves
+every batch.  Changing ``--batch`` changes the draws (not their distribution).
+
+Compilation: the command turns on JAX's persistent compilation cache (in
+``$GCRSKY_COMPILE_CACHE``, else ``$JAX_COMPILATION_CACHE_DIR``, else
+``$XDG_CACHE_HOME/gcrsky/jax`` or ``~/.cache/gcrsky/jax``; ``--compile-cache DIR`` chooses,
+``--no-compile-cache`` turns it off), so only the first run of a configuration
+compiles its XLA programs; later processes load them (:func:`gcrsky.parallel.use_compile_cache`).
+``summary.json`` records the run's compile seconds and cache hits and misses
+(``timings_s.compile_s``, ``cache_hits``, ``cache_misses``; ``compile``).
+
+Exit status: 0 on success, also when some solves did not converge (a warning is
+printed and ``summary.json`` records it: check ``solver.all_converged``), and for a
+``--resume`` of a run that was already complete; 1 if the draws contain non-finite
+values (results are still written for diagnosis); 2 for bad arguments (argparse);
+3 when the output directory holds results that the command refuses to touch
+(neither ``--resume`` nor ``--overwrite``) or ``--resume`` cannot continue
+(different settings or inputs, unreadable ``results.h5``).
+"""
+
+from __future__ import annotations
+
+import sys
+
+from .parser import build_parser
+from .runs import EXIT_REFUSED
+
+__all__ = ["EXIT_REFUSED", "build_parser", "main"]
+
+#  One module per command, the parser and what they share:
+#  - ``parser``: :func:`build_parser`, one builder per command (``set_defaults(func=...)``);
+#  - ``options``: argument types and the shared option groups;
+#  - ``setup``: process settings before JAX's first computation, logging;
+#  - ``runs``: the RunSpec of the options, the run with progress bars, its report;
+#  - ``cmd_run``, ``cmd_data``, ``cmd_inspect``, ``cmd_scenarios``: the commands;
+#  - ``terminal``: bars, the run's report, refusal messages.
+
+
+def main(argv=None) -> int:
+    """Entry point of the ``gcrsky`` command; returns the exit status."""
+    from ..base.extras import require
+    from .setup import setup_logging
+
+    require("tqdm", "cli", "the gcrsky command line")
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    args._argv = list(sys.argv[1:] if argv is None else argv)
+    setup_logging(args.verbose)
+    return args.func(args, parser)

@@ -1,0 +1,116 @@
+"""``gcrsky run --data FILE``: the posterior of a visibility file's sky (no truth: no truth metrics).
+
+The problem is read by :func:`gcrsky.io.from_uvdata` and run by :func:`gcrsky.run.execute`
+with the paper's beam-region metrics and posterior figures
+(:class:`gcrsky.paper.report.PaperReport`; the beam FWHM is the file's configuration's).
+Nothing here imports :mod:`gcrsky.sim`.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+from ..solvers.options import DEFAULT_TOL
+from .options import DEFAULT_NSAMPLES, data_kwargs
+from .runs import EXIT_REFUSED, execute_with_bars, report_run, run_spec
+from .terminal import refusal_message
+
+__all__ = ["data_command"]
+
+#: ``gcrsky run`` options of a simulation that a run on a file does not use (dest, option).
+SIM_ONLY = (("scenario", "--scenario"), ("lst_start", "--lst-start"), ("lst_stop", "--lst-stop"),
+            ("n_lst", "--n-lst"), ("noise_scale", "--noise-scale"), ("flat_prior", "--flat-prior"),
+            ("zero_prior_mean", "--zero-prior-mean"), ("date", "--date"), ("data_seed", "--data-seed"))
+
+
+def data_command(args, parser) -> int:
+    """``gcrsky run --data FILE``: check the options, then run (a bad file or option: a message, exit 2)."""
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    _check_data_options(parser, args)
+    with logging_redirect_tqdm():
+        try:
+            return _run_data(args)
+        except (ValueError, FileNotFoundError) as e:  # the file or the options: a message, not a traceback
+            print(f"gcrsky run --data: {e}", file=sys.stderr)
+            return 2
+
+
+def _check_data_options(parser, args) -> None:
+    """A run on a file takes its beam from --beam or --dish-diameter and refuses the simulation's options."""
+    defaults = parser.parse_args(["run"])
+    used = [opt for dest, opt in SIM_ONLY if getattr(args, dest) != getattr(defaults, dest)]
+    if used:
+        parser.error(f"{', '.join(used)} describe a simulation; with --data the file says what was observed")
+    if (args.beam is None) == (args.dish_diameter is None):
+        parser.error("with --data give the beam: --beam FILE (any file UVBeam reads) or --dish-diameter D (a "
+                     "Gaussian beam of that dish), one of them")
+    if args.prior not in ("gsm", "flat") and not Path(args.prior).exists():
+        parser.error(f"--prior {args.prior!r}: neither 'gsm', 'flat' nor an existing file")
+    if not Path(args.data).exists():
+        parser.error(f"--data {args.data!r}: no such file")
+
+
+def _file_digest(path) -> str:
+    """SHA-256 of a file (what a resumed run on a file must find unchanged)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _data_settings(args, selection: dict) -> dict:
+    """The settings that identify a run on a file (``RunSpec.extra``): the file, its digest, beam, prior, selection."""
+    return {"data_file": str(Path(args.data).resolve()), "data_sha256": _file_digest(args.data),
+            "beam": args.beam, "dish_diameter": args.dish_diameter, "prior": args.prior,
+            "prior_scale": args.prior_scale, "noise": args.noise, "compress": not args.no_compress,
+            "lmax": args.lmax, "nside": args.nside,
+            "selection": {k: (list(v) if isinstance(v, tuple) else v) for k, v in selection.items()}}
+
+
+def _read_problem(args, selection: dict):
+    """The :class:`~gcrsky.model.Problem` of the file (:func:`gcrsky.io.from_uvdata`)."""
+    from ..io.uvdata import from_uvdata
+
+    beam = None
+    if args.beam is not None:
+        from ..instrument.beams import load_beam
+
+        beam = load_beam(args.beam)
+    return from_uvdata(args.data, lmax=args.lmax, nside=args.nside, beam=beam, dish_diameter_m=args.dish_diameter,
+                       prior=args.prior, prior_scale=args.prior_scale, noise=args.noise,
+                       compress=not args.no_compress, **selection)
+
+
+def _run_data(args) -> int:
+    """Refuse a used --out before reading the file (--resume is checked once the problem is built: its
+    recorded settings include what the file said), read it, run it."""
+    from .setup import setup_jax
+
+    compile0 = setup_jax(args)
+    from ..paper.report import PaperReport
+    from ..run import RunExistsError, existing_run_files
+
+    selection = data_kwargs(args)
+    spec = run_spec(args, nsamples=args.nsamples or DEFAULT_NSAMPLES, method=args.method or "auto",
+                    tol=args.tol or DEFAULT_TOL, extra=_data_settings(args, selection))
+    out = spec.output.out
+    if spec.output.existing == "refuse" and not args.process_id:
+        taken = existing_run_files(out)
+        if taken:
+            print(refusal_message(RunExistsError(out, taken), resume=False), file=sys.stderr)
+            return EXIT_REFUSED
+    t0 = time.perf_counter()
+    prob = _read_problem(args, selection)
+    build_s = time.perf_counter() - t0
+    cfg = prob.config
+    print(f"gcrsky: {args.data}: {len(cfg.conventions['antenna_numbers'])} antennas, {prob.data.shape[2]} rows "
+          f"({'compressed' if cfg.compressed else 'all baselines'}), {prob.data.shape[1]} times, "
+          f"{prob.data.shape[0]} channels, {cfg.pol}; prior: {cfg.prior}")
+    done = execute_with_bars(args, prob, spec, (PaperReport(),), build_s=build_s, compile_since=compile0)
+    return done if isinstance(done, int) else report_run(*done, out)

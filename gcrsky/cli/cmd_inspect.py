@@ -1,0 +1,51 @@
+"""``gcrsky inspect FILE``: what a run on the file would use (:func:`gcrsky.io.inspect_uvdata`), without solving."""
+
+from __future__ import annotations
+
+import sys
+
+from .options import data_kwargs
+
+__all__ = ["inspect_command"]
+
+
+def inspect_command(args, parser) -> int:
+    """Print the report (or ``--json``); a file that cannot be used: a message, exit 2."""
+    try:
+        return _inspect(args)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"gcrsky inspect: {e}", file=sys.stderr)
+        return 2
+
+
+def _inspect(args) -> int:
+    import json
+
+    from ..base.memory import format_bytes
+    from ..io.uvdata import inspect_uvdata
+
+    info = inspect_uvdata(args.file, lmax=args.lmax, nside=args.nside, **data_kwargs(args))
+    if args.json:
+        print(json.dumps(info, indent=1))
+        return 0
+    c = info["conventions"]
+    lines = [
+        f"gcrsky inspect {info['source']}",
+        f"  antennas      {info['n_antennas']}: {', '.join(str(a) for a in info['antennas'][:20])}"
+        + (" ..." if info["n_antennas"] > 20 else ""),
+        f"  baselines     {info['n_baselines']} ({info['n_unique_baselines']} unique by separation)",
+        f"  times         {info['n_times']}, LST {info['lst_range_hours'][0]:.3f} - {info['lst_range_hours'][1]:.3f} h",
+        f"  channels      {info['n_channels']}, {info['freq_range_hz'][0] / 1e6:.4f} - "
+        f"{info['freq_range_hz'][1] / 1e6:.4f} MHz, width {info['channel_width_hz'] / 1e3:.3g} kHz",
+        f"  products      file {', '.join(info['file_polarizations'])}; modelled {', '.join(info['modelled_products'])}",
+        f"  conventions   {c['vis_units']}, pol_convention {c['pol_convention']}, {c['phase']}",
+        f"  flagged       {100 * info['flagged_fraction']:.2f}% of the samples used",
+        "  noise         " + (f"radiometer (autos): median sigma {info['noise_sigma_median_k_sr']:.4g} K sr per component"
+                               if info["has_autos"] else "no autocorrelations: use --noise diff"),
+        f"  memory        read {format_bytes(info['read_bytes'])}; dense P at lmax {args.lmax}: "
+        f"{format_bytes(info['dense_precision_bytes'])}; response {format_bytes(info.get('response_bytes', 0))}",
+        f"  site          lat {info['site_lat_lon_deg'][0]:.4f} deg, lon {info['site_lat_lon_deg'][1]:.4f} deg",
+    ]
+    lines += [f"  note          {n}" for n in info["notes"]]
+    print("\n".join(lines))
+    return 0

@@ -1,0 +1,188 @@
+"""Argument types and the option groups several commands share (compile cache, channels, a visibility file)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+
+__all__ = [
+    "DEFAULT_BATCH",
+    "DEFAULT_NSAMPLES",
+    "DEFAULT_OUT",
+    "DEFAULT_SUITE_OUT",
+    "add_channel_options",
+    "add_compile_cache_options",
+    "add_data_options",
+    "add_run_flags",
+    "channel_mode",
+    "check_channel_options",
+    "data_kwargs",
+    "finite_float",
+    "int_at_least",
+    "nside_arg",
+    "positive_float",
+]
+
+DEFAULT_OUT = os.path.join("runs", "standard")
+DEFAULT_SUITE_OUT = os.path.join("runs", "paper")
+DEFAULT_NSAMPLES = 200
+DEFAULT_BATCH = 50
+
+
+# ---------------------------------------------------------------- argument types
+
+
+def _number(s: str, what: str, kind, noun: str):
+    try:
+        return kind(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{what} must be {noun}, got {s!r}") from None
+
+
+def int_at_least(lo: int, what: str):
+    """An integer option ``>= lo`` (``what``: its name in the message)."""
+
+    def conv(s: str) -> int:
+        v = _number(s, what, int, "an integer")
+        if v < lo:
+            raise argparse.ArgumentTypeError(f"{what} must be >= {lo}, got {v}")
+        return v
+
+    return conv
+
+
+def _float_where(what: str, ok, requirement: str):
+    def conv(s: str) -> float:
+        v = _number(s, what, float, "a number")
+        if not ok(v):
+            raise argparse.ArgumentTypeError(f"{what} must be {requirement}, got {s!r}")
+        return v
+
+    return conv
+
+
+def positive_float(what: str):
+    """A positive finite number option."""
+    return _float_where(what, lambda v: v > 0 and math.isfinite(v), "a positive finite number")
+
+
+def finite_float(what: str):
+    """A finite number option."""
+    return _float_where(what, math.isfinite, "finite")
+
+
+def nside_arg(s: str) -> int:
+    """A HEALPix nside: a power of 2."""
+    v = int_at_least(1, "nside")(s)
+    if v & (v - 1):
+        raise argparse.ArgumentTypeError(f"nside must be a power of 2, got {v}")
+    return v
+
+
+def _csv(what: str, conv):
+    def parse(s: str):
+        try:
+            return [conv(x) for x in s.split(",") if x.strip()]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what} must be a comma-separated list, got {s!r}") from None
+
+    return parse
+
+
+def _antenna(x: str):
+    x = x.strip()
+    return int(x) if x.lstrip("-").isdigit() else x
+
+
+# ---------------------------------------------------------------- shared option groups
+
+
+def add_run_flags(p, *, plots_help: str) -> None:
+    """``--no-plots``, ``--no-progress`` and ``-v`` of the commands that run."""
+    p.add_argument("--no-plots", action="store_true", help=plots_help)
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)")
+
+
+def add_compile_cache_options(p) -> None:
+    """``--compile-cache DIR`` / ``--no-compile-cache`` (JAX's persistent compilation cache)."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--compile-cache", default=None, metavar="DIR",
+                   help="directory of JAX's persistent compilation cache, so that later runs load the compiled "
+                   "programs instead of compiling them (default: $GCRSKY_COMPILE_CACHE, else "
+                   "$JAX_COMPILATION_CACHE_DIR, else $XDG_CACHE_HOME/gcrsky/jax or ~/.cache/gcrsky/jax; "
+                   "GCRSKY_COMPILE_CACHE=off turns it off)")
+    g.add_argument("--no-compile-cache", action="store_true",
+                   help="compile every program afresh and write no compilation cache")
+
+
+def add_channel_options(p) -> None:
+    """``--by-channel``, ``--devices K`` and the ``jax.distributed`` options (:mod:`gcrsky.parallel.channels`)."""
+    g = p.add_argument_group(
+        "channels", "solve the frequency channels independently (their own key scheme: other, equally exact draws "
+        "than a joint run), with a progress bar over channels: one at a time (--by-channel), split over devices "
+        "(--devices K) or over processes (--coordinator/--num-processes/--process-id: start the same command once "
+        "per process, e.g. once per host; process 0 writes the outputs)")
+    g.add_argument("--by-channel", action="store_true",
+                   help="one channel at a time (memory of one channel's solver)")
+    g.add_argument("--devices", type=int_at_least(1, "devices"), default=None, metavar="K",
+                   help="split the channels over K devices (on a CPU: K forced host devices, set before JAX starts)")
+    g.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                   help="jax.distributed coordinator address (process 0 listens there)")
+    g.add_argument("--num-processes", type=int_at_least(1, "num-processes"), default=None, metavar="N")
+    g.add_argument("--process-id", type=int_at_least(0, "process-id"), default=None, metavar="I")
+
+
+def channel_mode(args) -> str | None:
+    """``RunSpec.channels`` for the options: "processes", "devices", "loop" or None (joint)."""
+    if getattr(args, "coordinator", None):
+        return "processes"
+    if (getattr(args, "devices", None) or 1) > 1:
+        return "devices"
+    return "loop" if getattr(args, "by_channel", False) else None
+
+
+def check_channel_options(parser, args) -> None:
+    """The ``jax.distributed`` options go together, and the process id is below their number."""
+    dist = [args.coordinator, args.num_processes, args.process_id]
+    if any(v is not None for v in dist) and any(v is None for v in dist):
+        parser.error("--coordinator, --num-processes and --process-id go together")
+    if args.process_id is not None and args.process_id >= args.num_processes:
+        parser.error(f"--process-id {args.process_id} must be below --num-processes {args.num_processes}")
+
+
+def add_data_options(g, *, with_data: bool) -> None:
+    """The options of a run on a visibility file (``run --data``) and of ``inspect``."""
+    if with_data:
+        g.add_argument("--data", default=None, metavar="FILE", help="visibility file (UVH5; UVFITS, MS where "
+                       "pyuvdata's readers are installed)")
+        g.add_argument("--beam", default=None, metavar="FILE",
+                       help="beam file UVBeam reads (beamfits, CST, MWA; E-field or power), the same for every antenna")
+        g.add_argument("--prior", default="gsm", metavar="gsm|flat|FILE",
+                       help="prior: gsm (isotropic, zero mean, the GSM's C_l at the data's frequencies, times "
+                       "--prior-scale), flat, a C_l file (.npy, or text: l then C_l per frequency) or a HEALPix map "
+                       "/ alm FITS file (the prior mean; variance the GSM's C_l)")
+        g.add_argument("--noise", choices=("autos", "diff"), default="autos",
+                       help="noise: radiometer equation on the file's autos, or time-adjacent differences")
+        g.add_argument("--no-compress", action="store_true", help="keep every baseline (no redundant compression)")
+    g.add_argument("--pol", default="pI", metavar="pI|xx|yy|xx,yy",
+                   help="modelled product: pseudo-Stokes I (xx + yy), one feed product, or xx and yy jointly")
+    g.add_argument("--freq-range", nargs=2, type=positive_float("freq-range"), default=None, metavar=("LO", "HI"),
+                   help="keep channels in [LO, HI] MHz")
+    g.add_argument("--chans", type=_csv("chans", int), default=None, metavar="I,J,...", help="channel indices to keep")
+    g.add_argument("--lst-range", nargs=2, type=finite_float("lst-range"), default=None, metavar=("START", "STOP"),
+                   help="keep integrations with LST in [START, STOP] hours (START > STOP wraps through 0 h)")
+    g.add_argument("--antennas", type=_csv("antennas", _antenna), default=None, metavar="A,B,...",
+                   help="antenna numbers or names to keep")
+
+
+def data_kwargs(args) -> dict:
+    """from_uvdata / inspect_uvdata selection keywords from the parsed options."""
+    return dict(
+        freq_chans=args.chans,
+        freq_range_hz=None if args.freq_range is None else tuple(1e6 * x for x in args.freq_range),
+        lst_range_hours=None if args.lst_range is None else tuple(args.lst_range),
+        antennas=args.antennas,
+        pol=tuple(args.pol.split(",")) if "," in args.pol else args.pol,
+    )

@@ -1,0 +1,153 @@
+"""The terminal is the CLI's: progress bars, the report of a run, the messages of a refused one."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+__all__ = [
+    "StageBar",
+    "batch_bar",
+    "channel_bar",
+    "compile_line",
+    "compile_of",
+    "print_summary",
+    "refusal_message",
+    "stage_names",
+]
+
+
+class StageBar:
+    """A tqdm bar over the named stages of a run (``on_stage`` of :class:`gcrsky.run.Watch`)."""
+
+    def __init__(self, names, disable):
+        from tqdm.auto import tqdm
+
+        self.bar = tqdm(total=len(names), desc="gcrsky", unit="stage", disable=disable, leave=False, position=0,
+                        bar_format="{desc}: {n_fmt}/{total_fmt} stages |{bar}| {elapsed}")
+
+    def __call__(self, name: str, event: str) -> None:
+        if event == "start":
+            self.bar.set_description(f"gcrsky: {name}")
+        else:
+            self.bar.update(1)
+
+    def close(self):
+        self.bar.close()
+
+
+def stage_names(plots: bool) -> list[str]:
+    """The stages a run goes through (:mod:`gcrsky.run.stages`), ``plots`` only when it draws figures."""
+    return ["wiener", "draws", "maps"] + (["plots"] if plots else []) + ["write"]
+
+
+def batch_bar(disable):
+    """A tqdm wrapper of the draw batches (``progress`` of :class:`gcrsky.run.Watch`)."""
+    from tqdm.auto import tqdm
+
+    return lambda it: tqdm(it, desc="draw batches", unit="batch", disable=disable, leave=False, position=1)
+
+
+def channel_bar(disable):
+    """``total -> update`` of a tqdm bar over channels (``channel_progress`` of :class:`gcrsky.run.Watch`)."""
+    from tqdm.auto import tqdm
+
+    return lambda total: tqdm(total=total, desc="channels", unit="channel", disable=disable, leave=False,
+                              position=1).update
+
+
+def compile_of(since) -> dict:
+    """The compilation since a snapshot, with the cache directory (as ``summary.json``'s ``compile``)."""
+    from ..parallel.runtime import compile_cache_dir, compile_stats
+
+    d = compile_stats().since(since)._asdict()
+    where = compile_cache_dir()
+    d["cache_dir"] = None if where is None else str(where)
+    return d
+
+
+def compile_line(c: dict, label: str = "compile") -> str:
+    """``compile 8.0 s (39 programs; cache DIR: 0 hits, 39 misses)``, from a ``compile`` block."""
+    if c.get("cache_dir"):
+        cache = f"cache {c['cache_dir']}: {c['cache_hits']} hits, {c['cache_misses']} misses"
+    else:
+        cache = "compilation cache off"
+    return f"  {label} {c['compile_s']:.1f} s ({c['programs']} programs; {cache})"
+
+
+def _pct(x) -> str:
+    return "nan" if x is None or not math.isfinite(x) else f"{100 * x:.2f}%"
+
+
+def _metric_lines(s: dict) -> list[str]:
+    """The first channel's truth metrics and z-scores, where the summary has them."""
+    m = s["metrics"]
+    lines = []
+    if m.get("frac_diff_centre_median") is not None or "frac_diff_centre_p90" in m:
+        lines += [
+            f"  at {m['freq_hz'] / 1e6:g} MHz (FWHM {m['fwhm_deg']:.2f} deg, centre dec "
+            f"{s['region']['centre_dec_deg']:.3f}):",
+            f"    median |mean-truth|/truth  centre ring {_pct(m['frac_diff_centre_median'])}  "
+            f"(90th pct {_pct(m['frac_diff_centre_p90'])}, within 5%: {_pct(m['frac_diff_centre_within_5pct'])})",
+            f"                               +-1 FWHM    {_pct(m['frac_diff_fwhm_median'])}  "
+            f"(90th pct {_pct(m['frac_diff_fwhm_p90'])}, within 10%: {_pct(m['frac_diff_fwhm_within_10pct'])})",
+        ]
+    if "mode_z" in m:
+        lines.append(f"    per-mode z: rms {m['mode_z']['rms']:.2f}, |z|<=2 for {_pct(m['mode_z']['within_2'])}")
+    return lines
+
+
+def print_summary(summary, out: Path, written=None) -> None:
+    """Print what a run did (a :class:`gcrsky.run.RunSummary`, or its ``summary.json`` dict)."""
+    s = summary.to_json() if hasattr(summary, "to_json") else summary
+    t, sv = s["timings_s"], s["solver"]
+    cfg = s.get("config") or {}
+    lines = [f"gcrsky run -> {out}"]
+    if s.get("sky_note"):
+        lines.append(f"  sky: {s['sky_note'].split('. ')[0][:160]}")
+    lines.append(
+        f"  {s['run']['nsamples']} draws ({sv['method']})"
+        + (f", lmax {cfg['lmax']}, nside {cfg['nside']}" if cfg else "") + f", {len(s['per_frequency'])} channels"
+    )
+    lines += _metric_lines(s)
+    worst = [x for x in (sv["wiener"]["err_sigma_max"], sv["draws"]["err_sigma_max"]) if x is not None]
+    lines += [
+        f"  solver: Wiener {sv['wiener']['iterations_max']} it max; draws {sv['draws']['iterations_mean']:.0f} it mean / "
+        f"{sv['draws']['iterations_max']} max; worst err {max(worst) if worst else float('nan'):.2g} "
+        f"sigma; all converged: {sv['all_converged']}",
+        f"  time: build {t['build']:.1f} s, wiener {t['wiener']:.1f} s, draws {t['draws']:.1f} s (compile included), "
+        f"maps {t['maps']:.1f} s" + (f", plots {t['plots']:.1f} s" if "plots" in t else ""),
+    ]
+    if s.get("compile"):  # not in the summary of a run made before it was recorded
+        lines.append(compile_line(s["compile"]))
+    if written is None:
+        written = ["results.h5", "summary.json", *s.get("figures", {}).values()]
+    lines.append("  wrote " + (", ".join(written) if written else "nothing (every file was there)"))
+    print("\n".join(lines))
+
+
+#: The command-line option behind each recorded run setting (for --resume's messages).
+OPTION_OF = {
+    "config.lmax": "--lmax", "config.nside": "--nside", "config.n_lst": "--n-lst",
+    "config.lst_range_hours": "--lst-start/--lst-stop", "config.dish_diameter": "--dish-diameter",
+    "config.noise_scale": "--noise-scale", "config.prior_scale": "--prior-scale", "config.flat_prior": "--flat-prior",
+    "config.zero_prior_mean": "--zero-prior-mean", "config.seed": "--data-seed", "config.obs_date": "--date",
+    "nsamples": "--nsamples", "seed": "--seed", "batch": "--batch", "method": "--method", "tol": "--tol",
+    "scenario": "--scenario",
+}
+
+
+def refusal_message(e, *, resume: bool) -> str:
+    """The message of a refused run (:class:`~gcrsky.run.RunExistsError` / :class:`~gcrsky.run.ResumeError`)."""
+    from ..run import ResumeError
+
+    if isinstance(e, ResumeError) and e.differences:
+        what = ", ".join(f"{OPTION_OF.get(k, k)} (recorded {a!r}, now {b!r})" for k, a, b in e.differences)
+        return (f"gcrsky: --resume: the run in {e.out} was made with other settings: {what}. Give the recorded "
+                f"options to resume it, or --overwrite to start again (or choose another --out).")
+    if isinstance(e, ResumeError):
+        return f"gcrsky: --resume: {e}. --overwrite starts again (or choose another --out)."
+    if resume:
+        return f"gcrsky: --resume: {e} (--overwrite)."
+    return (f"gcrsky: {e.out} already holds results of a run ({', '.join(e.files)}); pass --resume to continue "
+            f"that run or --overwrite to replace it (or choose another --out).")

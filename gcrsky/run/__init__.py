@@ -1,0 +1,82 @@
+"""One run of the sampler on a problem, to disk: draws, maps, products and summary; resumable.
+
+:func:`execute` runs a :class:`RunSpec` (draws, solver, output directory) on a
+:class:`~gcrsky.model.Problem`, simulated or read from a file; applications add metrics
+and figures through report hooks (:class:`ReportHook`; the paper's are in
+:mod:`gcrsky.paper.report`).  One module per stage:
+
+- ``spec``: :class:`RunSpec` (:class:`Draws`, :class:`Solver`, :class:`Output`), validated
+  on construction; :func:`run_settings`, what identifies a run's draws;
+- ``output``: the run's files, :func:`check_output` (refuse / overwrite / resume),
+  :func:`remove_run_files`, :func:`open_run`;
+- ``resume``: :class:`ResumeError`, :func:`settings_differences`, the recorded solver options;
+- ``stages``: :class:`StageTimer`, and :class:`Watch` (how a caller follows a run);
+- ``draws``: the joint run's set-up and its batches into ``results.h5`` (the documented key scheme);
+- ``channels``: independent channels (one at a time, over devices, over processes);
+- ``maps``: :class:`RunMaps`: truth, mean, std and Wiener maps, per-mode z-scores;
+- ``report``: :class:`ReportHook`, :class:`RunView`: what applications add after the draws;
+- ``products``: :func:`write_products`: HEALPix FITS, healpy alm, pyradiosky skyh5;
+- ``summary``: :class:`RunSummary` (``summary.json``), :class:`RunProducts`, the solver block;
+- ``runner``: :func:`execute`, the stages in order.
+"""
+
+from .maps import RunMaps, mode_z_scores, parameter_frame, run_maps
+from .output import (
+    FIGURE_FILES,
+    PRODUCT_FILES,
+    RESULTS_FILE,
+    RUN_FILES,
+    SUMMARY_FILE,
+    RunExistsError,
+    check_output,
+    existing_run_files,
+    open_run,
+    remove_run_files,
+)
+from .products import write_products
+from .report import FigureReport, ReportHook, RunView
+from .resume import ResumeError, settings_differences
+from .runner import execute
+from .spec import CHANNEL_MODES, EXISTING, METHODS, Draws, Output, RunSpec, Solver, run_settings
+from .stages import StageTimer, Watch
+from .summary import RunProducts, RunSummary, info_stats, read_summary, solver_summary, versions
+
+__all__ = [
+    "CHANNEL_MODES",
+    "EXISTING",
+    "FIGURE_FILES",
+    "METHODS",
+    "PRODUCT_FILES",
+    "RESULTS_FILE",
+    "RUN_FILES",
+    "SUMMARY_FILE",
+    "Draws",
+    "FigureReport",
+    "Output",
+    "ReportHook",
+    "ResumeError",
+    "RunExistsError",
+    "RunMaps",
+    "RunProducts",
+    "RunSpec",
+    "RunSummary",
+    "RunView",
+    "Solver",
+    "StageTimer",
+    "Watch",
+    "check_output",
+    "execute",
+    "existing_run_files",
+    "info_stats",
+    "mode_z_scores",
+    "open_run",
+    "parameter_frame",
+    "read_summary",
+    "remove_run_files",
+    "run_maps",
+    "run_settings",
+    "settings_differences",
+    "solver_summary",
+    "versions",
+    "write_products",
+]

@@ -1,0 +1,207 @@
+"""The output directory of a run: its files, and whether a run may write there (refuse, overwrite, resume).
+
+A directory that already holds a run's files (:data:`RUN_FILES`) is refused
+(``existing="refuse"``: :class:`RunExistsError`), cleared (``"overwrite"``:
+:func:`remove_run_files`) or continued (``"resume"``: the settings recorded in its
+``results.h5`` must equal this run's, else :class:`~gcrsky.run.resume.ResumeError`).
+Files of other names are never touched.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any, NamedTuple
+
+from ..io.atomic import is_temporary
+from ..io.results import read_results_state
+from .resume import ResumeError, check_resumable, settings_differences
+from .spec import EXISTING
+from .summary import versions
+
+__all__ = [
+    "FIGURE_FILES",
+    "PRODUCT_FILES",
+    "RESULTS_FILE",
+    "RUN_FILES",
+    "SUMMARY_FILE",
+    "OpenRun",
+    "RunExistsError",
+    "check_output",
+    "clear_output",
+    "existing_run_files",
+    "open_run",
+    "remove_run_files",
+    "temporaries",
+]
+
+log = logging.getLogger(__name__)
+
+#: The appendable HDF5 file of a run (:mod:`gcrsky.io.results`).
+RESULTS_FILE = "results.h5"
+#: The run's summary (written last: its presence means the run finished).
+SUMMARY_FILE = "summary.json"
+#: The standard products: ``{key: file name}`` (:func:`gcrsky.run.products.write_products`).
+PRODUCT_FILES = {
+    "posterior_mean_fits": "posterior_mean.fits",
+    "posterior_std_fits": "posterior_std.fits",
+    "posterior_mean_alm": "posterior_mean_alm.fits",
+    "posterior_mean_skyh5": "posterior_mean.skyh5",
+}
+#: The per-run figures report hooks may write: ``{key: file name}`` (the paper's Figs. 3-7,
+#: :mod:`gcrsky.paper.report`); part of a run's files, so refused, overwritten and resumed with it.
+FIGURE_FILES = {
+    "fig3": "fig3_alm_residuals.png",
+    "fig4": "fig4_sky_maps.png",
+    "fig5": "fig5_beam_region.png",
+    "fig6": "fig6_slice.png",
+    "fig7_correlation": "fig7_correlation.png",
+    "fig7_corner": "fig7_corner.png",
+}
+#: Every file a run writes into its directory (what :func:`existing_run_files` looks for).
+RUN_FILES = (RESULTS_FILE, SUMMARY_FILE, *PRODUCT_FILES.values(), *FIGURE_FILES.values())
+
+
+class RunExistsError(FileExistsError):
+    """The output directory already holds a run's files (and neither resume nor overwrite was asked for).
+
+    Attributes:
+        out: the directory; files: the run files found in it.
+    """
+
+    def __init__(self, out, files, message: str | None = None):
+        self.out, self.files = Path(out), list(files)
+        super().__init__(message or (
+            f"{out} already holds results of a run ({', '.join(self.files)}); resume it or overwrite it"
+        ))
+
+
+def existing_run_files(out) -> list[str]:
+    """The run files (:data:`RUN_FILES`) present in ``out``, in that order."""
+    out = Path(out)
+    return [f for f in RUN_FILES if (out / f).exists()]
+
+
+def temporaries(out) -> list[Path]:
+    """Temporary files a killed writer of a run file left in ``out``."""
+    out = Path(out)
+    if not out.is_dir():
+        return []
+    return [p for p in out.iterdir() if any(is_temporary(p, f) for f in RUN_FILES)]
+
+
+def remove_run_files(out) -> list[str]:
+    """Delete the run files (:data:`RUN_FILES`) in ``out`` and any temporary files a killed writer left.
+
+    Nothing else in ``out`` is touched.  Returns the names removed.
+    """
+    out = Path(out)
+    gone = []
+    for f in existing_run_files(out):
+        (out / f).unlink()
+        gone.append(f)
+    for p in temporaries(out):
+        p.unlink(missing_ok=True)
+        gone.append(p.name)
+    return gone
+
+
+def check_output(out, settings: dict, existing: str = "refuse"):
+    """Decide what a run with ``settings`` may do in ``out``; raises if it may not.
+
+    Args:
+        out: the output directory (need not exist).
+        settings: this run's settings (:meth:`gcrsky.run.RunSpec.settings`).
+        existing: ``"refuse"`` (a directory holding run files is an error),
+            ``"overwrite"`` (it will be cleared) or ``"resume"`` (its run is continued).
+
+    Returns:
+        the :class:`gcrsky.io.ResultsState` to continue (``"resume"`` with a
+        ``results.h5``), else None (a new run).
+
+    Raises:
+        RunExistsError: ``"refuse"`` and run files are present; or ``"resume"``, no
+            ``results.h5`` but other run files.
+        ResumeError: ``"resume"`` and the recorded run cannot be continued: its
+            settings differ (:attr:`ResumeError.differences`), it records none (an older
+            layout), or ``results.h5`` cannot be read.
+    """
+    if existing not in EXISTING:
+        raise ValueError(f"existing must be one of {EXISTING}, got {existing!r}")
+    out = Path(out)
+    files = existing_run_files(out)
+    if existing == "overwrite" or not files:
+        return None
+    if existing == "refuse":
+        raise RunExistsError(out, files)
+    h5 = out / RESULTS_FILE
+    if not h5.exists():
+        raise RunExistsError(out, files, f"{out} holds {', '.join(files)} but no {RESULTS_FILE}: nothing to resume "
+                                         "from; overwrite it to start again")
+    try:
+        state = read_results_state(h5)
+    except ValueError as e:
+        raise ResumeError(out, f"cannot resume: {e}") from e
+    if state.settings is None:
+        raise ResumeError(out, f"cannot resume: {h5} records no run settings (written by an older gcrsky)")
+    diffs = settings_differences(state.settings, settings)
+    if diffs:
+        what = "; ".join(f"{k}: recorded {a!r}, now {b!r}" for k, a, b in diffs)
+        raise ResumeError(out, f"cannot resume the run in {out}: its settings differ: {what}", diffs)
+    return state
+
+
+def clear_output(out, existing: str) -> None:
+    """Make ``out`` ready for a run that :func:`check_output` allowed: cleared of run files
+    (``existing="overwrite"``) and of the temporaries a killed writer left."""
+    out = Path(out)
+    if existing == "overwrite":
+        removed = remove_run_files(out)
+        if removed:
+            log.info("overwrite: removed %s from %s", ", ".join(removed), out)
+    for p in temporaries(out):  # left by a killed writer
+        p.unlink(missing_ok=True)
+
+
+class OpenRun(NamedTuple):
+    """An output directory a run may write to (:func:`open_run`).
+
+    Attributes:
+        out: the directory; h5: its ``results.h5``.
+        settings: the run's settings (recorded in a new ``results.h5``).
+        state: the recorded run to continue (:class:`gcrsky.io.ResultsState`), or None.
+        start: the first batch to draw (0 for a new run).
+        already_complete: a resumed run with every batch drawn and ``results.h5`` finished.
+        before: the run files present before this run wrote anything.
+    """
+
+    out: Path
+    h5: Path
+    settings: dict
+    state: Any
+    start: int
+    already_complete: bool
+    before: frozenset
+
+
+def open_run(prob, spec) -> OpenRun:
+    """Check, prepare and describe ``spec.output.out`` for a run of ``prob``.
+
+    The directory is created; a run in it is refused, cleared or continued as
+    ``spec.output.existing`` says (:func:`check_output`); a resumed run must have the same
+    inputs (:func:`~gcrsky.run.resume.check_resumable`).
+
+    Raises:
+        RunExistsError, ResumeError: as :func:`check_output` and ``check_resumable``.
+    """
+    out = spec.output.out
+    out.mkdir(parents=True, exist_ok=True)
+    settings = spec.settings(prob.config)
+    state = check_output(out, settings, spec.output.existing)
+    clear_output(out, spec.output.existing)
+    if state is not None:
+        check_resumable(out, state, prob, versions()["gcrsky"])
+    start = 0 if state is None else state.batches_complete
+    already_complete = state is not None and state.draws_done and state.complete
+    return OpenRun(out, out / RESULTS_FILE, settings, state, start, already_complete,
+                   frozenset(existing_run_files(out)))

@@ -1,0 +1,192 @@
+"""What one run is asked to do: :class:`RunSpec`, typed, frozen and validated on construction.
+
+A run draws ``draws.nsamples`` posterior samples of a :class:`~gcrsky.model.Problem` in
+batches (:class:`Draws`: key ``PRNGKey(seed)``, :mod:`gcrsky.inference.batches`), by an
+exact path (:class:`Solver`), and writes its files into a directory (:class:`Output`).
+A bad value raises ``ValueError`` naming the field (``draws.nsamples``, ``solver.tol``, ...).
+
+:meth:`RunSpec.settings` is what identifies the run's draws: it is recorded in
+``results.h5`` and must be equal for ``existing="resume"`` to continue a run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import numbers
+import os
+from pathlib import Path
+from typing import Any, Mapping
+
+from ..inference.batches import KEY_SCHEME
+from ..io.results import clean_json, json_default
+from ..parallel.channels import CHANNEL_KEY_SCHEME
+from ..solvers.options import DEFAULT_TOL
+
+__all__ = ["CHANNEL_MODES", "EXISTING", "METHODS", "Draws", "Output", "RunSpec", "Solver", "run_settings"]
+
+#: The paths a run may ask for (``"auto"``: chosen by size, :func:`gcrsky.solvers.plan.choose_path`).
+METHODS = ("auto", "cg", "cholesky", "eigh", "mmode", "dataspace")
+#: What a run may do with a directory that already holds a run's files.
+EXISTING = ("refuse", "overwrite", "resume")
+#: Independent-channel modes (:mod:`gcrsky.parallel.channels`); None is the joint run.
+CHANNEL_MODES = ("loop", "devices", "processes")
+
+
+def _integer(obj, name: str, where: str, lo: int) -> None:
+    value = getattr(obj, name)
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < lo:
+        raise ValueError(f"{where} must be an integer >= {lo}, got {value!r}")
+    object.__setattr__(obj, name, int(value))
+
+
+def _choice(where: str, value, allowed: tuple) -> None:
+    if value not in allowed:
+        raise ValueError(f"{where} must be one of {', '.join(map(repr, allowed))}, got {value!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class Draws:
+    """The posterior draws: ``nsamples`` in batches of ``batch``, key ``jax.random.PRNGKey(seed)``.
+
+    Batch ``b`` uses ``fold_in(key, b)`` and is always drawn whole (the last one is
+    truncated), so draw ``i`` depends only on ``seed`` and ``batch``.
+    """
+
+    nsamples: int
+    seed: int = 0
+    batch: int = 50
+
+    def __post_init__(self):
+        _integer(self, "nsamples", "draws.nsamples", 1)
+        _integer(self, "seed", "draws.seed", 0)
+        _integer(self, "batch", "draws.batch", 1)
+
+    @property
+    def n_batches(self) -> int:
+        """Batches in all, ``ceil(nsamples / batch)``."""
+        return -(-self.nsamples // self.batch)
+
+
+@dataclasses.dataclass(frozen=True)
+class Solver:
+    """The exact path (``method``, :data:`METHODS`) and the CG tolerance ``tol`` in posterior sigma."""
+
+    method: str = "auto"
+    tol: float = DEFAULT_TOL
+
+    def __post_init__(self):
+        _choice("solver.method", self.method, METHODS)
+        if isinstance(self.tol, bool) or not isinstance(self.tol, numbers.Real) or not (
+                self.tol > 0 and math.isfinite(self.tol)):
+            raise ValueError(f"solver.tol must be a positive finite number, got {self.tol!r}")
+        object.__setattr__(self, "tol", float(self.tol))
+
+
+@dataclasses.dataclass(frozen=True)
+class Output:
+    """Where the run writes (``out``, created if needed), what it does with a directory that
+    holds a run's files (``existing``, :data:`EXISTING`), and whether report hooks draw figures."""
+
+    out: Path
+    existing: str = "refuse"
+    plots: bool = True
+
+    def __post_init__(self):
+        if not isinstance(self.out, (str, os.PathLike)) or not os.fspath(self.out):
+            raise ValueError(f"output.out must be a directory path, got {self.out!r}")
+        object.__setattr__(self, "out", Path(self.out))
+        _choice("output.existing", self.existing, EXISTING)
+        if not isinstance(self.plots, bool):
+            raise ValueError(f"output.plots must be True or False, got {self.plots!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class RunSpec:
+    """One run: draws, solver, output, and what else identifies it.
+
+    Attributes:
+        draws: :class:`Draws`.
+        output: :class:`Output`.
+        solver: :class:`Solver` (default: ``auto``, tol 1e-6).
+        channels: None (one joint system) or a mode of :data:`CHANNEL_MODES`: the channels
+            solved independently (key scheme
+            :data:`~gcrsky.parallel.channels.CHANNEL_KEY_SCHEME`, other, equally exact draws):
+            ``"loop"`` one at a time, ``"devices"`` over this process's devices,
+            ``"processes"`` over ``jax.distributed`` processes (only process 0 writes).
+        scenario: the paper scenario of the run, if any (recorded).
+        argv: the command line (recorded in ``summary.json``), or None.
+        extra: further settings that identify the run (e.g. the input file of a run on a
+            file); JSON-able, no key of the standard settings.
+    """
+
+    draws: Draws
+    output: Output
+    solver: Solver = Solver()
+    channels: str | None = None
+    scenario: str | None = None
+    argv: tuple[str, ...] | None = None
+    extra: Mapping[str, Any] | None = None
+
+    def __post_init__(self):
+        for name, kind in (("draws", Draws), ("output", Output), ("solver", Solver)):
+            if not isinstance(getattr(self, name), kind):
+                raise ValueError(f"{name} must be a {kind.__name__}, got {getattr(self, name)!r}")
+        if self.channels is not None:
+            _choice("channels", self.channels, CHANNEL_MODES)
+        if self.scenario is not None and not isinstance(self.scenario, str):
+            raise ValueError(f"scenario must be a name or None, got {self.scenario!r}")
+        if self.argv is not None:
+            if isinstance(self.argv, str) or not all(isinstance(a, str) for a in self.argv):
+                raise ValueError(f"argv must be a sequence of strings or None, got {self.argv!r}")
+            object.__setattr__(self, "argv", tuple(self.argv))
+        if self.extra is not None:
+            object.__setattr__(self, "extra", dict(self.extra))
+        self.settings(None)  # the extra settings must not clash and must be JSON-able
+
+    def all_extra(self) -> dict:
+        """``extra`` and, for an independent-channel run, its mode and key scheme."""
+        extra = dict(self.extra or {})
+        if self.channels is not None:
+            extra.update(channels=self.channels, channel_key_scheme=CHANNEL_KEY_SCHEME)
+        return extra
+
+    def settings(self, config) -> dict:
+        """The run's settings (:func:`run_settings`) with the problem's ``config`` (or None)."""
+        d, s = self.draws, self.solver
+        return run_settings(config, nsamples=d.nsamples, seed=d.seed, batch=d.batch, method=s.method, tol=s.tol,
+                            scenario=self.scenario, extra=self.all_extra())
+
+
+def run_settings(config, *, nsamples: int, seed: int, batch: int, method: str, tol: float,
+                 scenario: str | None = None, extra: dict | None = None) -> dict:
+    """What identifies a run's draws: recorded in ``results.h5`` and compared on resume.
+
+    Args:
+        config: the problem's configuration (an object with ``to_dict()``, or a dict), or
+            None for a problem that has none (then ``extra`` should identify the inputs).
+        nsamples, seed, batch: the draws (key scheme :data:`gcrsky.inference.batches.KEY_SCHEME`).
+        method: the path asked for (``"auto"`` included; a resumed run uses the path
+            the recorded run chose); tol: CG tolerance, posterior sigma.
+        scenario: the paper scenario, if any.
+        extra: further settings (e.g. the input file of a run on real data).
+
+    Returns:
+        a JSON-able dict (``config``, ``nsamples``, ``seed``, ``batch``, ``method``,
+        ``tol``, ``scenario``, ``key_scheme`` and ``extra``'s keys).
+
+    Raises:
+        ValueError: an ``extra`` key clashes with a standard one.
+    """
+    if config is not None and not isinstance(config, dict):
+        config = config.to_dict()
+    out = {
+        "config": config, "nsamples": int(nsamples), "seed": int(seed), "batch": int(batch), "method": str(method),
+        "tol": float(tol), "scenario": scenario, "key_scheme": KEY_SCHEME,
+    }
+    for k, v in (extra or {}).items():
+        if k in out:
+            raise ValueError(f"extra setting {k!r} clashes with a standard one")
+        out[k] = v
+    return json.loads(json.dumps(clean_json(out), default=json_default))  # canonical: lists, plain numbers

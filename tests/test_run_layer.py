@@ -1,0 +1,204 @@
+"""The run layer (gcrsky.run): its specification, its summary, and report hooks.
+
+* :class:`RunSpec` refuses bad values with a ``ValueError`` that names the field, and its
+  settings are exactly :func:`run_settings` of its fields (what ``results.h5`` records).
+* :class:`RunSummary` round-trips ``summary.json``: reading a run's file and writing it
+  back gives the same bytes.
+* A run without report hooks (lmax 8, nside 32, 6 draws in batches of 4) writes the draws,
+  the products and a summary with no paper metrics; the same run with the paper's hook
+  (:func:`gcrsky.paper.pipeline.paper_hooks`) has bit-identical draws and adds the
+  metrics, which must equal :mod:`gcrsky.paper.metrics` applied to the stored maps.
+* Hooks are merged in order (:func:`collect_metrics`); a hook that reports another
+  number of channels is an error.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from gcrsky.io import read_draws, write_json
+from gcrsky.run import (
+    Draws,
+    FigureReport,
+    Output,
+    ReportHook,
+    RunSpec,
+    RunSummary,
+    RunView,
+    Solver,
+    execute,
+    read_summary,
+    run_maps,
+    run_settings,
+)
+from gcrsky.run.report import collect_figures, collect_metrics
+
+NSAMPLES, BATCH = 6, 4
+PRODUCTS = ("posterior_mean.fits", "posterior_std.fits", "posterior_mean_alm.fits", "posterior_mean.skyh5")
+
+
+# ---------------------------------------------------------------- the specification
+
+
+@pytest.mark.parametrize(
+    "make, field",
+    [
+        (lambda: Draws(0), "draws.nsamples"),
+        (lambda: Draws(5, seed=-1), "draws.seed"),
+        (lambda: Draws(5, batch=0), "draws.batch"),
+        (lambda: Draws(2.5), "draws.nsamples"),
+        (lambda: Draws(True), "draws.nsamples"),
+        (lambda: Solver(method="lu"), "solver.method"),
+        (lambda: Solver(tol=0.0), "solver.tol"),
+        (lambda: Solver(tol=float("nan")), "solver.tol"),
+        (lambda: Output("runs/x", existing="append"), "output.existing"),
+        (lambda: Output("runs/x", plots="yes"), "output.plots"),
+        (lambda: Output(""), "output.out"),
+        (lambda: RunSpec(Draws(5), Output("x"), channels="threads"), "channels"),
+        (lambda: RunSpec(Draws(5), Output("x"), argv="run --seed 1"), "argv"),
+        (lambda: RunSpec(Draws(5), Output("x"), extra={"seed": 3}), "extra setting 'seed'"),
+        (lambda: RunSpec(Draws(5), "x"), "output must be a Output"),
+        (lambda: RunSpec(Draws(5), Output("x"), scenario=7), "scenario"),
+    ],
+)
+def test_spec_refuses_bad_values_naming_them(make, field):
+    with pytest.raises(ValueError, match=field):
+        make()
+
+
+def test_spec_settings_and_types():
+    spec = RunSpec(Draws(np.int64(20), 1, 8), Output("runs/x", "resume", False), Solver("cg", 1e-8),
+                   channels="loop", scenario="B1", argv=["run", "--seed", "1"], extra={"data_file": "f.uvh5"})
+    assert type(spec.draws.nsamples) is int and spec.draws.n_batches == 3
+    assert spec.output.out == Path("runs/x") and spec.argv == ("run", "--seed", "1")
+    from gcrsky.parallel import CHANNEL_KEY_SCHEME
+
+    want = run_settings({"lmax": 8}, nsamples=20, seed=1, batch=8, method="cg", tol=1e-8, scenario="B1",
+                        extra={"data_file": "f.uvh5", "channels": "loop", "channel_key_scheme": CHANNEL_KEY_SCHEME})
+    assert spec.settings({"lmax": 8}) == want
+    assert list(want)[-3:] == ["data_file", "channels", "channel_key_scheme"]
+    with pytest.raises(AttributeError):  # frozen
+        spec.draws.nsamples = 3
+
+
+# ---------------------------------------------------------------- runs with and without hooks
+
+
+@pytest.fixture(scope="module")
+def problem():
+    from gcrsky.sim import Config, problem_from_config
+
+    return problem_from_config(Config(lmax=8, nside=32).validate())
+
+
+@pytest.fixture(scope="module")
+def runs(problem, tmp_path_factory):
+    """The same draws twice: without report hooks (figures asked for), and with the paper's hook."""
+    from gcrsky.paper.pipeline import paper_hooks
+
+    bare, paper = tmp_path_factory.mktemp("bare"), tmp_path_factory.mktemp("paper")
+    a = execute(problem, RunSpec(Draws(NSAMPLES, 0, BATCH), Output(bare, plots=True), Solver("cholesky")))
+    b = execute(problem, RunSpec(Draws(NSAMPLES, 0, BATCH), Output(paper, plots=False), Solver("cholesky")),
+                hooks=paper_hooks(problem))
+    return (bare, *a), (paper, *b)
+
+
+@pytest.mark.slow
+def test_a_run_without_hooks_writes_products_and_no_paper_metrics(runs, problem):
+    (out, summary, prods), _ = runs
+    for name in ("results.h5", "summary.json", *PRODUCTS):
+        assert (out / name).is_file(), name
+    assert not list(out.glob("*.png")) and summary.figures == {}  # figures come only from hooks
+    assert summary.per_frequency == [{"freq_hz": 100e6}, {"freq_hz": 102e6}]
+    assert summary.metrics == {"freq_hz": 100e6} and summary.frac_diff_centre_median is None
+    assert summary.region["centre_dec_deg"] == pytest.approx(-30.7215, abs=1e-3)  # the strip: the configuration's
+    assert summary.region["fwhm_deg"] == [None, None] and summary.warnings == []
+    assert summary.exit_status == 0 and summary.solver["method"] == "cholesky"
+    assert prods.fwhm_deg is None and prods.truth_map is not None and prods.written[:2] == ["results.h5",
+                                                                                           "summary.json"]
+    with h5py.File(out / "results.h5", "r") as h:  # the run layer's own: maps and z-scores against the truth
+        assert h.attrs["complete"] and "mode_z" in h and set(h["maps"]) == {"truth", "mean", "std", "wiener"}
+        np.testing.assert_array_equal(h["mode_z"][0], prods.z)
+
+
+@pytest.mark.slow
+def test_the_paper_hook_adds_its_metrics(runs, problem):
+    (bare, *_), (out, summary, prods) = runs
+    assert read_draws(out / "results.h5").draws.tobytes() == read_draws(bare / "results.h5").draws.tobytes()
+    from gcrsky.paper import metrics as M
+    from gcrsky.paper.pipeline import simulated_fwhm_deg
+
+    m = summary.metrics
+    fwhm = simulated_fwhm_deg(problem.config, problem.freqs_hz)
+    assert m["fwhm_deg"] == fwhm[0] and summary.region["fwhm_deg"] == list(fwhm) and prods.fwhm_deg == fwhm[0]
+    with h5py.File(out / "results.h5", "r") as h:
+        maps = {k: h["maps"][k][()] for k in h["maps"]}
+        z = h["mode_z"][()]
+    centre, ra = summary.region["centre_dec_deg"], tuple(summary.region["ra_range_deg"])
+    for f, pf in enumerate(summary.per_frequency):
+        want = M.summary_metrics(maps["mean"][f], maps["truth"][f], centre, fwhm[f], ra, std_map=maps["std"][f])
+        assert {k: pf[k] for k in want} == want
+        assert pf["wiener_frac_diff_centre_median"] == M.summary_metrics(
+            maps["wiener"][f], maps["truth"][f], centre, fwhm[f], ra)["frac_diff_centre_median"]
+        assert {k: pf[k] for k in ("std_centre_median", "std_fwhm_over_sky")} == {
+            k: v for k, v in M.std_metrics(maps["std"][f], centre, fwhm[f], ra).items()
+            if k in ("std_centre_median", "std_fwhm_over_sky")}
+        assert pf["mode_z"] == M.z_score_stats(z[f])
+    assert summary.frac_diff_centre_median == m["frac_diff_centre_median"] < 0.05
+
+
+@pytest.mark.slow
+def test_summary_round_trips_summary_json(runs, tmp_path):
+    for out, summary, _ in runs:
+        text = (out / "summary.json").read_text()
+        back = read_summary(out / "summary.json")
+        assert back == RunSummary.from_json(json.loads(text))
+        assert list(back.to_json()) == list(json.loads(text))  # the same keys, in the same order
+        write_json(tmp_path / "again.json", back.to_json())
+        assert (tmp_path / "again.json").read_text() == text
+    with pytest.raises(ValueError, match="not keys of a run summary: extra_key"):
+        RunSummary.from_json({**json.loads(text), "extra_key": 1})
+
+
+# ---------------------------------------------------------------- hooks, merged in order
+
+
+class _Counter(ReportHook):
+    def __init__(self, name, nchan=None):
+        self.name, self.nchan = name, nchan
+
+    def metrics(self, view):
+        n = len(view.per_freq) if self.nchan is None else self.nchan
+        return [{self.name: len(view.per_freq[i]) if i < len(view.per_freq) else 0} for i in range(n)]
+
+    def figures(self, view, out, *, only_missing):
+        return FigureReport({self.name: f"{self.name}.png"}, [f"NOTE: {self.name}"])
+
+
+class _Nothing(ReportHook):
+    """The protocol's defaults: nothing added."""
+
+
+def test_hooks_are_merged_in_order(tmp_path):
+    from types import SimpleNamespace
+
+    from gcrsky.sphere import n_params
+
+    lmax, nside = 2, 4
+    rng = np.random.default_rng(0)
+    prob = SimpleNamespace(freqs_hz=np.array([1e8, 2e8]), lmax=lmax, nside=nside, a_true=None, config=None)
+    draws = rng.standard_normal((2, 3, n_params(lmax)))
+    maps = run_maps(prob, draws, draws.mean(axis=1))
+    assert maps.truth_maps is None and maps.mode_z is None and maps.centre_dec_deg is None
+    view = RunView(prob, draws, maps, [], True, None)
+    per_freq = collect_metrics(view, [_Counter("a"), _Nothing(), _Counter("b")])
+    assert per_freq == [{"freq_hz": 1e8, "a": 1, "b": 2}, {"freq_hz": 2e8, "a": 1, "b": 2}]  # b saw a's
+    assert collect_figures(view, [_Counter("a"), _Counter("b")], tmp_path, only_missing=True) == (
+        {"a": "a.png", "b": "b.png"}, ["NOTE: a", "NOTE: b"])
+    with pytest.raises(ValueError, match="metrics of 1 channels, the problem has 2"):
+        collect_metrics(view, [_Counter("c", nchan=1)])
