@@ -146,13 +146,13 @@ def test_nan_draws_exit_nonzero(monkeypatch, tmp_path, capsys):
     """Non-finite draws: results are still written, the exit status is 1, with a message."""
     import gcrsky.run.draws
 
-    real = gcrsky.run.draws.draw  # the run draws batch by batch (draw_batch)
+    real = gcrsky.run.draws.draw_exactly  # the run draws batch by batch (draw_batch)
 
     def poisoned(*a, **k):
         d, info = real(*a, **k)
         return d.at[0, 0, 0].set(np.nan), info
 
-    monkeypatch.setattr(gcrsky.run.draws, "draw", poisoned)
+    monkeypatch.setattr(gcrsky.run.draws, "draw_exactly", poisoned)
     rc = cli.main(["run", "--out", str(tmp_path), "--nsamples", "4", "--no-plots", *SMALL])
     assert rc == 1
     assert "NaN" in capsys.readouterr().err

@@ -140,9 +140,9 @@ def test_interrupted_run_resumes_bit_for_bit(problem, reference, tmp_path):
 @pytest.mark.slow
 def test_resume_keeps_the_path_auto_chose(problem, tmp_path, monkeypatch):
     """auto -> matrix-free CG (forced here): the resumed run must use those options, not "cg"'s dense default."""
-    import gcrsky.solvers.plan as plan
+    import gcrsky.solvers.dense as dense
 
-    monkeypatch.setattr(plan, "DENSE_MAX_N", 10)  # n = 81: auto now picks CG
+    monkeypatch.setattr(dense, "DENSE_MAX_N", 10)  # n = 81: auto now picks CG
     ref, out = tmp_path / "ref", tmp_path / "run"
     run(problem, ref, nsamples=6, batch=2)
     with pytest.raises(Interrupt):
