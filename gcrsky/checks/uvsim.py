@@ -69,8 +69,11 @@ class DipoleGaussianBeam(AnalyticBeam):
     def _efield_eval(self, *, az_grid, za_grid, f_grid):
         data = self._get_empty_data_array(az_grid.shape)
         amp = np.exp(-(za_grid**2) / (2 * diameter_to_sigma(self.diameter, f_grid) ** 2))
-        data[0, 0], data[0, 1] = -np.sin(az_grid) * amp, np.cos(az_grid) * amp
-        data[1, 0], data[1, 1] = np.cos(za_grid) * np.cos(az_grid) * amp, np.cos(za_grid) * np.sin(az_grid) * amp
+        # (azimuth, zenith-angle) components of each feed; pyuvdata may ask for one feed only
+        fields = {"x": (-np.sin(az_grid), np.cos(za_grid) * np.cos(az_grid)),
+                  "y": (np.cos(az_grid), np.cos(za_grid) * np.sin(az_grid))}
+        for k, feed in enumerate(self.feed_array):
+            data[0, k], data[1, k] = fields[str(feed)][0] * amp, fields[str(feed)][1] * amp
         return data
 
 
