@@ -245,7 +245,7 @@ def _uvdata(pos, location, numbers, pairs, times, freqs, pols, data_blt, vis_uni
     tel = Telescope.new(
         name="gcrsky-sim", location=location,
         antenna_positions={int(n): p for n, p in zip(numbers, _ecef_relative(pos, location))},
-        instrument="matvis", x_orientation="east",
+        instrument="matvis", x_orientation="east", feeds=["x", "y"], mount_type="fixed",  # kept only with a mount
     )
     uvd = UVData.new(
         freq_array=freqs, polarization_array=np.asarray([utils.polstr2num(p) for p in pols], np.int64),
