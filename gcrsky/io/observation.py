@@ -33,8 +33,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..base.memory import check_memory, format_bytes
-from ..model.observation import HISTORY_CHARS, Observation
-from ..model.observed import parse_products
+from ..model.observation import HISTORY_CHARS, Observation, parse_products
 
 __all__ = ["read_observation", "read_uvdata"]
 

@@ -28,10 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..model.observation import Observation
+from ..model.observation import POLS, Observation, parse_products
 from ..model.observed import (
     COMPRESS_RTOL,
-    POLS,
     DataConfig,
     check_observation,
     conventions,
@@ -39,7 +38,6 @@ from ..model.observed import (
     kelvin_sr_per_unit,
     modelled_product,
     noise_kind,
-    parse_products,
     problem_from_observation,
     raw_variance,
 )

@@ -28,7 +28,11 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["Observation"]
+__all__ = ["POLS", "Observation", "parse_products"]
+
+#: The products gcrsky models: name -> the feed products of the file it combines
+#: (:mod:`gcrsky.model.observed`; :func:`gcrsky.io.read_observation` reads those).
+POLS = {"pI": ("xx", "yy"), "xx": ("xx",), "yy": ("yy",)}
 
 #: How the data's phase was found in the file (:attr:`Observation.phase_type`) -> description.
 PHASE_TYPES = {
@@ -280,3 +284,18 @@ class Observation:
     def phase_description(self) -> str:
         """How the data's phase was found and treated (``Problem.config.conventions["phase"]``)."""
         return PHASE_TYPES[self.phase_type]
+
+
+def parse_products(pol) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(modelled products, feed products they need) for ``pol``: ``"pI"``, ``"xx"``, ``"yy"``, a tuple, ``"xx,yy"``."""
+    if isinstance(pol, str):
+        prods = tuple(p.strip() for p in pol.split(",")) if "," in pol else (pol,)
+    else:
+        prods = tuple(pol)
+    bad = [p for p in prods if p not in POLS]
+    if not prods or bad:
+        raise ValueError(f"pol must be one of {sorted(POLS)} or a tuple of them (e.g. ('xx', 'yy')), got {pol!r}")
+    if len(set(prods)) != len(prods):
+        raise ValueError(f"pol names a product twice: {pol!r}")
+    raw = tuple(dict.fromkeys(r for p in prods for r in POLS[p]))
+    return prods, raw

@@ -43,7 +43,7 @@ from ..instrument.antennas import make_array
 from ..instrument.beams import unique_beams
 from ..instrument.response import response_matrix
 from .noise import radiometer_variance, time_difference_variance
-from .observation import Observation
+from .observation import POLS, Observation, parse_products
 from .prior import Prior
 from .problem import Problem, assemble_problem, observation_geometry
 from .skyprior import gsm_cl_source, gsm_prior
@@ -51,21 +51,16 @@ from .skyprior import gsm_cl_source, gsm_prior
 __all__ = [
     "COMPRESS_RTOL",
     "DataConfig",
-    "POLS",
     "check_observation",
     "conventions",
     "kelvin_sr_per_unit",
     "modelled_product",
-    "parse_products",
     "problem_from_observation",
     "product_factor",
     "raw_variance",
 ]
 
 log = logging.getLogger(__name__)
-
-#: The modelled products: name -> the raw feed products it combines.
-POLS = {"pI": ("xx", "yy"), "xx": ("xx",), "yy": ("yy",)}
 
 #: Response tolerance of the automatic compression: antenna positions read from a file go through ECEF
 #: (6.4e6 m), so "redundant" baselines differ by ~1e-9 m and their responses by ~1e-9 relative (measured
@@ -116,21 +111,6 @@ class DataConfig:
 
 
 # ---------------------------------------------------------------- products, units, conventions
-
-
-def parse_products(pol) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """(modelled products, raw feed products needed) for ``pol`` (``"pI"``, ``"xx"``, ``"yy"``, a tuple or ``"xx,yy"``)."""
-    if isinstance(pol, str):
-        prods = tuple(p.strip() for p in pol.split(",")) if "," in pol else (pol,)
-    else:
-        prods = tuple(pol)
-    bad = [p for p in prods if p not in POLS]
-    if not prods or bad:
-        raise ValueError(f"pol must be one of {sorted(POLS)} or a tuple of them (e.g. ('xx', 'yy')), got {pol!r}")
-    if len(set(prods)) != len(prods):
-        raise ValueError(f"pol names a product twice: {pol!r}")
-    raw = tuple(dict.fromkeys(r for p in prods for r in POLS[p]))
-    return prods, raw
 
 
 def noise_kind(noise) -> str:
