@@ -136,6 +136,16 @@ def test_real_h2c_file_reads_with_nsample_zero_everywhere():
     _check_against_pyuvdata(obs, uvd, obs.pol_names)
     assert not obs.usable.any() and obs.flagged_fraction == 1.0 and obs.has_autos
     assert np.all(obs.nsamples == 0) and not obs.flags.any()  # unflagged, but with no samples
+    with pytest.raises(ValueError, match="as the conjugate of yx, which is not read"):
+        read_observation(uvd.select(polarizations=["xy"], inplace=False))
+
+
+def test_a_sample_stored_twice_is_refused(h1c):
+    uvd = h1c.copy()
+    r1, r2 = np.flatnonzero((uvd.time_array == uvd.time_array[0]) & (uvd.ant_1_array != uvd.ant_2_array))[:2]
+    uvd.ant_1_array[r2], uvd.ant_2_array[r2] = uvd.ant_2_array[r1], uvd.ant_1_array[r1]  # r1's pair, reversed
+    with pytest.raises(ValueError, match=r"holds the baseline .* more than once \(stored in both orders\?\)"):
+        read_observation(uvd)
 
 
 # ---------------------------------------------------------------- a simulated file: noise and the Problem
