@@ -53,7 +53,7 @@ from gcrsky.checks.matvis import HERA_SITE, matvis_hera_beam_path, observing_tim
 from gcrsky.checks.uvsim import simulate_uvdata  # noqa: E402
 from gcrsky.instrument import beam_fwhm_rad, gaussian_beam, hex_array  # noqa: E402
 from gcrsky.io import uvdata as ingest  # noqa: E402
-from gcrsky.model import paper_prior  # noqa: E402
+from gcrsky.model import observed, paper_prior  # noqa: E402
 from gcrsky.sphere.maps import alm_to_map  # noqa: E402
 
 pytestmark = pytest.mark.slow
@@ -140,13 +140,13 @@ def sims(truth, beams):
 def _problem(uvd, beam, pol, prior=None, wrong=False):
     if not wrong:
         return ingest.from_uvdata(uvd, lmax=LMAX, nside=NSIDE, beam=beam, pol=pol, prior=prior)
-    real = ingest._response
+    real = observed._response  # the responses of a file's Problem are built in gcrsky.model.observed
     try:  # the P_xx model for every row: what the unpolarised convention used for pI
-        ingest._response = lambda array, pairs, freqs, lr, nside, lst_ref, pols: real(
+        observed._response = lambda array, pairs, freqs, lr, nside, lst_ref, pols: real(
             array, pairs, freqs, lr, nside, lst_ref, ["xx"] * len(pols))
         return ingest.from_uvdata(uvd, lmax=LMAX, nside=NSIDE, beam=beam, pol=pol, prior=prior)
     finally:
-        ingest._response = real
+        observed._response = real
 
 
 def _forward_error(sim, beam, pol, truth, wrong=False):

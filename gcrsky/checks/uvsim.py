@@ -69,8 +69,11 @@ class DipoleGaussianBeam(AnalyticBeam):
     def _efield_eval(self, *, az_grid, za_grid, f_grid):
         data = self._get_empty_data_array(az_grid.shape)
         amp = np.exp(-(za_grid**2) / (2 * diameter_to_sigma(self.diameter, f_grid) ** 2))
-        data[0, 0], data[0, 1] = -np.sin(az_grid) * amp, np.cos(az_grid) * amp
-        data[1, 0], data[1, 1] = np.cos(za_grid) * np.cos(az_grid) * amp, np.cos(za_grid) * np.sin(az_grid) * amp
+        # (azimuth, zenith-angle) components of each feed; pyuvdata may ask for one feed only
+        fields = {"x": (-np.sin(az_grid), np.cos(za_grid) * np.cos(az_grid)),
+                  "y": (np.cos(az_grid), np.cos(za_grid) * np.sin(az_grid))}
+        for k, feed in enumerate(self.feed_array):
+            data[0, k], data[1, k] = fields[str(feed)][0] * amp, fields[str(feed)][1] * amp
         return data
 
 
@@ -143,8 +146,6 @@ def simulate_uvdata(
         :class:`SimulatedUVData`.
     """
     matvis = require("matvis", "validate", "simulated visibility files")
-    from pyuvdata import Telescope, UVData, utils
-
     if vis_units not in ("Jy", "K str"):
         raise ValueError(f"vis_units must be 'Jy' or 'K str', got {vis_units!r}")
     if pol_convention not in ("sum", "avg"):
@@ -156,23 +157,46 @@ def simulate_uvdata(
     nant = pos.shape[0]
     freqs = np.atleast_1d(np.asarray(freqs_hz, np.float64))
     times = _times_array(times)
-    nt = len(times)
     beams = list(beams) if isinstance(beams, (list, tuple)) else [beams]
     beam_idx = np.zeros(nant, np.int64) if beam_idx is None else np.asarray(beam_idx, np.int64)
+    pairs = np.array([(i, j) for i in range(nant) for j in range(i, nant)], np.int64)
+    vis = _matvis_visibilities(matvis, pos, location, times, freqs, beams, beam_idx, a_icrs, lmax, nside_matvis,
+                               pairs)
+    if pol_convention == "avg":
+        vis = 2.0 * vis
+    if vis_units == "K str":
+        vis = vis / kelvin_sr_to_jy(freqs)[:, None, None, None, None]
+    model, sigma, data = _with_noise(vis, pairs, pols, dt_s, dnu_hz, noise_seed)
 
-    # the ICRS pixel sky, brightness-matched for annual aberration (checks.matvis)
-    a = np.broadcast_to(np.asarray(a_icrs, np.float64), (freqs.size, (lmax + 1) ** 2))
+    # to pyuvdata's layout: blts time-major (all pairs at time 0, then time 1, ...)
+    def blt(x):
+        return np.transpose(x, (1, 2, 0, 3)).reshape(len(times) * pairs.shape[0], freqs.size, len(pols))
+
+    numbers = np.arange(nant) if antenna_numbers is None else np.asarray(antenna_numbers, np.int64)
+    uvd = _uvdata(pos, location, numbers, pairs, times, freqs, pols, blt(data), vis_units, pol_convention, dt_s,
+                  dnu_hz, f"gcrsky.checks.uvsim: matvis {getattr(matvis, '__version__', '?')} polarized simulation, "
+                  f"ICRS sky at lmax {lmax}, nside {nside_matvis}, radiometer noise dt={dt_s} s dnu={dnu_hz} Hz")
+    return SimulatedUVData(uvd, blt(model), blt(sigma))
+
+
+def _matvis_visibilities(matvis, pos, location, times, freqs, beams, beam_idx, a_icrs, lmax, nside_matvis, pairs):
+    """matvis' polarised visibilities of the ICRS sky ``a_icrs``: (Nf, Nt, Npairs, 2, 2) complex, Jy, "sum".
+
+    The pixel sky (nside ``nside_matvis``) is brightness-matched for annual aberration
+    (:mod:`gcrsky.checks.matvis`); matvis takes ``sqrt(I)``, so the positive and negative
+    parts of the map are simulated apart.
+    """
     import healpy as hp
 
+    a = np.broadcast_to(np.asarray(a_icrs, np.float64), (freqs.size, (lmax + 1) ** 2))
     npix = hp.nside2npix(nside_matvis)
     theta, phi = hp.pix2ang(nside_matvis, np.arange(npix))
     jac = aberration_solid_angle_factor(nside_matvis, times.min() + (times.max() - times.min()) / 2)
     maps = np.stack([alm_to_map(a[f], lmax, nside_matvis) for f in range(freqs.size)], axis=1) * jac[:, None]
     jy = kelvin_sr_to_jy(freqs)[None, :] * (4 * np.pi / npix)
-    pairs = np.array([(i, j) for i in range(nant) for j in range(i, nant)], np.int64)
-    ants = {i: pos[i] for i in range(nant)}
+    ants = {i: pos[i] for i in range(pos.shape[0])}
     vis = 0.0
-    for sign in (1.0, -1.0):  # matvis takes sqrt(I): positive and negative parts apart
+    for sign in (1.0, -1.0):
         part = np.clip(sign * maps, 0.0, None)
         keep = np.any(part > 0, axis=1)
         if not np.any(keep):
@@ -183,13 +207,18 @@ def simulate_uvdata(
             antpairs=pairs,
         )
         vis = vis + sign * np.asarray(v)  # (Nf, Nt, Nbl, 2, 2), Jy, sum convention
-    vis = np.asarray(vis)
-    if pol_convention == "avg":
-        vis = 2.0 * vis
-    if vis_units == "K str":
-        vis = vis / kelvin_sr_to_jy(freqs)[:, None, None, None, None]
+    return np.asarray(vis)
 
-    # radiometer noise from the (noiseless) autocorrelations of each feed
+
+def _with_noise(vis, pairs, pols, dt_s, dnu_hz, noise_seed):
+    """``(model, sigma, data)`` (Nf, Nt, Npairs, Npols): the products, their radiometer sigma, noisy data.
+
+    The radiometer equation on the (noiseless) autocorrelations of each feed,
+    ``sigma^2 = |V_ii,pp V_jj,qq| / (2 dt dnu)``, written out here rather than taken from
+    :mod:`gcrsky.model.noise`: the files test that implementation.  Autocorrelations get
+    no noise.
+    """
+    nant = int(pairs.max()) + 1
     auto_row = {i: int(np.flatnonzero((pairs[:, 0] == i) & (pairs[:, 1] == i))[0]) for i in range(nant)}
     ai = np.array([auto_row[i] for i in pairs[:, 0]])
     aj = np.array([auto_row[j] for j in pairs[:, 1]])
@@ -205,26 +234,26 @@ def simulate_uvdata(
     if noise_seed is not None:
         rng = np.random.default_rng(noise_seed)
         data = model + sigma * (rng.standard_normal(model.shape) + 1j * rng.standard_normal(model.shape))
+    return model, sigma, data
 
-    # to pyuvdata's layout: blts time-major (all pairs at time 0, then time 1, ...)
-    def blt(x):
-        return np.transpose(x, (1, 2, 0, 3)).reshape(nt * pairs.shape[0], freqs.size, len(pols))
 
-    numbers = np.arange(nant) if antenna_numbers is None else np.asarray(antenna_numbers, np.int64)
+def _uvdata(pos, location, numbers, pairs, times, freqs, pols, data_blt, vis_units, pol_convention, dt_s, dnu_hz,
+            history):
+    """The pyuvdata ``UVData`` of the simulation (drift scan, flags False, nsamples 1), checked."""
+    from pyuvdata import Telescope, UVData, utils
+
     tel = Telescope.new(
         name="gcrsky-sim", location=location,
         antenna_positions={int(n): p for n, p in zip(numbers, _ecef_relative(pos, location))},
-        instrument="matvis", x_orientation="east",
+        instrument="matvis", x_orientation="east", feeds=["x", "y"], mount_type="fixed",  # kept only with a mount
     )
     uvd = UVData.new(
         freq_array=freqs, polarization_array=np.asarray([utils.polstr2num(p) for p in pols], np.int64),
         times=np.asarray(times.jd), telescope=tel,
         antpairs=[(int(numbers[i]), int(numbers[j])) for i, j in pairs], do_blt_outer=True,
         time_axis_faster_than_bls=False, integration_time=dt_s, channel_width=dnu_hz,
-        data_array=blt(data).astype(np.complex128), vis_units=vis_units,
-        history=f"gcrsky.checks.uvsim: matvis {getattr(matvis, '__version__', '?')} polarized simulation, "
-        f"ICRS sky at lmax {lmax}, nside {nside_matvis}, radiometer noise dt={dt_s} s dnu={dnu_hz} Hz",
+        data_array=data_blt.astype(np.complex128), vis_units=vis_units, history=history,
     )
     uvd.pol_convention = pol_convention
     uvd.check()
-    return SimulatedUVData(uvd, blt(model), blt(sigma))
+    return uvd

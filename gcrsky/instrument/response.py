@@ -209,6 +209,26 @@ def response_matrix(
     Returns:
         (Nf, Nbl, (lmax+1)**2) complex128 response in K sr per unit coefficient (K).
     """
+    freqs, pairs, method = _checked_inputs(array, pairs, freqs_hz, lmax, method, beam_floor)
+    pols = normalise_pols(pols, pairs.shape[0])
+    grid = sky_grid(nside, array.latitude_rad, lst_ref_rad)
+    _check_response_memory(array, pairs, freqs, lmax, grid, pols)
+    if method == "sht":
+        from .response_sht import response_matrix_sht
+
+        return response_matrix_sht(array, pairs, freqs, lmax, nside, lst_ref_rad, pols=pols)
+
+    grid, kern_r, kern_i, kidx = _grid_kernels(array, pairs, freqs, grid, pols, beam_floor)
+    bvec = baseline_vectors(array.positions_enu_m, pairs)
+    bvec_wl = jnp.asarray(bvec[None, :, :] * (freqs[:, None, None] / SPEED_OF_LIGHT))
+    weight_pix = np.full(grid.theta.size, grid.weight_sr)
+    if method == "rings":
+        return _rings(int(lmax), grid, kern_r, kern_i, kidx, bvec_wl, weight_pix)
+    return _direct(int(lmax), int(chunk), grid, kern_r, kern_i, kidx, bvec_wl, weight_pix)
+
+
+def _checked_inputs(array: AntennaArray, pairs, freqs_hz, lmax: int, method: str, beam_floor: float):
+    """``(freqs (Nf,), pairs (Nbl, 2), method)`` of :func:`response_matrix`, checked; ``"auto"`` resolved."""
     freqs = np.atleast_1d(np.asarray(freqs_hz, np.float64))
     if freqs.ndim != 1 or not np.all(freqs > 0):
         raise ValueError("freqs_hz must be a 1-D array of positive frequencies")
@@ -222,9 +242,12 @@ def response_matrix(
         method = "sht" if int(lmax) >= RESPONSE_SHT_MIN_LMAX else "rings"
     if not (0.0 <= beam_floor < 1.0):
         raise ValueError(f"beam_floor must be in [0, 1), got {beam_floor!r}")
-    pols = normalise_pols(pols, pairs.shape[0])
+    return freqs, pairs, method
+
+
+def _check_response_memory(array: AntennaArray, pairs, freqs, lmax: int, grid: SkyGrid, pols) -> None:
+    """Refuse a response (result, accumulator, chunk, kernels) larger than the free memory."""
     out_bytes = 16.0 * freqs.size * pairs.shape[0] * n_params(lmax)
-    grid = sky_grid(nside, array.latitude_rad, lst_ref_rad)
     bidx = unique_beams(array.beams)[1]
     nkern = len(set(zip(bidx[pairs[:, 0]].tolist(), bidx[pairs[:, 1]].tolist(), pols or (None,) * len(pairs))))
     check_memory(
@@ -234,12 +257,15 @@ def response_matrix(
         "frequencies per call",
     )
 
-    if method == "sht":
-        from .response_sht import response_matrix_sht
 
-        return response_matrix_sht(array, pairs, freqs, lmax, nside, lst_ref_rad, pols=pols)
+def _grid_kernels(array: AntennaArray, pairs, freqs, grid: SkyGrid, pols, beam_floor: float):
+    """The beam kernels on the grid, once per (beam pair, product): ``(grid, kern_r, kern_i, kidx)``.
 
-    kern = baseline_kernels(array.beams, pairs, grid.az_uvbeam, grid.za, freqs, pols)  # once per (beam pair, product)
+    Pixels where every kernel is at most ``beam_floor`` times the peak are dropped from
+    the grid; ``kern_r``, ``kern_i``: (Nf, Nk, Npix) real and imaginary parts (``kern_i``
+    None for a real kernel); ``kidx``: (Nbl,) kernel of each row.
+    """
+    kern = baseline_kernels(array.beams, pairs, grid.az_uvbeam, grid.za, freqs, pols)
     K, kidx = kern.kernels, kern.index  # (Nf, Nk, Np), (Nbl,)
     if beam_floor > 0:
         peak = np.max(np.abs(K), axis=(0, 1))  # (Np,)
@@ -247,13 +273,12 @@ def response_matrix(
         grid = grid._replace(**{f: getattr(grid, f)[keep] for f in ("pix", "theta", "phi", "enu", "az_uvbeam", "za")})
         K = K[:, :, keep]
     kern_r, kern_i = (K, None) if np.isrealobj(K) else (np.ascontiguousarray(K.real), np.ascontiguousarray(K.imag))
-    bvec = baseline_vectors(array.positions_enu_m, pairs)
-    bvec_wl = jnp.asarray(bvec[None, :, :] * (freqs[:, None, None] / SPEED_OF_LIGHT))
-    weight_pix = np.full(grid.theta.size, grid.weight_sr)
+    return grid, kern_r, kern_i, kidx
 
-    if method == "rings":
-        return _rings(int(lmax), grid, kern_r, kern_i, kidx, bvec_wl, weight_pix)
 
+def _direct(lmax: int, chunk: int, grid: SkyGrid, kern_r, kern_i, kidx, bvec_wl, weight_pix) -> jax.Array:
+    """The direct quadrature (every basis map on every pixel) in chunks of ``chunk`` pixels."""
+    nf = bvec_wl.shape[0]
     npix = grid.theta.size
     nchunk = -(-npix // chunk)
     pad = nchunk * chunk - npix
@@ -266,11 +291,11 @@ def response_matrix(
     def chunked(k):
         if k is None:
             return None
-        return jnp.asarray(padded(k, axis=2).reshape(freqs.size, k.shape[1], nchunk, chunk).transpose(2, 0, 1, 3))
+        return jnp.asarray(padded(k, axis=2).reshape(nf, k.shape[1], nchunk, chunk).transpose(2, 0, 1, 3))
 
     return _quadrature(
-        int(lmax),
-        int(chunk),
+        lmax,
+        chunk,
         jnp.asarray(padded(grid.theta).reshape(nchunk, chunk)),
         jnp.asarray(padded(grid.phi).reshape(nchunk, chunk)),
         jnp.asarray(padded(grid.enu).reshape(nchunk, chunk, 3)),

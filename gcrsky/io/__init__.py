@@ -12,13 +12,18 @@
 - ``atomic``: every file is written to a temporary name beside the target and
   renamed over it (:func:`atomic_path`), so a kill never leaves a half-written file.
 
+- ``observation``: a visibility file in: :func:`read_observation` (any file pyuvdata
+  reads, selected and read partially, as an :class:`~gcrsky.model.Observation` in
+  gcrsky's conventions: what the file says, no physics);
 - ``uvdata``: real observations in: :func:`from_uvdata` (a
-  :class:`~gcrsky.model.Problem` from any file pyuvdata reads, conventions pinned) and
+  :class:`~gcrsky.model.Problem` from any file pyuvdata reads: :func:`read_observation`
+  then :func:`gcrsky.model.problem_from_observation`, with beam and prior files) and
   :func:`inspect_uvdata` (what it would use, without solving).
 """
 
 from .atomic import atomic_path, atomic_write_text, is_temporary
 from .fits import FRAMES, freq_column_names, write_alm_fits, write_healpix_fits
+from .observation import read_observation
 from .results import (
     ResultsState,
     StoredDraws,
@@ -57,6 +62,7 @@ __all__ = [
     "is_temporary",
     "json_default",
     "read_draws",
+    "read_observation",
     "read_results_state",
     "read_uvdata",
     "settings_json",

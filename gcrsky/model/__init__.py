@@ -1,13 +1,18 @@
 """The statistical model: visibility operator, noise, prior, the linear system, problems.
 
 - ``operator``: :class:`VisOperator`: ``X`` and its adjoint as jitted functions
-- ``noise``: radiometer noise from the autos, flags as weights, data cleaning
+- ``noise``: the radiometer equation (:func:`radiometer_variance`) and time-difference
+  noise, flags as weights, data cleaning
 - ``prior``: Gaussian priors (the paper's, isotropic from C_l, flat)
 - ``skyprior``: a prior for real data: the GSM's angular power spectrum (a shipped table)
 - ``system``: :class:`LinearSystem`: precision operator, Wiener and GCR right-hand sides;
   :func:`check_system`, what is wrong with a hand-edited system
 - ``problem``: :class:`Problem` and :func:`build_problem` (geometry, responses, simulation, assembly)
 - ``compress``: exact redundant-baseline compression of data, systems, problems
+- ``observation``: :class:`Observation`, what a visibility file says (NumPy arrays on
+  gcrsky's grids, no physics; :func:`gcrsky.io.read_observation` reads one)
+- ``observed``: :func:`problem_from_observation`: an Observation plus beams as a
+  :class:`Problem` (modelled products, units, radiometer noise, weights, responses)
 - ``template``: hyperparameter families: the paper's spectral template (one coefficient
   set for all channels, scaled by ``(nu/nu0)^beta``), noise and prior scales
 """
@@ -22,8 +27,12 @@ from .noise import (
     draw_noise,
     inverse_variance,
     radiometer_sigma,
+    radiometer_variance,
+    time_difference_variance,
     weights_from_flags,
 )
+from .observation import Observation
+from .observed import DataConfig, check_observation, problem_from_observation, raw_variance
 from .operator import (
     VisOperator,
     adjoint,
@@ -72,9 +81,11 @@ from .template import (
 )
 
 __all__ = [
+    "DataConfig",
     "GSM_CL_FIT_RANGE",
     "Geometry",
     "LinearSystem",
+    "Observation",
     "Prior",
     "Problem",
     "VisOperator",
@@ -82,6 +93,7 @@ __all__ = [
     "apply",
     "assemble_problem",
     "build_problem",
+    "check_observation",
     "check_system",
     "clean_data",
     "compress_problem",
@@ -108,12 +120,16 @@ __all__ = [
     "precision_matrix",
     "precision_matrix_by_time",
     "prior_from_cl",
+    "problem_from_observation",
     "problem_responses",
     "radiometer_sigma",
+    "radiometer_variance",
+    "raw_variance",
     "response_at",
     "scale_noise",
     "simulate_data",
     "spectral_template_system",
+    "time_difference_variance",
     "time_terms",
     "to_response_frame",
     "weights_from_flags",

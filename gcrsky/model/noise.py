@@ -25,6 +25,8 @@ import numpy as np
 
 __all__ = [
     "radiometer_sigma",
+    "radiometer_variance",
+    "time_difference_variance",
     "inverse_variance",
     "draw_noise",
     "clean_data",
@@ -32,10 +34,33 @@ __all__ = [
 ]
 
 
+def radiometer_variance(auto_i, auto_j, dt_s, dnu_hz, nsamples=1.0) -> np.ndarray:
+    """The radiometer equation: per-component noise variance ``V_ii V_jj / (2 dt dnu N)``.
+
+    The one implementation of the equation in gcrsky (simulated problems through
+    :func:`radiometer_sigma`, real files through :func:`gcrsky.model.problem_from_observation`
+    and :func:`gcrsky.io.inspect_uvdata`).  Elementwise and NaN-propagating, with no checks,
+    so that a missing or flagged autocorrelation (NaN) or a zero ``nsamples`` (Inf) marks
+    the samples whose noise is unknown.
+
+    Args:
+        auto_i, auto_j: real auto-visibilities ``V_ii``, ``V_jj`` (any broadcastable shapes,
+            e.g. (Nf, Nt, Nbl); the file's units, or K sr).
+        dt_s: integration time, seconds (broadcastable, e.g. (1, Nt, Nbl)).
+        dnu_hz: channel width, Hz (broadcastable, e.g. (Nf, 1, 1)).
+        nsamples: the samples' nsample ``N`` (broadcastable; default 1).
+
+    Returns:
+        the per-component variance ``sigma^2`` (each of Re, Im), in the autos' units squared.
+    """
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return auto_i * auto_j / (2.0 * dt_s * dnu_hz * nsamples)
+
+
 def radiometer_sigma(
     auto_i, auto_j, dt_s: float, dnu_hz: float, *, convention: Literal["per_component", "total"] = "per_component"
 ) -> np.ndarray:
-    """Noise standard deviation from the radiometer equation.
+    """Noise standard deviation from the radiometer equation (:func:`radiometer_variance`).
 
     Args:
         auto_i, auto_j: real auto-visibilities ``V_ii``, ``V_jj`` (any broadcastable shape).
@@ -49,12 +74,40 @@ def radiometer_sigma(
     ai, aj = np.asarray(auto_i, np.float64), np.asarray(auto_j, np.float64)
     if np.any(ai <= 0) or np.any(aj <= 0):
         raise ValueError("auto-visibilities must be positive to define radiometer noise")
-    total = ai * aj / (dt_s * dnu_hz)
-    if convention == "per_component":
-        return np.sqrt(total / 2.0)
-    if convention == "total":
-        return np.sqrt(total)
-    raise ValueError(f"convention must be 'per_component' or 'total', got {convention!r}")
+    if convention not in ("per_component", "total"):
+        raise ValueError(f"convention must be 'per_component' or 'total', got {convention!r}")
+    var = radiometer_variance(ai, aj, dt_s, dnu_hz)  # exact powers of two apart from V_ii V_jj / (dt dnu)
+    return np.sqrt(var) if convention == "per_component" else np.sqrt(2.0 * var)
+
+
+def time_difference_variance(vis, usable, nsamples) -> np.ndarray:
+    """Per-component noise variance from time-adjacent differences, one level per channel and baseline.
+
+    ``E|V_t+1 - V_t|^2 = 2 sigma_1^2 (1/N_t + 1/N_t+1)`` for white noise of variance
+    ``sigma_1^2 / N`` per component: ``sigma_1^2`` is the mean of
+    ``|V_t+1 - V_t|^2 / (2 (1/N_t + 1/N_t+1))`` over the usable adjacent pairs.  It includes
+    any change of the sky between adjacent integrations (an overestimate for long
+    integrations on long baselines).
+
+    Args:
+        vis: (Nf, Nt, Nbl) complex visibilities (time on axis 1).
+        usable: (Nf, Nt, Nbl) bool, True where a sample is unflagged with a positive nsample.
+        nsamples: (Nf, Nt, Nbl) nsample ``N`` of each sample.
+
+    Returns:
+        (Nf, Nt, Nbl) variance ``sigma_1^2 / N_t``; NaN for unusable samples and for a
+        (channel, baseline) without a usable adjacent pair.
+    """
+    if vis.shape[1] < 2:
+        raise ValueError("noise='diff' needs at least two integrations")
+    ok = usable
+    inv_n = np.where(ok, 1.0 / np.where(ok, nsamples, 1.0), 0.0)
+    pair_ok = ok[:, 1:] & ok[:, :-1]
+    d2 = np.abs(vis[:, 1:] - vis[:, :-1]) ** 2 / (2.0 * (inv_n[:, 1:] + inv_n[:, :-1]) + ~pair_ok)
+    cnt = pair_ok.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s1 = np.where(cnt > 0, np.sum(np.where(pair_ok, d2, 0.0), axis=1) / cnt, np.nan)  # (Nf, Nbl): sigma_1^2
+    return s1[:, None, :] * np.where(ok, inv_n, np.nan)
 
 
 def inverse_variance(sigma, weights=None) -> np.ndarray:
