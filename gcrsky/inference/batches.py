@@ -56,7 +56,7 @@ def draw_batches(
 
     Args:
         key: the run's PRNG key (e.g. ``jax.random.PRNGKey(seed)``).
-        prepared: a prepared path (:func:`gcrsky.prepare` / :func:`gcrsky.inference.prepare_sampler`).
+        prepared: a prepared path (:func:`gcrsky.prepare` / :func:`gcrsky.inference.prepare_system`).
         nsamples: total number of draws.
         batch: draws per batch (part of the draws' identity).
         progress: optional wrapper of the batch-index iterable, e.g.

@@ -86,6 +86,9 @@ class DataConfig:
         lst_range_hours: (first, last) local sidereal time of the data, hours (last may
             exceed 24 when the data wrap through 0 h): the observed strip's RA range.
         fwhm_deg: (Nf,) FWHM of the first antenna's beam (feed x power), degrees.
+        checks: what the ingest checked and decided, by section (e.g. ``"beam"``,
+            ``"calibration"``, ``"flux_scale"``, ``"flags"``, ``"band_limit"``, ``"prior"``):
+            JSON-friendly dicts, copied into ``summary.json``'s ``"data_checks"``.
     """
 
     source: str
@@ -101,6 +104,7 @@ class DataConfig:
     latitude_deg: float
     lst_range_hours: tuple
     fwhm_deg: tuple
+    checks: dict = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)

@@ -171,6 +171,7 @@ def _summary(prob, spec: RunSpec, run: OpenRun, view: RunView, solver: dict, war
         figures=figures, products={**PRODUCT_FILES, "results": RESULTS_FILE}, products_note=PRODUCTS_NOTE,
         config=cfg.to_dict() if cfg is not None else None, sky_note=prob.sky_note, versions=versions(),
         exit_status=0 if view.finite else 1,
+        data_checks=dict(getattr(cfg, "checks", None) or {}) or None,
     )
     write_json(path, summary.to_json())
     return summary

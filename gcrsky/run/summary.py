@@ -68,6 +68,11 @@ class RunSummary:
         sky_note: where the problem's sky came from; versions: :func:`versions`.
         exit_status: 0, or 1 when a draw is not finite.
         *_note: what the blocks mean, in words.
+        data_checks: what the ingest checked and decided about a file's data (the
+            configuration's ``checks``: beam, calibration, flux scale, flags, band limit, prior),
+            or None for a simulated run.
+        goodness_of_fit: the posterior predictive check of the data against the model, or
+            None where it was not computed.
     """
 
     frac_diff_centre_median: float | None
@@ -89,6 +94,8 @@ class RunSummary:
     sky_note: str | None
     versions: dict
     exit_status: int
+    data_checks: dict | None = None
+    goodness_of_fit: dict | None = None
 
     def to_json(self) -> dict:
         """The ``summary.json`` object: ``{field: value}`` in field order."""
