@@ -107,3 +107,17 @@ def small_response(small_array) -> SmallResponse:
     freqs = np.asarray(SMALL_FREQS_HZ)
     resp = response_matrix(small_array, pairs, freqs, SMALL_LMAX, SMALL_NSIDE)
     return SmallResponse(resp, small_array, pairs, freqs, SMALL_LMAX, SMALL_NSIDE)
+
+
+def isotropic_problem(small_array, small_response, lsts, seed: int, *, cl_scale: float = 50.0):
+    """A Problem on ``small_array`` at ``lsts`` (radians): an isotropic prior ``C_l = cl_scale / (1 + l)^2``,
+    a truth drawn from it with ``seed``, noise sigma 0.05, simulated data (the tests' small posterior)."""
+    from gcrsky.model import build_problem, isotropic_prior
+
+    lmax, nside, freqs = small_response.lmax, small_response.nside, small_response.freqs_hz
+    n, nf = (lmax + 1) ** 2, freqs.size
+    cl = np.tile(cl_scale / (1.0 + np.arange(lmax + 1)) ** 2, (nf, 1))
+    prior = isotropic_prior(cl, n)
+    truth = np.asarray(prior.inv_var) ** -0.5 * np.random.default_rng(seed).standard_normal((nf, n))
+    return build_problem(small_array, freqs, lsts, lmax, nside, a_true=truth, sigma=0.05, prior=prior,
+                         key=jax.random.PRNGKey(seed))

@@ -17,10 +17,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import isotropic_problem
 
 import gcrsky
 from gcrsky.inference import condition
-from gcrsky.model import build_problem, isotropic_prior, precision_matrix, wiener_rhs
+from gcrsky.model import precision_matrix, wiener_rhs
 from gcrsky.parallel import resolve_channel_path, sample_channels
 from gcrsky.solvers import PATHS, CholeskyOptions, EvidenceParts, SolveInfo, SolverPath, plan_sampler
 from gcrsky.solvers.info import DrawInfo, direct_info, exact_info
@@ -98,13 +99,7 @@ class WhitenedPath(SolverPath):
 
 @pytest.fixture(scope="module")
 def system(small_array, small_response):
-    lmax, nside, freqs = small_response.lmax, small_response.nside, small_response.freqs_hz
-    n, nf = (lmax + 1) ** 2, freqs.size
-    cl = np.tile(50.0 / (1.0 + np.arange(lmax + 1)) ** 2, (nf, 1))
-    prior = isotropic_prior(cl, n)
-    truth = np.asarray(prior.inv_var) ** -0.5 * np.random.default_rng(3).standard_normal((nf, n))
-    return build_problem(small_array, freqs, np.linspace(0.0, 2.0, 9), lmax, nside, a_true=truth, sigma=0.05,
-                         prior=prior, key=jax.random.PRNGKey(3)).system()
+    return isotropic_problem(small_array, small_response, np.linspace(0.0, 2.0, 9), 3).system()
 
 
 def test_a_new_path_is_one_module_plus_one_registry_line(system, monkeypatch, getkey):

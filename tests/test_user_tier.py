@@ -13,11 +13,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import isotropic_problem
 from scipy import stats
 
 import gcrsky
 from gcrsky.inference import condition, draw_bucket
-from gcrsky.model import build_problem, isotropic_prior
 from gcrsky.solvers import (
     PATHS,
     CGOptions,
@@ -35,13 +35,7 @@ WF_REL = 1e-10  # Wiener filter of draw(..., data=d2) against a fresh prepare: r
 
 
 def _problem(small_array, small_response, lsts, seed):
-    lmax, nside, freqs = small_response.lmax, small_response.nside, small_response.freqs_hz
-    n, nf = (lmax + 1) ** 2, freqs.size
-    cl = np.tile(50.0 / (1.0 + np.arange(lmax + 1)) ** 2, (nf, 1))
-    prior = isotropic_prior(cl, n)
-    truth = np.asarray(prior.inv_var) ** -0.5 * np.random.default_rng(seed).standard_normal((nf, n))
-    return build_problem(small_array, freqs, lsts, lmax, nside, a_true=truth, sigma=0.05, prior=prior,
-                         key=jax.random.PRNGKey(seed))
+    return isotropic_problem(small_array, small_response, lsts, seed)
 
 
 @pytest.fixture(scope="module")
