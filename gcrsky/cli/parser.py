@@ -24,6 +24,12 @@ from .options import (
 __all__ = ["build_parser"]
 
 
+def _sci(x: float) -> str:
+    """``1e-06`` as ``1e-6``."""
+    mant, exp = f"{x:.0e}".split("e")
+    return f"{mant}e{int(exp)}"
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser (defaults of the physics options come from :class:`gcrsky.sim.Config`)."""
     p = argparse.ArgumentParser(
@@ -77,7 +83,7 @@ def _add_run_parser(sub) -> None:
                    "Cholesky and data space (fewer data values than parameters) where they fit, else matrix-free "
                    "CG; or the scenario's: eigh where S^-1 = 0 makes P singular)")
     r.add_argument("--tol", type=positive_float("tol"), default=None,
-                   help=f"CG tolerance in posterior-sigma units (default {DEFAULT_TOL:g}, or the scenario's)")
+                   help=f"CG tolerance in posterior-sigma units (default {_sci(DEFAULT_TOL)}, or the scenario's)")
     r.add_argument("--batch", type=int_at_least(1, "batch"), default=DEFAULT_BATCH,
                    help="draws per batch (part of the draws' seed: see the module doc)")
     add_run_flags(r, plots_help="skip the PNG figures")
