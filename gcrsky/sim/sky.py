@@ -25,8 +25,6 @@ all for our purposes.
 
 from __future__ import annotations
 
-import functools
-import importlib.resources
 import logging
 import numbers
 import os
@@ -36,7 +34,7 @@ from unittest import mock
 
 import numpy as np
 
-from ..base.extras import require
+from ..model.gsmsky import gsm_source_maps, loglog_interp
 from ..sphere.modes import n_params, realify, unrealify
 
 __all__ = ["SkyTruth", "gsm2016_available", "gsm_cl_table", "sky_truth", "write_gsm_cl_table"]
@@ -165,96 +163,11 @@ def _realify_stack(alm: np.ndarray, lmax: int) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------
-# pyradiosky's shipped GSM map
+# pyradiosky's shipped GSM map (read by gcrsky.model.gsmsky)
 # --------------------------------------------------------------------------
 
-
-def _pyradiosky_gsm_path() -> str:
-    require("pyradiosky", "sim", "the embedded GSM truth sky")
-    res = importlib.resources.files("pyradiosky").joinpath("data/gsm_icrs.skyh5")
-    path = str(res)
-    if not os.path.isfile(path):
-        raise RuntimeError(
-            f"pyradiosky's shipped GSM map was not found at {path}; "
-            "reinstall pyradiosky (the file is part of its package data)"
-        )
-    return path
-
-
-@functools.lru_cache(maxsize=1)
-def _load_pyradiosky_gsm():
-    """Read the shipped map once.
-
-    Returns ``(freqs_hz (nchan,), maps (nchan, npix) K Stokes I RING, nside, path)``,
-    arrays read-only.  Checks (and converts where possible) the layout rather
-    than assuming it: HEALPix, ICRS, full spectral type, K, full-sky, RING.
-    """
-    import astropy.units as u
-    import healpy as hp
-    from pyradiosky import SkyModel
-
-    path = _pyradiosky_gsm_path()
-    sm = SkyModel.from_file(path)
-    if sm.component_type != "healpix":
-        raise RuntimeError(f"{path}: expected a HEALPix sky model, got {sm.component_type!r}")
-    frame = getattr(sm, "frame", None)
-    if frame is None and sm.skycoord is not None:  # older pyradiosky
-        frame = sm.skycoord.frame.name
-    if str(frame).lower() != "icrs":
-        raise RuntimeError(f"{path}: expected the ICRS frame, got {frame!r}")
-    if sm.spectral_type != "full":
-        raise RuntimeError(f"{path}: expected spectral_type 'full', got {sm.spectral_type!r}")
-    if sm.stokes.unit != u.K:
-        raise RuntimeError(f"{path}: expected stokes in K, got {sm.stokes.unit}")
-
-    nside = int(sm.nside)
-    npix = hp.nside2npix(nside)
-    stokes_i = np.asarray(sm.stokes[0].to_value(u.K), dtype=np.float64)  # (nchan, ncomp)
-    inds = np.asarray(sm.hpx_inds, dtype=np.int64)
-    if inds.size != npix or np.unique(inds).size != npix:
-        raise RuntimeError(f"{path}: expected a full-sky map of {npix} pixels, got {inds.size}")
-    maps = np.empty((stokes_i.shape[0], npix))
-    maps[:, inds] = stokes_i
-    order = str(sm.hpx_order).lower()
-    if order.startswith("nest"):
-        maps = np.stack([hp.reorder(x, n2r=True) for x in maps])
-    elif order != "ring":
-        raise RuntimeError(f"{path}: unknown HEALPix ordering {sm.hpx_order!r}")
-
-    freqs = np.asarray(sm.freq_array.to_value(u.Hz), dtype=np.float64).reshape(-1)
-    if not np.all(np.diff(freqs) > 0):
-        raise RuntimeError(f"{path}: channel frequencies are not increasing: {freqs}")
-    if not np.all(maps > 0) or not np.all(np.isfinite(maps)):
-        raise RuntimeError(f"{path}: Stokes I must be positive and finite for log-log interpolation")
-    freqs.setflags(write=False)
-    maps.setflags(write=False)
-    return freqs, maps, nside, path
-
-
-def _loglog_interp(src_freqs: np.ndarray, src_maps: np.ndarray, freqs: np.ndarray) -> np.ndarray:
-    """Per-pixel power-law interpolation between bracketing channels.
-
-    ``src_maps (nchan, npix)`` at increasing ``src_freqs (nchan,)`` ->
-    ``(nfreq, npix)``.  Exact channel frequencies return the channel map
-    unchanged.  Frequencies outside the channel range raise ``ValueError``.
-    """
-    lo, hi = src_freqs[0], src_freqs[-1]
-    bad = (freqs < lo * (1 - _FREQ_RTOL)) | (freqs > hi * (1 + _FREQ_RTOL))
-    if np.any(bad):
-        raise ValueError(
-            f"frequencies {freqs[bad] / 1e6} MHz are outside the pyradiosky GSM map's "
-            f"channel range [{lo / 1e6:.4f}, {hi / 1e6:.4f}] MHz "
-            f"({src_freqs.size} channels); no extrapolation is done"
-        )
-    f = np.clip(freqs, lo, hi)
-    i = np.clip(np.searchsorted(src_freqs, f, side="right") - 1, 0, src_freqs.size - 2)
-    t0, t1 = src_maps[i], src_maps[i + 1]
-    beta = np.log(t1 / t0) / np.log(src_freqs[i + 1] / src_freqs[i])[:, None]
-    out = t0 * (f / src_freqs[i])[:, None] ** beta
-    exact = np.flatnonzero(np.isin(f, src_freqs))
-    for k in exact:
-        out[k] = src_maps[np.searchsorted(src_freqs, f[k])]
-    return out
+_load_pyradiosky_gsm = gsm_source_maps
+_loglog_interp = loglog_interp
 
 
 def _fit_power_law(cl: np.ndarray, lmin: int, lmax: int) -> tuple[float, float]:
@@ -539,7 +452,7 @@ def write_gsm_cl_table(path=None) -> str:
     freqs, cl = gsm_cl_table()
     path = Path(path) if path is not None else Path(__file__).parents[1] / "model" / "gsm_cl.json"
     doc = {
-        "source": f"pyradiosky {_pyradiosky_gsm_path().rsplit('/', 1)[-1]} (nside 8, ICRS, K): healpy alm2cl of "
+        "source": f"pyradiosky {gsm_source_maps()[3].rsplit('/', 1)[-1]} (nside 8, ICRS, K): healpy alm2cl of "
                   "map2alm(iter=3), gcrsky.sim.sky.gsm_cl_table",
         "units": "K^2",
         "freqs_hz": [float(f) for f in freqs],
