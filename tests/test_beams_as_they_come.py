@@ -231,3 +231,80 @@ def test_compass_pol_names(sim):
     real = REAL / "zen.2458098.45361.HH_downselected.uvh5"
     if real.exists():  # the H1C file: pols ee/nn, x_orientation east
         assert feed_pol_of(str(real), "nn,ee")[0] == "yy,xx"
+
+
+def test_response_kernel_of_a_clipped_power_beam_is_non_negative():
+    """The response's kernel of a power beam (pyuvdata's cubic spatial spline) is clipped at 0: measured undershoot
+    of the clipped beam ~1e-3 of the peak before clipping (the negative control: pyuvdata's own evaluation)."""
+    from pyuvdata import BeamInterface
+
+    from gcrsky.instrument.polarization import cross_power_kernel
+
+    uvb, _ = resample_beam(_clipped_power_beam(), np.array([130e6]))
+    za = np.deg2rad(np.linspace(0, 40, 2001))
+    az = np.full_like(za, 0.3)
+    raw = np.real(BeamInterface(uvb).compute_response(az_array=az, za_array=za, freq_array=np.array([130e6]),
+                                                      interpolation_function="az_za_map_coordinates"))
+    assert raw.min() < 0
+    k = cross_power_kernel(uvb, uvb, "xx", az, za, np.array([130e6]))
+    assert np.all(k.real >= 0) and np.all(np.isfinite(k))
+    np.testing.assert_allclose(k.real, np.clip(raw[0, 0], 0, None), atol=1e-12)
+
+
+def test_prior_mean_gsm_through_from_uvdata(sim):
+    from gcrsky.model.skyprior import gsm_cl, gsm_prior_mean
+
+    uvd, _ = sim
+    p = _problem(uvd, _hera(), prior_mean="gsm")
+    np.testing.assert_allclose(np.asarray(p.prior.mean), gsm_prior_mean(FREQS, LMAX), rtol=1e-12)
+    np.testing.assert_allclose(1 / np.asarray(p.prior.inv_var)[:, 0], gsm_cl(FREQS, LMAX)[:, 0], rtol=1e-12)
+    rec = p.config.checks["prior"]
+    assert rec["mean"].startswith("GSM coefficients") and rec["gsm_cl_table_range_hz"] == [30e6, 250e6]
+    assert "GSM mean" in p.config.prior
+    zero = _problem(uvd, _hera())
+    assert zero.config.checks["prior"]["mean"] == "zero" and not np.any(np.asarray(zero.prior.mean))
+    with pytest.raises(ValueError, match="flat prior has no mean"):
+        _problem(uvd, _hera(), prior="flat", prior_mean="gsm")
+    with pytest.raises(ValueError, match="prior_mean must be one of"):
+        _problem(uvd, _hera(), prior_mean="map")
+
+
+def test_out_of_band_prior_refused_before_the_beam_is_read(sim):
+    uvd, _ = sim
+    high = uvd.copy()
+    high.freq_array = high.freq_array + 160e6  # 260-261 MHz: beyond the GSM C_l table
+    with pytest.raises(ValueError, match="GSM C_l table covers 30-250 MHz"):
+        from_uvdata(high, lmax=LMAX, nside=NSIDE, beam="/nonexistent/beam.fits", pol="xx")
+
+
+@pytest.fixture(scope="module")
+def uvh5(sim, tmp_path_factory):
+    path = tmp_path_factory.mktemp("beams") / "obs.uvh5"
+    sim[0].write_uvh5(str(path))
+    return path
+
+
+def test_cli_beam_options(uvh5, tmp_path, capsys):
+    import json
+
+    from gcrsky import cli
+
+    image = REAL / "HERABEAM.FITS"
+    if image.exists():
+        rc = cli.main(["run", "--data", str(uvh5), "--beam", str(image), "--out", str(tmp_path / "a"), "--no-progress"])
+        assert rc == 2 and "--beam-freq-scaling" in capsys.readouterr().err
+    assert cli.main(["inspect", str(uvh5), "--json", "--pol", "nn"]) == 0
+    assert json.loads(capsys.readouterr().out)["modelled_products"] == ["yy"]
+    hera = tmp_path / "hera_physical.beamfits"
+    phys = _hera()
+    phys.data_array = phys.data_array * np.sqrt(PEAK)
+    phys.data_normalization = "physical"
+    phys.write_beamfits(str(hera))
+    out = tmp_path / "run"
+    rc = cli.main(["run", "--data", str(uvh5), "--beam", str(hera), "--pol", "ee", "--prior-mean", "gsm", "--lmax",
+                   str(LMAX), "--nside", str(NSIDE), "--nsamples", "4", "--batch", "4", "--no-progress", "--no-plots",
+                   "--out", str(out)])
+    assert rc == 0
+    checks = json.loads((out / "summary.json").read_text())["data_checks"]
+    assert checks["beam"]["file"] == str(hera) and checks["beam"]["normalization_used"] == "peak"
+    assert checks["pol"]["as"] == "xx" and checks["prior"]["mean"].startswith("GSM")
