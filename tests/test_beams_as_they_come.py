@@ -308,3 +308,30 @@ def test_cli_beam_options(uvh5, tmp_path, capsys):
     checks = json.loads((out / "summary.json").read_text())["data_checks"]
     assert checks["beam"]["file"] == str(hera) and checks["beam"]["normalization_used"] == "peak"
     assert checks["pol"]["as"] == "xx" and checks["prior"]["mean"].startswith("GSM")
+
+
+def test_efield_beam_power_between_channels_is_non_negative():
+    """A clipped E-field beam on 4 channels keeps its channels; the power the response interpolates cubically between
+    them (pyuvdata's, after efield_to_power) undershoots 0 (the negative control) and is clipped where evaluated."""
+    from pyuvdata import BeamInterface
+    from pyuvdata.analytic_beam import GaussianBeam
+
+    from gcrsky.instrument.polarization import cross_power_kernel
+
+    ch = np.array([100e6, 130e6, 160e6, 190e6])
+    g = GaussianBeam(sigma=np.deg2rad(8.0), spectral_index=-2.0, reference_frequency=100e6)
+    uvb = g.to_uvbeam(freq_array=ch, beam_type="efield", axis1_array=np.deg2rad(np.arange(0, 360, 5.0)),
+                      axis2_array=np.deg2rad(np.linspace(0, 90, 181)))
+    uvb.data_array = np.where(np.abs(uvb.data_array) ** 2 < 0.1, 0.0, uvb.data_array)
+    uvb.data_normalization = "peak"
+    prep, rec = prepare_beam(uvb, np.array([112e6]), x_orientation="east")
+    assert prep is uvb and "cubically" in rec["frequency"]
+    za = np.deg2rad(np.linspace(0, 30, 601))
+    az = np.zeros_like(za)
+    pw = uvb.efield_to_power(calc_cross_pols=False, inplace=False)
+    raw = np.real(BeamInterface(pw).compute_response(az_array=az, za_array=za, freq_array=np.array([112e6]),
+                                                     freq_interp_kind="cubic",
+                                                     interpolation_function="az_za_map_coordinates"))
+    assert raw.min() < -1e-3
+    k = cross_power_kernel(prep, prep, "xx", az, za, np.array([112e6]))
+    assert np.all(k.real >= 0)

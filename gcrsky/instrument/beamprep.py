@@ -16,10 +16,11 @@ response needs, with a JSON-friendly record of what it found and did (copied int
 * **Frequencies.** A power UVBeam is resampled onto the data's channels *linearly* in
   frequency (weights in [0, 1] of non-negative channels: the power stays >= 0, where
   pyuvdata's default cubic interpolation of a clipped beam overshoots below zero); any
-  negative input value is clipped to 0 and counted.  An E-field beam keeps pyuvdata's
-  cubic interpolation: its power ``|E|^2`` cannot be negative.  The spatial (cubic spline)
-  interpolation of a power beam is clipped at 0 where it is evaluated
-  (:mod:`gcrsky.instrument.polarization`).  A single-frequency beam used at other
+  negative input value is clipped to 0 and counted.  An E-field beam keeps its channels
+  (resampling an E-field decoheres its phase); its power is interpolated between them
+  where it is evaluated.  What cubic interpolation (pyuvdata's spatial spline; frequency
+  with four or more E-field channels) leaves below 0 is clipped to 0 where the power is
+  evaluated (:func:`gcrsky.instrument.beams.clip_power`), logged.  A single-frequency beam used at other
   frequencies needs ``freq_scaling``: ``"none"`` (the same pattern at every frequency) or
   ``"lambda"`` (angular size ~ 1/nu: ``P_nu(za) = P_nu0(arcsin(sin(za) nu / nu0))``, an
   aperture's pattern as a function of ``sin(za) D / lambda``; zero where the argument
@@ -181,8 +182,9 @@ def resample_beam(uvb, freqs_hz, freq_scaling: str | None = None):
     check_beam_frequencies(uvb, f)
     note = "" if freq_scaling is None else f"; freq_scaling {freq_scaling!r} ignored (the beam has {ch.size} channels)"
     if uvb.beam_type == "efield":
-        return uvb, {"frequency": f"{ch.size} channels, E-field interpolated cubically by pyuvdata "
-                     f"(power |E|^2 >= 0){note}"}
+        kind = "cubically" if ch.size >= 4 else "linearly"
+        return uvb, {"frequency": f"{ch.size} E-field channels; power interpolated {kind} between them where "
+                     f"evaluated, undershoot below 0 clipped{note}"}
     out = uvb.interp(freq_array=np.clip(f, ch.min(), ch.max()), freq_interp_kind="linear", new_object=True)
     n_neg = _clip_negative(out)
     return out, {"frequency": f"{ch.size} channels, power resampled linearly onto the data's {f.size} (stays >= 0)"

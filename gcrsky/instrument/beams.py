@@ -181,8 +181,8 @@ def beam_amplitude(beam, az_uvbeam_rad: np.ndarray, za_rad: np.ndarray, freqs_hz
         (Nfreq, Npix) real, non-negative amplitudes.
 
     Raises:
-        ValueError: a frequency outside a UVBeam's channel range; a power below
-            ``-NEGATIVE_POWER_TOL`` x its peak (smaller undershoot is clipped: :func:`clip_power`).
+        ValueError: a frequency outside a UVBeam's channel range.  Interpolation undershoot
+            below 0 is clipped (:func:`clip_power`).
     """
     from pyuvdata import BeamInterface
 
@@ -214,27 +214,27 @@ def beam_amplitude(beam, az_uvbeam_rad: np.ndarray, za_rad: np.ndarray, freqs_hz
     return np.sqrt(clip_power(power, _name(bi.beam)))
 
 
-#: Most negative power (relative to the peak) that is taken for interpolation overshoot and clipped to 0.
-NEGATIVE_POWER_TOL = 0.05
+#: Undershoot (relative to the peak) beyond which clipping an interpolated power to 0 is logged as a warning.
+NEGATIVE_POWER_TOL = 0.01
 
 
 def clip_power(power: np.ndarray, name: str = "beam") -> np.ndarray:
-    """A power pattern with its interpolation undershoot clipped to 0 (count logged at debug level).
+    """An interpolated power pattern with its undershoot below 0 clipped to 0 (the count logged).
 
-    The cubic spatial spline of a power UVBeam that is clipped to 0 (or drops steeply)
-    undershoots below 0 next to the drop; power is never negative, so those values are 0.
-    Values below ``-NEGATIVE_POWER_TOL`` x the peak are not undershoot: a ``ValueError``.
+    Cubic interpolation (pyuvdata's spatial spline; its frequency interpolation with four or
+    more channels) of a power beam that is clipped to 0 or drops steeply undershoots below
+    0 next to the drop; power is never negative, so those values are 0.  Undershoot deeper
+    than ``NEGATIVE_POWER_TOL`` x the peak is logged as a warning (the beam's sampling is
+    coarse for its structure), shallower at debug level.
     """
     power = np.asarray(power, np.float64)
     neg = power < 0
     if not np.any(neg):
         return power
     peak = np.max(np.abs(power))
-    if np.min(power) < -NEGATIVE_POWER_TOL * peak:
-        raise ValueError(f"{name}: beam power reaches {np.min(power) / peak:.3g} of its peak: not an interpolation "
-                         "undershoot; the beam is not a power pattern")
-    log.debug("%s: %d interpolated power values below 0 (min %.3g of the peak) clipped to 0", name, int(neg.sum()),
-              np.min(power) / peak)
+    deep = np.min(power) < -NEGATIVE_POWER_TOL * peak
+    log.log(logging.WARNING if deep else logging.DEBUG, "%s: %d interpolated power values below 0 (min %.3g of the "
+            "peak) clipped to 0", name, int(neg.sum()), np.min(power) / peak)
     return np.where(neg, 0.0, power)
 
 

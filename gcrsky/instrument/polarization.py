@@ -195,8 +195,8 @@ class _Evaluator:
                     self._power[key] = (obj, self._uv_response(obj))
                 pw, resp = self._power[key]
             k = resp[0, _pol_index(pw, q + p)]  # pyuvdata's "qp" = E_q conj(E_p) = our K_pq
-            if p == q:  # a power beam's spline undershoots below 0 next to a drop: power is >= 0
-                return clip_power(np.real(k), _name(obj)) if kind == "uv_power" else np.real(k)
+            if p == q:  # interpolated power (spatial spline, cubic in frequency) undershoots next to a drop
+                return clip_power(np.real(k), _name(obj))
             return np.asarray(k, np.complex128)
         if kind == "an_power" and p == q:
             pw = obj.power_eval(az_array=self.az, za_array=self.za, freq_array=self.freqs)
