@@ -228,6 +228,8 @@ def test_compass_pol_names(sim):
     xx = _problem(uvd, _hera())
     np.testing.assert_array_equal(np.asarray(ee.data), np.asarray(xx.data))
     assert ee.config.checks["pol"] == {"given": "ee", "as": "xx", "x_orientation": "east"}
+    with pytest.raises(ValueError, match="pol 'en' is 'xy' where feed x points east"):  # cross products: not modelled
+        feed_pol_of(uvd, "en")
     real = REAL / "zen.2458098.45361.HH_downselected.uvh5"
     if real.exists():  # the H1C file: pols ee/nn, x_orientation east
         assert feed_pol_of(str(real), "nn,ee")[0] == "yy,xx"

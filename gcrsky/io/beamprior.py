@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..model.observation import COMPASS_POLS, feed_pol
+from ..model.observation import COMPASS_POLS, feed_pol, parse_products
 from ..model.prior import Prior
 
 __all__ = ["PRIOR_MEANS", "apply_prior_mean", "feed_pol_of", "prepare_beams", "with_checks"]
@@ -52,6 +52,10 @@ def feed_pol_of(data, pol) -> tuple[object, dict | None]:
         tel = UVData.from_file(os.fspath(data), read_data=False).telescope
     xo = tel.get_x_orientation_from_feeds()
     out = feed_pol(pol, xo)
+    try:
+        parse_products(out)
+    except ValueError as err:
+        raise ValueError(f"{err} (pol {pol!r} is {out!r} where feed x points {xo})") from None
     return out, {"given": pol if isinstance(pol, str) else list(pol),
                  "as": out if isinstance(out, str) else list(out), "x_orientation": xo}
 
