@@ -235,7 +235,7 @@ def test_priors(sim, tmp_path):
     np.testing.assert_allclose(np.asarray(r.prior.mean)[:, 0], 7.0 * np.sqrt(4 * np.pi), rtol=1e-6)
     assert _problem(sim.uvdata, prior="flat").prior.inv_var.max() == 0.0
     with pytest.raises(ValueError, match="GSM C_l table covers"):
-        gsm_cl([200e6], 4)
+        gsm_cl([260e6], 4)
 
 
 def test_ingest_is_jax_x64_only():

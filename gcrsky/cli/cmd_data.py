@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from ..solvers.options import DEFAULT_TOL
-from .options import DEFAULT_NSAMPLES, data_kwargs
+from .options import DEFAULT_NSAMPLES, beam_prior_kwargs, data_kwargs
 from .runs import EXIT_REFUSED, execute_with_bars, report_run, run_spec
 from .terminal import refusal_message
 
@@ -69,7 +69,7 @@ def _data_settings(args, selection: dict) -> dict:
     return {"data_file": str(Path(args.data).resolve()), "data_sha256": _file_digest(args.data),
             "beam": args.beam, "dish_diameter": args.dish_diameter, "prior": args.prior,
             "prior_scale": args.prior_scale, "noise": args.noise, "compress": not args.no_compress,
-            "lmax": args.lmax, "nside": args.nside,
+            "lmax": args.lmax, "nside": args.nside, **beam_prior_kwargs(args),
             "selection": {k: (list(v) if isinstance(v, tuple) else v) for k, v in selection.items()}}
 
 
@@ -77,14 +77,9 @@ def _read_problem(args, selection: dict):
     """The :class:`~gcrsky.model.Problem` of the file (:func:`gcrsky.io.from_uvdata`)."""
     from ..io.uvdata import from_uvdata
 
-    beam = None
-    if args.beam is not None:
-        from ..instrument.beams import load_beam
-
-        beam = load_beam(args.beam)
-    return from_uvdata(args.data, lmax=args.lmax, nside=args.nside, beam=beam, dish_diameter_m=args.dish_diameter,
-                       prior=args.prior, prior_scale=args.prior_scale, noise=args.noise,
-                       compress=not args.no_compress, **selection)
+    return from_uvdata(args.data, lmax=args.lmax, nside=args.nside, beam=args.beam,  # a path: its file is recorded
+                       dish_diameter_m=args.dish_diameter, prior=args.prior, prior_scale=args.prior_scale,
+                       noise=args.noise, compress=not args.no_compress, **beam_prior_kwargs(args), **selection)
 
 
 def _run_data(args) -> int:

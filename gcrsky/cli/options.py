@@ -14,7 +14,9 @@ __all__ = [
     "add_channel_options",
     "add_compile_cache_options",
     "add_data_options",
+    "add_beam_prior_options",
     "add_run_flags",
+    "beam_prior_kwargs",
     "channel_mode",
     "check_channel_options",
     "data_kwargs",
@@ -166,8 +168,10 @@ def add_data_options(g, *, with_data: bool) -> None:
         g.add_argument("--noise", choices=("autos", "diff"), default="autos",
                        help="noise: radiometer equation on the file's autos, or time-adjacent differences")
         g.add_argument("--no-compress", action="store_true", help="keep every baseline (no redundant compression)")
+        add_beam_prior_options(g)
     g.add_argument("--pol", default="pI", metavar="pI|xx|yy|xx,yy",
-                   help="modelled product: pseudo-Stokes I (xx + yy), one feed product, or xx and yy jointly")
+                   help="modelled product: pseudo-Stokes I (xx + yy), one feed product, or xx and yy jointly; "
+                   "ee / nn (ee,nn) name feed products through the file's x_orientation (east: ee = xx)")
     g.add_argument("--freq-range", nargs=2, type=positive_float("freq-range"), default=None, metavar=("LO", "HI"),
                    help="keep channels in [LO, HI] MHz")
     g.add_argument("--chans", type=_csv("chans", int), default=None, metavar="I,J,...", help="channel indices to keep")
@@ -175,6 +179,27 @@ def add_data_options(g, *, with_data: bool) -> None:
                    help="keep integrations with LST in [START, STOP] hours (START > STOP wraps through 0 h)")
     g.add_argument("--antennas", type=_csv("antennas", _antenna), default=None, metavar="A,B,...",
                    help="antenna numbers or names to keep")
+
+
+def add_beam_prior_options(g) -> None:
+    """How a beam file is used and the prior's mean (:func:`gcrsky.instrument.beamprep.prepare_beam`)."""
+    g.add_argument("--beam-normalization", choices=("peak", "physical"), default="peak",
+                   help="peak (default): a beam the file calls 'physical' (directivity units) is divided by its peak "
+                   "power, as calibrated visibilities assume; physical: use the file's numbers as they are")
+    g.add_argument("--beam-freq-scaling", choices=("none", "lambda"), default=None,
+                   help="a beam with one frequency used at others: none (the same pattern) or lambda (angular size "
+                   "~ 1/frequency); required for such a beam")
+    g.add_argument("--accept-x-orientation-mismatch", action="store_true",
+                   help="run although the beam's feed x points elsewhere than the file's (a symmetric beam)")
+    g.add_argument("--prior-mean", choices=("zero", "gsm"), default="zero",
+                   help="the prior's mean: zero (default) or gsm (the GSM's coefficients at the data's frequencies, "
+                   "l <= 16), so the sky the data do not see is the GSM rather than zero")
+
+
+def beam_prior_kwargs(args) -> dict:
+    """from_uvdata's beam and prior-mean keywords from the parsed options."""
+    return dict(beam_normalization=args.beam_normalization, beam_freq_scaling=args.beam_freq_scaling,
+                accept_x_orientation_mismatch=args.accept_x_orientation_mismatch, prior_mean=args.prior_mean)
 
 
 def data_kwargs(args) -> dict:

@@ -19,6 +19,7 @@ range is a ``ValueError``.
 
 from __future__ import annotations
 
+import logging
 import os
 from typing import Mapping, Sequence
 
@@ -29,6 +30,8 @@ import numpy as np
 
 from ..base.units import SPEED_OF_LIGHT
 
+log = logging.getLogger(__name__)
+
 __all__ = [
     "AIRY_X_MAX",
     "FREQ_TOL_HZ",
@@ -37,7 +40,9 @@ __all__ = [
     "antenna_beams",
     "beam_amplitude",
     "beam_fwhm_rad",
+    "NEGATIVE_POWER_TOL",
     "check_beam_frequencies",
+    "clip_power",
     "fwhm_airy_rad",
     "gaussian_beam",
     "load_beam",
@@ -176,7 +181,8 @@ def beam_amplitude(beam, az_uvbeam_rad: np.ndarray, za_rad: np.ndarray, freqs_hz
         (Nfreq, Npix) real, non-negative amplitudes.
 
     Raises:
-        ValueError: a frequency outside a UVBeam's channel range; a negative power.
+        ValueError: a frequency outside a UVBeam's channel range.  Interpolation undershoot
+            below 0 is clipped (:func:`clip_power`).
     """
     from pyuvdata import BeamInterface
 
@@ -205,9 +211,31 @@ def beam_amplitude(beam, az_uvbeam_rad: np.ndarray, za_rad: np.ndarray, freqs_hz
             **kw,
         )
         power = np.real(np.asarray(power)[0, 0])  # (Nfreq, Npix)
-    if np.any(power < -1e-12 * np.max(np.abs(power))):
-        raise ValueError("beam power is negative somewhere; cannot take an unpolarised amplitude")
-    return np.sqrt(np.clip(power, 0.0, None))
+    return np.sqrt(clip_power(power, _name(bi.beam)))
+
+
+#: Undershoot (relative to the peak) beyond which clipping an interpolated power to 0 is logged as a warning.
+NEGATIVE_POWER_TOL = 0.01
+
+
+def clip_power(power: np.ndarray, name: str = "beam") -> np.ndarray:
+    """An interpolated power pattern with its undershoot below 0 clipped to 0 (the count logged).
+
+    Cubic interpolation (pyuvdata's spatial spline; its frequency interpolation with four or
+    more channels) of a power beam that is clipped to 0 or drops steeply undershoots below
+    0 next to the drop; power is never negative, so those values are 0.  Undershoot deeper
+    than ``NEGATIVE_POWER_TOL`` x the peak is logged as a warning (the beam's sampling is
+    coarse for its structure), shallower at debug level.
+    """
+    power = np.asarray(power, np.float64)
+    neg = power < 0
+    if not np.any(neg):
+        return power
+    peak = np.max(np.abs(power))
+    deep = np.min(power) < -NEGATIVE_POWER_TOL * peak
+    log.log(logging.WARNING if deep else logging.DEBUG, "%s: %d interpolated power values below 0 (min %.3g of the "
+            "peak) clipped to 0", name, int(neg.sum()), np.min(power) / peak)
+    return np.where(neg, 0.0, power)
 
 
 def load_beam(beam, *, peak_normalize: bool = False, **read_kwargs):
@@ -217,7 +245,9 @@ def load_beam(beam, *, peak_normalize: bool = False, **read_kwargs):
         beam: a pyuvdata ``UVBeam``, ``AnalyticBeam`` (e.g. ``GaussianBeam``, ``AiryBeam``,
             ``ShortDipoleBeam``) or ``BeamInterface`` (returned as they are), or the path of
             any file ``UVBeam.from_file`` reads (beamfits, CST text files or their yaml
-            settings file, MWA beam files).
+            settings file, MWA beam files), or a one-plane primary-beam image in a SIN RA/Dec
+            projection about the zenith (converted to az/za:
+            :func:`gcrsky.instrument.beamprep.image_beam`).
         peak_normalize: normalise a UVBeam to a peak of 1 per frequency (pyuvdata
             ``peak_normalize``, on a copy; gcrsky's visibilities scale with the beam's
             normalisation, which the file keeps as it is by default).
@@ -235,7 +265,9 @@ def load_beam(beam, *, peak_normalize: bool = False, **read_kwargs):
     from pyuvdata.analytic_beam import AnalyticBeam
 
     if isinstance(beam, (str, os.PathLike)):
-        obj = UVBeam.from_file(os.fspath(beam), **read_kwargs)
+        from .beamprep import read_beam  # UVBeam files, and SIN beam images converted to az/za
+
+        obj = read_beam(beam, **read_kwargs)[0]
     elif isinstance(beam, (UVBeam, AnalyticBeam, BeamInterface)):
         if read_kwargs:
             raise TypeError(f"read options {sorted(read_kwargs)} apply only to beam files, not to a beam object")

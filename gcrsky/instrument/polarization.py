@@ -106,6 +106,7 @@ from .beams import (
     _resolve,
     beam_amplitude,
     check_beam_frequencies,
+    clip_power,
     unique_beams,
 )
 
@@ -194,7 +195,9 @@ class _Evaluator:
                     self._power[key] = (obj, self._uv_response(obj))
                 pw, resp = self._power[key]
             k = resp[0, _pol_index(pw, q + p)]  # pyuvdata's "qp" = E_q conj(E_p) = our K_pq
-            return np.real(k) if p == q else np.asarray(k, np.complex128)
+            if p == q:  # interpolated power (spatial spline, cubic in frequency) undershoots next to a drop
+                return clip_power(np.real(k), _name(obj))
+            return np.asarray(k, np.complex128)
         if kind == "an_power" and p == q:
             pw = obj.power_eval(az_array=self.az, za_array=self.za, freq_array=self.freqs)
             return np.real(pw[0, _pol_index(obj, p + p)]).astype(np.float64)

@@ -218,6 +218,10 @@ def from_uvdata(
     compress: bool = True,
     frame_pad: int = 4,
     memory_budget: float | None = None,
+    beam_normalization: str = "peak",
+    beam_freq_scaling: str | None = None,
+    accept_x_orientation_mismatch: bool = False,
+    prior_mean: str | None = None,
 ) -> Problem:
     """The inference problem of a visibility file: ICRS coefficients at ``lmax`` (module docstring).
 
@@ -253,14 +257,26 @@ def from_uvdata(
             :func:`gcrsky.compress_problem`).
         frame_pad: degree margin of the ICRS -> of-date frame map.
         memory_budget: bytes the read may use (default: the free memory).
+        beam_normalization: ``"peak"`` (a physical UVBeam is peak-normalised, logged) or
+            ``"physical"`` (kept as it is) (:func:`gcrsky.instrument.beamprep.prepare_beam`).
+        beam_freq_scaling: a single-frequency beam at other frequencies: ``"none"`` or ``"lambda"``.
+        accept_x_orientation_mismatch: the beam's feed x may point elsewhere than the file's.
+        prior_mean: None / ``"zero"`` (the prior's own mean) or ``"gsm"`` (the GSM's
+            coefficients at the data's frequencies, :func:`gcrsky.model.skyprior.gsm_prior_mean`).
+
+    ``pol`` may name products by compass direction (``"ee"``, ``"nn"``, ``"ee,nn"``): they are
+    the file's feed products through its ``x_orientation``.  What the beams and the prior
+    checked is in ``config.checks["beam"]``, ``["prior"]`` (and ``["pol"]``).
 
     Returns:
         a :class:`~gcrsky.model.Problem` with ``pols`` recording each row's product and
         ``config`` a :class:`DataConfig`.
     """
     from ..base.dtypes import require_x64
+    from .beamprior import apply_prior_mean, feed_pol_of, prepare_beams, with_checks
 
     require_x64("from_uvdata")
+    pol, pol_rec = feed_pol_of(data, pol)
     parse_products(pol)
     obs = read_observation(
         data, pol=pol, freq_chans=freq_chans, freq_range_hz=freq_range_hz, times_jd=times_jd,
@@ -269,11 +285,16 @@ def from_uvdata(
     for line in obs.notes:
         log.warning(line)
     check_observation(obs, pol, noise)  # units, products, autos: before any beam or prior file is read
+    prior_obj, prior_note = _resolve_prior(prior, prior_scale, obs.freqs_hz, lmax)  # its band: before the build
+    prior_obj, prior_note, prior_rec = apply_prior_mean(prior_obj, prior_note, prior_mean, prior, obs.freqs_hz, lmax)
     beams, beam_note = _resolve_beams(beam, dish_diameter_m, obs)
-    prior_obj, prior_note = _resolve_prior(prior, prior_scale, obs.freqs_hz, lmax)
-    return problem_from_observation(obs, beams, lmax=lmax, nside=nside, pol=pol, prior=prior_obj, noise=noise,
+    beams, beam_rec = prepare_beams(beams, beam, obs, normalization=beam_normalization,
+                                    freq_scaling=beam_freq_scaling,
+                                    accept_x_orientation_mismatch=accept_x_orientation_mismatch)
+    prob = problem_from_observation(obs, beams, lmax=lmax, nside=nside, pol=pol, prior=prior_obj, noise=noise,
                                     compress=compress, frame_pad=frame_pad, beam_note=beam_note,
                                     prior_note=prior_note)
+    return with_checks(prob, {"beam": beam_rec, "prior": prior_rec, **({"pol": pol_rec} if pol_rec else {})})
 
 
 # ---------------------------------------------------------------- inspect
@@ -289,6 +310,9 @@ def inspect_uvdata(path, *, pol="pI", lmax: int | None = None, nside: int | None
     :func:`gcrsky.model.raw_variance`) and the memory of the read and, with ``lmax`` (and
     ``nside``), of the dense posterior precision.
     """
+    from .beamprior import feed_pol_of
+
+    pol = feed_pol_of(path, pol)[0]
     prods, _ = parse_products(pol)
     obs = read_observation(path, pol=pol, **selection)
     to_ksr = kelvin_sr_per_unit(obs)

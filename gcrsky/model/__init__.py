@@ -61,7 +61,7 @@ from .problem import (
     problem_responses,
     simulate_data,
 )
-from .skyprior import GSM_CL_FIT_RANGE, gsm_cl, gsm_cl_source, gsm_prior
+from .skyprior import GSM_CL_FIT_RANGE, check_gsm_cl_frequencies, gsm_cl, gsm_cl_range_hz, gsm_cl_source, gsm_prior
 from .system import (
     LinearSystem,
     check_system,
@@ -93,6 +93,7 @@ __all__ = [
     "apply",
     "assemble_problem",
     "build_problem",
+    "check_gsm_cl_frequencies",
     "check_observation",
     "check_system",
     "clean_data",
@@ -106,6 +107,7 @@ __all__ = [
     "fluctuation_rhs",
     "frame_shape",
     "gsm_cl",
+    "gsm_cl_range_hz",
     "gsm_cl_source",
     "gsm_prior",
     "from_response_frame",

@@ -28,11 +28,15 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["POLS", "Observation", "parse_products"]
+__all__ = ["COMPASS_POLS", "POLS", "Observation", "feed_pol", "parse_products"]
 
 #: The products gcrsky models: name -> the feed products of the file it combines
 #: (:mod:`gcrsky.model.observed`; :func:`gcrsky.io.read_observation` reads those).
 POLS = {"pI": ("xx", "yy"), "xx": ("xx",), "yy": ("yy",)}
+
+#: Products named by compass direction (pyuvdata's ``ee``, ``nn``, ``en``, ``ne``): which feed they are depends on the
+#: file's ``x_orientation`` (:func:`feed_pol`).
+COMPASS_POLS = ("ee", "nn", "en", "ne")
 
 #: How the data's phase was found in the file (:attr:`Observation.phase_type`) -> description.
 PHASE_TYPES = {
@@ -299,3 +303,33 @@ def parse_products(pol) -> tuple[tuple[str, ...], tuple[str, ...]]:
         raise ValueError(f"pol names a product twice: {pol!r}")
     raw = tuple(dict.fromkeys(r for p in prods for r in POLS[p]))
     return prods, raw
+
+
+def _product_names(pol) -> tuple[str, ...]:
+    if isinstance(pol, str):
+        return tuple(p.strip() for p in pol.split(",")) if "," in pol else (pol,)
+    return tuple(pol)
+
+
+def feed_pol(pol, x_orientation: str | None):
+    """``pol`` with compass names (``ee``, ``nn``, ``en``, ``ne``) as feed names, through ``x_orientation``.
+
+    Feed x points ``x_orientation``: east: ``ee`` = ``xx``, ``nn`` = ``yy``, ``en`` = ``xy``;
+    north: ``nn`` = ``xx``, ``ee`` = ``yy``, ``ne`` = ``xy`` (pyuvdata's ``polstr2num``).
+    Other names are returned unchanged, in ``pol``'s form (a string, ``"a,b"`` or a tuple).
+
+    Raises:
+        ValueError: compass names with an unknown ``x_orientation``.
+    """
+    names = _product_names(pol)
+    if not any(n.lower() in COMPASS_POLS for n in names):
+        return pol
+    if x_orientation not in ("east", "north"):
+        raise ValueError(f"pol {pol!r} names products by compass direction, but the file does not say where feed x "
+                         f"points (x_orientation {x_orientation!r}): name them xx / yy")
+    x, y = ("e", "n") if x_orientation == "east" else ("n", "e")
+    table = {x: "x", y: "y"}
+    out = tuple("".join(table[c] for c in n.lower()) if n.lower() in COMPASS_POLS else n for n in names)
+    if isinstance(pol, str):
+        return ",".join(out) if "," in pol else out[0]
+    return out

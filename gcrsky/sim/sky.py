@@ -37,7 +37,7 @@ import numpy as np
 from ..model.gsmsky import gsm_source_maps, loglog_interp
 from ..sphere.modes import n_params, realify, unrealify
 
-__all__ = ["SkyTruth", "gsm2016_available", "gsm_cl_table", "sky_truth", "write_gsm_cl_table"]
+__all__ = ["GSM_CL_TABLE_FREQS_HZ", "SkyTruth", "gsm2016_available", "gsm_cl_table", "sky_truth", "write_gsm_cl_table"]
 
 logger = logging.getLogger(__name__)
 
@@ -425,23 +425,38 @@ def sky_truth(freqs_hz, lmax: int, *, source: str = "auto", extend_seed: int = 2
     return truth._replace(note=f"FALLBACK from GSM2016: {reason}. " + truth.note)
 
 
-def gsm_cl_table(lmax: int = 16) -> tuple[np.ndarray, np.ndarray]:
-    """Angular power spectra of pyradiosky's shipped GSM map at its own channels.
+#: Channels (Hz) of the shipped C_l table (``gcrsky/model/gsm_cl.json``): the map's own ten 50-150 MHz, and
+#: 30-45 MHz and 160-250 MHz (5 and 10 MHz apart) from :func:`gcrsky.model.gsmsky.gsm_maps`' per-pixel power laws.
+GSM_CL_TABLE_FREQS_HZ = tuple([30e6, 35e6, 40e6, 45e6] + list(np.linspace(50e6, 150e6, 10))
+                              + [1e6 * f for f in range(160, 251, 10)])
+
+
+def gsm_cl_table(lmax: int = 16, freqs_hz=None) -> tuple[np.ndarray, np.ndarray]:
+    """Angular power spectra of pyradiosky's shipped GSM map, over 30-250 MHz.
 
     The source of the table :func:`gcrsky.model.gsm_cl` interpolates (``gcrsky/model/gsm_cl.json``,
     regenerated with ``python -c "from gcrsky.sim.sky import write_gsm_cl_table; write_gsm_cl_table()"``):
     ``healpy.alm2cl`` of the map's coefficients (``map2alm(iter=3)``, monopole ``sqrt(4 pi)`` x
-    the pixel mean, as the truth sky uses) up to ``lmax`` (at most ``2 nside`` = 16).
+    the pixel mean, as the truth sky uses) up to ``lmax`` (at most ``2 nside`` = 16), of the map
+    :func:`gcrsky.model.gsmsky.gsm_maps` gives at each frequency (the shipped channels as they are,
+    per-pixel power laws outside 50-150 MHz).
+
+    Args:
+        lmax: maximum degree (<= 16).
+        freqs_hz: (Nf,) frequencies within 30-250 MHz (default :data:`GSM_CL_TABLE_FREQS_HZ`).
 
     Returns:
-        ``(freqs_hz (nchan,), cl (nchan, lmax+1) K^2)``.
+        ``(freqs_hz (Nf,), cl (Nf, lmax+1) K^2)``.
     """
     import healpy as hp
 
-    freqs, maps, nside, _ = _load_pyradiosky_gsm()
+    from ..model.gsmsky import gsm_maps
+
+    freqs = np.asarray(GSM_CL_TABLE_FREQS_HZ if freqs_hz is None else freqs_hz, np.float64).reshape(-1)
+    maps, nside = gsm_maps(freqs)
     if lmax > 2 * nside:
         raise ValueError(f"the shipped map (nside {nside}) carries l <= {2 * nside}, asked for {lmax}")
-    return np.array(freqs), np.stack([hp.alm2cl(_map_to_alm(m, lmax)) for m in maps])
+    return freqs, np.stack([hp.alm2cl(_map_to_alm(m, lmax)) for m in maps])
 
 
 def write_gsm_cl_table(path=None) -> str:
@@ -452,8 +467,8 @@ def write_gsm_cl_table(path=None) -> str:
     freqs, cl = gsm_cl_table()
     path = Path(path) if path is not None else Path(__file__).parents[1] / "model" / "gsm_cl.json"
     doc = {
-        "source": f"pyradiosky {gsm_source_maps()[3].rsplit('/', 1)[-1]} (nside 8, ICRS, K): healpy alm2cl of "
-                  "map2alm(iter=3), gcrsky.sim.sky.gsm_cl_table",
+        "source": f"pyradiosky {gsm_source_maps()[3].rsplit('/', 1)[-1]} (nside 8, ICRS, K; 30-250 MHz, per-pixel "
+                  "power laws outside its 50-150 MHz): healpy alm2cl of map2alm(iter=3), gcrsky.sim.sky.gsm_cl_table",
         "units": "K^2",
         "freqs_hz": [float(f) for f in freqs],
         "cl": [[float(x) for x in row] for row in cl],
