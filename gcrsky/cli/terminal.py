@@ -97,6 +97,15 @@ def _metric_lines(s: dict) -> list[str]:
     return lines
 
 
+def fit_line(gof: dict) -> str:
+    """One line of the run's goodness of fit (``summary.json``'s ``goodness_of_fit``)."""
+    chi = ", ".join(f"{x:.3g}" for x in gof["chi2_per_dof"][:8]) + (" ..." if len(gof["chi2_per_dof"]) > 8 else "")
+    verdict = (f"REJECTED in {len(gof['rejected_channels'])} channels" if gof["rejected"]
+               else f"not rejected at p < {gof['threshold_p']:.2g}")
+    return (f"  fit: chi2/dof {chi} (min p {min(gof['p_value']):.2g}: {verdict}); outliers: "
+            f"{gof['rows']['n_outliers']} rows, {gof['times']['n_outliers']} times")
+
+
 def print_summary(summary, out: Path, written=None) -> None:
     """Print what a run did (a :class:`gcrsky.run.RunSummary`, or its ``summary.json`` dict)."""
     s = summary.to_json() if hasattr(summary, "to_json") else summary
@@ -120,6 +129,8 @@ def print_summary(summary, out: Path, written=None) -> None:
     ]
     if s.get("compile"):  # not in the summary of a run made before it was recorded
         lines.append(compile_line(s["compile"]))
+    if s.get("goodness_of_fit"):
+        lines.append(fit_line(s["goodness_of_fit"]))
     if written is None:
         written = ["results.h5", "summary.json", *s.get("figures", {}).values()]
     lines.append("  wrote " + (", ".join(written) if written else "nothing (every file was there)"))
