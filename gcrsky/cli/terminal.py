@@ -97,6 +97,22 @@ def _metric_lines(s: dict) -> list[str]:
     return lines
 
 
+def band_limit_line(check: dict | None) -> str:
+    """One line of a file's band limit (``DataConfig.checks["band_limit"]``)."""
+    if not check:
+        return "gcrsky: band limit: not checked"
+    how = {"given": "given", "reach": "the reach of every baseline", "memory": "capped by memory"}[check["chosen"]]
+    line = f"gcrsky: band limit: lmax {check['lmax']} ({how}; reach {check['reach']}), {check['mode']}"
+    if check["mode"] == "cut":
+        line += (f": {check['rows_cut']} rows and {check['samples_cut']} (channel, row) samples cut"
+                 + (f", lengths {check['cut_lengths_m']} m" if check["cut_lengths_m"] else ""))
+    elif check["mode"] == "marginalise" and "added_std_over_noise" in check:
+        line += f": l up to {check['lmax_hi']}, added std / noise median {check['added_std_over_noise']['median']:.3g}"
+    else:
+        line += f": {check['rows_beyond_lmax']} rows reach beyond lmax (unmodelled)"
+    return line
+
+
 def fit_line(gof: dict) -> str:
     """One line of the run's goodness of fit (``summary.json``'s ``goodness_of_fit``)."""
     chi = ", ".join(f"{x:.3g}" for x in gof["chi2_per_dof"][:8]) + (" ..." if len(gof["chi2_per_dof"]) > 8 else "")

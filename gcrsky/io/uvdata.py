@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..model.bandlimit import observation_lmax
 from ..model.observation import POLS, Observation, parse_products
 from ..model.observed import (
     COMPRESS_RTOL,
@@ -201,7 +202,7 @@ def _resolve_prior(prior, prior_scale, freqs, lmax) -> tuple[Prior, str]:
 def from_uvdata(
     data,
     *,
-    lmax: int,
+    lmax: int | None = None,
     nside: int,
     beam=None,
     dish_diameter_m: float | None = None,
@@ -218,13 +219,16 @@ def from_uvdata(
     compress: bool = True,
     frame_pad: int = 4,
     memory_budget: float | None = None,
+    band_limit: str = "truncate",
 ) -> Problem:
     """The inference problem of a visibility file: ICRS coefficients at ``lmax`` (module docstring).
 
     Args:
         data: a path to any file ``UVData.from_file`` reads, or a ``UVData`` object (not
             modified).
-        lmax: maximum degree of the sky's ICRS coefficients.
+        lmax: maximum degree of the sky's ICRS coefficients; None: the reach of every used
+            baseline at the highest used frequency, capped by memory
+            (:func:`gcrsky.model.bandlimit.observation_lmax`).
         nside: HEALPix nside of the response quadrature.
         beam: a pyuvdata beam object (``UVBeam``, an ``AnalyticBeam`` such as
             ``GaussianBeam``, a ``BeamInterface``), a path to a beam file ``UVBeam`` reads
@@ -253,6 +257,11 @@ def from_uvdata(
             :func:`gcrsky.compress_problem`).
         frame_pad: degree margin of the ICRS -> of-date frame map.
         memory_budget: bytes the read may use (default: the free memory).
+        band_limit: what to do with the rows whose reach exceeds ``lmax``
+            (:mod:`gcrsky.model.bandlimit`): ``"cut"`` (weight 0; the CLI's default),
+            ``"marginalise"`` (the sky above ``lmax`` as extra noise variance) or
+            ``"truncate"`` (default here: kept, with a warning and the count in
+            ``config.checks["band_limit"]``; right for data simulated at ``lmax``).
 
     Returns:
         a :class:`~gcrsky.model.Problem` with ``pols`` recording each row's product and
@@ -270,10 +279,12 @@ def from_uvdata(
         log.warning(line)
     check_observation(obs, pol, noise)  # units, products, autos: before any beam or prior file is read
     beams, beam_note = _resolve_beams(beam, dish_diameter_m, obs)
+    lmax, band_note = observation_lmax(obs, beams, lmax, n_products=len(parse_products(pol)[0]),
+                                       frame_pad=frame_pad, budget_bytes=memory_budget)
     prior_obj, prior_note = _resolve_prior(prior, prior_scale, obs.freqs_hz, lmax)
     return problem_from_observation(obs, beams, lmax=lmax, nside=nside, pol=pol, prior=prior_obj, noise=noise,
                                     compress=compress, frame_pad=frame_pad, beam_note=beam_note,
-                                    prior_note=prior_note)
+                                    prior_note=prior_note, band_limit=band_limit, band_note=band_note)
 
 
 # ---------------------------------------------------------------- inspect

@@ -63,6 +63,7 @@ from ..sphere.modes import mode_table
 
 __all__ = [
     "BAND_LIMIT_MODES",
+    "apply_band_limit",
     "baseline_reach",
     "beam_dish_m",
     "choose_lmax",
@@ -72,6 +73,8 @@ __all__ = [
     "high_l_variance",
     "marginalise_rows",
     "memory_lmax",
+    "observation_lmax",
+    "observation_reach",
     "problem_baselines",
     "required_lmax",
 ]
@@ -118,16 +121,27 @@ def equivalent_dish_m(fwhm_rad, freq_hz) -> np.ndarray:
 
 def beam_dish_m(beams, freqs_hz, dish_diameter_m: float | None = None) -> np.ndarray:
     """(Nf,) the D of the reach: ``dish_diameter_m`` if given, else the largest Airy-equivalent
-    diameter (:func:`equivalent_dish_m` of the measured FWHM) over the distinct beams."""
+    diameter (:func:`equivalent_dish_m` of the measured FWHM) over the distinct beams; a beam
+    whose FWHM cannot be measured (a dipole's wider than the sky, a pattern with negative
+    power) counts as one wavelength across (FWHM ~ 59 deg: conservative, a larger reach, for
+    anything wider)."""
     freqs = np.atleast_1d(np.asarray(freqs_hz, np.float64))
     if dish_diameter_m is not None:
         return np.full(freqs.shape, float(dish_diameter_m))
     from ..instrument.beams import beam_fwhm_rad
 
+    def dish(beam, f):
+        try:
+            return float(equivalent_dish_m(beam_fwhm_rad(beam, f), f))
+        except ValueError as err:  # no half-power point, or a power pattern that cannot be measured
+            log.info("band limit: the beam's FWHM at %.4g MHz cannot be measured (%s): D = one wavelength", f / 1e6,
+                     err)
+            return SPEED_OF_LIGHT / f
+
     distinct = {id(b): b for b in (beams if isinstance(beams, (list, tuple)) else [beams])}.values()
     out = np.zeros(freqs.shape)
     for b in distinct:
-        out = np.maximum(out, [equivalent_dish_m(beam_fwhm_rad(b, f), f) for f in freqs])
+        out = np.maximum(out, [dish(b, f) for f in freqs])
     return out
 
 
@@ -301,3 +315,81 @@ def marginalise_rows(problem, response_hi, cl_hi=None):
     log.info("band limit: marginalised l = %d..%d on the noise diagonal (added std / noise std: median %.3g)",
              problem.lmax + 1, lmax_hi, float(np.median(np.sqrt(var)[:, None, :] / np.asarray(problem.sigma))))
     return dataclasses.replace(problem, sigma=sigma), np.sqrt(var)
+
+
+# ---------------------------------------------------------------- a file's problem
+
+
+def observation_reach(obs, beams, dish_diameter_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(reach (Nf, Nbl), dish_m (Nf,))`` of an Observation's baselines with its beams (:func:`beam_dish_m`)."""
+    pos = np.asarray(obs.antpos_enu_m, np.float64)
+    pairs = np.asarray(obs.antpairs)
+    dish = beam_dish_m(beams, obs.freqs_hz, dish_diameter_m)
+    return baseline_reach(pos[pairs[:, 1]] - pos[pairs[:, 0]], obs.freqs_hz, dish), dish
+
+
+def observation_lmax(obs, beams, lmax: int | None, *, n_products: int = 1, frame_pad: int = 4,
+                     budget_bytes: float | None = None, dish_diameter_m: float | None = None) -> tuple[int, dict]:
+    """An Observation's lmax (:func:`choose_lmax`: ``lmax`` if given, else the reach of every used
+    baseline at the highest used frequency, capped by memory) and its note (reach, D)."""
+    reach, dish = observation_reach(obs, beams, dish_diameter_m)
+    chosen, note = choose_lmax(reach, lmax, n_rows=reach.shape[1] * n_products, budget_bytes=budget_bytes,
+                               frame_pad=frame_pad)
+    note["dish_m"] = [round(float(dish.min()), 3), round(float(dish.max()), 3)]
+    return chosen, note
+
+
+def _marginalise(prob, array, nside: int, budget_bytes: float | None):
+    """:func:`marginalise_rows` with the rows' response at their reach (of-date frame, ``lst_ref``)."""
+    from ..base.memory import check_memory
+    from ..instrument.response import response_matrix
+
+    dish = beam_dish_m(list(array.beams), np.asarray(prob.freqs_hz))
+    lmax_hi = required_lmax(baseline_reach(problem_baselines(prob), np.asarray(prob.freqs_hz), dish))
+    if lmax_hi <= prob.lmax:
+        return prob, {"lmax_hi": int(lmax_hi), "added_std_over_noise": {"median": 0.0, "max": 0.0}}
+    nf, nrow = prob.response.shape[:2]
+    check_memory(16.0 * nf * nrow * (lmax_hi + 1) ** 2, f"the response at the reach lmax {lmax_hi}",
+                 "use --band-limit cut, or fewer channels or baselines", budget=budget_bytes)
+    nside_hi = max(nside, 1 << max(0, math.ceil(math.log2(max(lmax_hi, 1) / 2))))
+    resp = response_matrix(array, np.asarray(prob.antpairs), np.asarray(prob.freqs_hz), lmax_hi, nside_hi,
+                           lst_ref_rad=prob.lst_ref_rad, pols=None if prob.pols is None else list(prob.pols))
+    out, sig = marginalise_rows(prob, resp)
+    ratio = sig[:, None, :] / np.asarray(prob.sigma)
+    return out, {"lmax_hi": int(lmax_hi), "nside_hi": int(nside_hi), "cl_above_lmax": "the prior's, power law",
+                 "added_std_over_noise": {"median": float(np.median(ratio)), "max": float(ratio.max())}}
+
+
+def apply_band_limit(prob, array, mode: str, note: dict, *, nside: int, budget_bytes: float | None = None):
+    """A file's Problem with its band limit applied (``mode``: :data:`BAND_LIMIT_MODES`), recorded in
+    ``config.checks["band_limit"]`` (``note`` from :func:`observation_lmax` plus what was done).
+
+    Args:
+        prob: the :class:`~gcrsky.model.Problem` (``config`` a :class:`~gcrsky.model.DataConfig`).
+        array: its :class:`~gcrsky.instrument.AntennaArray` (the beams, for the reach and the
+            marginalised response).
+        mode: ``"cut"``, ``"marginalise"`` or ``"truncate"``.
+        note: the lmax choice (:func:`observation_lmax`).
+        nside: the problem's quadrature nside (raised for the response at the reach).
+        budget_bytes: memory the marginalised response may use (default: the free memory).
+    """
+    if mode not in BAND_LIMIT_MODES:
+        raise ValueError(f"band_limit must be one of {BAND_LIMIT_MODES}, got {mode!r}")
+    dish = beam_dish_m(list(array.beams), np.asarray(prob.freqs_hz))
+    reach = baseline_reach(problem_baselines(prob), np.asarray(prob.freqs_hz), dish)
+    beyond = int(np.sum((reach > prob.lmax + 1e-9).any(axis=0)))
+    check = {"mode": mode, **note, "lmax": int(prob.lmax), "rows_beyond_lmax": beyond}
+    if mode == "cut":
+        prob, report = cut_rows(prob, prob.lmax, dish)
+        check.update(report)
+    elif mode == "marginalise":
+        prob, report = _marginalise(prob, array, nside, budget_bytes)
+        check.update(report)
+    elif beyond:
+        log.warning("band limit: %d rows reach beyond lmax %d and are kept (--band-limit truncate): their fringes "
+                    "are unmodelled and bias the low-l coefficients", beyond, prob.lmax)
+    cfg = prob.config
+    if cfg is not None and hasattr(cfg, "checks"):
+        cfg = dataclasses.replace(cfg, checks={**cfg.checks, "band_limit": check})
+        prob = dataclasses.replace(prob, config=cfg)
+    return prob
