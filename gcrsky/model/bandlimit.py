@@ -44,7 +44,9 @@ errors (``"truncate"``: today's behaviour, kept for controls).  Instead:
   the modes), the posterior standard deviations are 0.70-1.79 x the exact ones (the
   dropped correlations make some directions over-, others under-confident), and the
   truth's whitened error z2 stays within its 99.9 % range (0.82-1.13 per channel;
-  truncation: 3.8-22, cut: 0.80-1.18).  Cutting approximates nothing beyond the reach
+  truncation: 3.8-22, cut: 0.80-1.18).  On matvis's visibilities of such a sky at real
+  times (``tests/test_bandlimit.py``) z2 is 0.69 and 0.75: there the diagonal is
+  conservative (a wider posterior than the exact one).  Cutting approximates nothing beyond the reach
   rule itself (a Gaussian beam's uv taper has no edge: what leaks past the rule stays
   unmodelled, within the noise in the test above).
 """
