@@ -265,3 +265,27 @@ def test_matvis_file_cut_and_marginalised_pass_truncation_fails(matvis_file, ben
         assert check["rows_cut"] == 3 and check["cut_lengths_m"] == [5.66, 9.43, 12.04, 13.0]
     else:
         assert check["lmax_hi"] == 20 and 0 < check["added_std_over_noise"]["median"]
+
+
+def test_matvis_file_default_lmax_is_the_reach(matvis_file, bench):
+    """Without lmax, from_uvdata models every baseline: lmax = the reach of the longest at 45 MHz, nothing cut."""
+    from gcrsky.io import from_uvdata
+
+    uvd, _, prior_cl = matvis_file
+    prob = from_uvdata(uvd, nside=16, dish_diameter_m=bench.DISH_M, prior=np.concatenate([prior_cl, [prior_cl[-1]] * 8]),
+                       band_limit="cut", compress=False, memory_budget=1e9)
+    check = prob.config.checks["band_limit"]
+    assert prob.lmax == check["reach"] == 20 and check["chosen"] == "reach"
+    assert check["rows_cut"] == check["samples_cut"] == check["rows_beyond_lmax"] == 0
+    assert prob.antpairs.shape[0] == 6
+
+
+def test_fit_chi2_error_is_second_order_in_the_wiener_error(cases):
+    """A Wiener filter off by delta (an iterative solver's) raises chi2 by exactly delta^T P delta >= 0."""
+    prob, a_wf, cov = cases["marginalise"]
+    sd = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
+    delta = 0.1 * sd * np.random.default_rng(0).standard_normal(sd.shape)
+    p = np.asarray(prob.precision_matrix())
+    exact = np.asarray(goodness_of_fit(prob, a_wf)["chi2"])
+    off = np.asarray(goodness_of_fit(prob, a_wf + delta)["chi2"])
+    np.testing.assert_allclose(off - exact, np.einsum("fi,fij,fj->f", delta, p, delta), rtol=1e-6)
