@@ -157,7 +157,7 @@ def run_fit(prob, wiener, warnings: list) -> dict | None:
     gof = goodness_of_fit(prob, wiener)
     line = fit_warning(gof, np.asarray(prob.freqs_hz))
     if line is not None:
-        log.warning(line)
+        log.warning(line.removeprefix("WARNING: "))
         warnings.append(line)
     else:
         log.info("goodness of fit: chi2/dof %s, min p %.3g (not rejected)",
