@@ -115,10 +115,12 @@ def band_limit_line(check: dict | None) -> str:
 
 def fit_line(gof: dict) -> str:
     """One line of the run's goodness of fit (``summary.json``'s ``goodness_of_fit``)."""
-    chi = ", ".join(f"{x:.3g}" for x in gof["chi2_per_dof"][:8]) + (" ..." if len(gof["chi2_per_dof"]) > 8 else "")
+    chi = ", ".join("-" if x is None else f"{x:.3g}" for x in gof["chi2_per_dof"][:8]) + (
+        " ..." if len(gof["chi2_per_dof"]) > 8 else "")
+    p = [x for x in gof["p_value"] if x is not None]
     verdict = (f"REJECTED in {len(gof['rejected_channels'])} channels" if gof["rejected"]
                else f"not rejected at p < {gof['threshold_p']:.2g}")
-    return (f"  fit: chi2/dof {chi} (min p {min(gof['p_value']):.2g}: {verdict}); outliers: "
+    return (f"  fit: chi2/dof {chi} (min p {min(p) if p else float('nan'):.2g}: {verdict}); outliers: "
             f"{gof['rows']['n_outliers']} rows, {gof['times']['n_outliers']} times")
 
 

@@ -93,7 +93,8 @@ def execute(prob, spec: RunSpec, *, hooks: Sequence[ReportHook] = (), watch: Wat
     if not np.isfinite(stored.draws).all():
         warnings.append(f"ERROR: {int((~np.isfinite(stored.draws)).sum())} non-finite values in the draws.")
     view, figures = _report(prob, spec, run, stored, hooks, st, warnings)
-    gof = None if (run.out / SUMMARY_FILE).exists() else run_fit(prob, stored.wiener_filter, warnings)
+    gof = None if (run.out / SUMMARY_FILE).exists() else run_fit(prob, stored.wiener_filter, warnings,
+                                                                     rank=stored.rank)
     st.start("write")
     finalized = _write(prob, spec, run, stored, view.maps, method)
     st.stop()
