@@ -341,12 +341,11 @@ def observation_lmax(obs, beams, lmax: int | None, *, n_products: int = 1, frame
     return chosen, note
 
 
-def _marginalise(prob, array, nside: int, budget_bytes: float | None):
+def _marginalise(prob, array, dish, nside: int, budget_bytes: float | None):
     """:func:`marginalise_rows` with the rows' response at their reach (of-date frame, ``lst_ref``)."""
     from ..base.memory import check_memory
     from ..instrument.response import response_matrix
 
-    dish = beam_dish_m(list(array.beams), np.asarray(prob.freqs_hz))
     lmax_hi = required_lmax(baseline_reach(problem_baselines(prob), np.asarray(prob.freqs_hz), dish))
     if lmax_hi <= prob.lmax:
         return prob, {"lmax_hi": int(lmax_hi), "added_std_over_noise": {"median": 0.0, "max": 0.0}}
@@ -385,7 +384,7 @@ def apply_band_limit(prob, array, mode: str, note: dict, *, nside: int, budget_b
         prob, report = cut_rows(prob, prob.lmax, dish)
         check.update(report)
     elif mode == "marginalise":
-        prob, report = _marginalise(prob, array, nside, budget_bytes)
+        prob, report = _marginalise(prob, array, dish, nside, budget_bytes)
         check.update(report)
     elif beyond:
         log.warning("band limit: %d rows reach beyond lmax %d and are kept (--band-limit truncate): their fringes "
