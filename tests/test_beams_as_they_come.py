@@ -293,7 +293,8 @@ def test_cli_beam_options(uvh5, tmp_path, capsys):
 
     image = REAL / "HERABEAM.FITS"
     if image.exists():
-        rc = cli.main(["run", "--data", str(uvh5), "--beam", str(image), "--out", str(tmp_path / "a"), "--no-progress"])
+        rc = cli.main(["run", "--data", str(uvh5), "--beam", str(image), "--out", str(tmp_path / "a"), "--no-progress",
+                       "--lmax", str(LMAX), "--band-limit", "truncate"])
         assert rc == 2 and "--beam-freq-scaling" in capsys.readouterr().err
     assert cli.main(["inspect", str(uvh5), "--json", "--pol", "nn"]) == 0
     assert json.loads(capsys.readouterr().out)["modelled_products"] == ["yy"]
@@ -304,8 +305,8 @@ def test_cli_beam_options(uvh5, tmp_path, capsys):
     phys.write_beamfits(str(hera))
     out = tmp_path / "run"
     rc = cli.main(["run", "--data", str(uvh5), "--beam", str(hera), "--pol", "ee", "--prior-mean", "gsm", "--lmax",
-                   str(LMAX), "--nside", str(NSIDE), "--nsamples", "4", "--batch", "4", "--no-progress", "--no-plots",
-                   "--out", str(out)])
+                   str(LMAX), "--band-limit", "truncate", "--nside", str(NSIDE), "--nsamples", "4", "--batch", "4",
+                   "--no-progress", "--no-plots", "--out", str(out)])
     assert rc == 0
     checks = json.loads((out / "summary.json").read_text())["data_checks"]
     assert checks["beam"]["file"] == str(hera) and checks["beam"]["normalization_used"] == "peak"

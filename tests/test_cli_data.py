@@ -17,7 +17,9 @@ from gcrsky.checks.uvsim import simulate_uvdata  # noqa: E402
 from gcrsky.instrument import gaussian_beam, hex_array  # noqa: E402
 
 LMAX = 6
-SMALL = ["--lmax", str(LMAX), "--nside", "32", "--nsamples", "12", "--batch", "6", "--no-progress"]
+# the sky is band-limited at LMAX: keeping every baseline (--band-limit truncate) is the right model here
+SMALL = ["--lmax", str(LMAX), "--nside", "32", "--nsamples", "12", "--batch", "6", "--no-progress",
+         "--band-limit", "truncate"]
 
 
 @pytest.fixture(scope="module")
@@ -93,3 +95,21 @@ def test_bad_data_options_are_refused(uvh5, tmp_path, capsys):
     rc = cli.main(["run", "--data", str(uvh5), "--dish-diameter", "14", "--pol", "I", "--out", str(tmp_path / "c")])
     assert rc == 2 and "pol must be" in capsys.readouterr().err
     assert cli.main(["inspect", str(tmp_path / "missing.uvh5")]) == 2
+
+
+@pytest.mark.slow
+def test_run_on_a_file_records_its_band_limit_and_fit(data_run):
+    """matvis's data of a sky band-limited at LMAX, modelled at LMAX: every row is beyond its reach
+    (14 m dishes at 100 MHz reach l ~ 60) but the sky has nothing there, and the fit is not rejected."""
+    out, _ = data_run
+    s = json.loads((out / "summary.json").read_text())
+    bl = s["data_checks"]["band_limit"]
+    assert bl["mode"] == "truncate" and bl["lmax"] == LMAX and bl["chosen"] == "given" and bl["reach"] > 50
+    gof = s["goodness_of_fit"]
+    assert len(gof["chi2_per_dof"]) == 2 and not gof["rejected"] and min(gof["p_value"]) > 5e-4
+
+
+def test_the_default_band_limit_cuts_what_lmax_cannot_represent(uvh5, tmp_path, capsys):
+    rc = cli.main(["run", "--data", str(uvh5), "--dish-diameter", "14", "--out", str(tmp_path / "cut"),
+                   *SMALL[:-2]])
+    assert rc == 2 and "reaches no baseline" in capsys.readouterr().err

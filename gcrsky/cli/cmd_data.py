@@ -15,7 +15,7 @@ from pathlib import Path
 from ..solvers.options import DEFAULT_TOL
 from .options import DEFAULT_NSAMPLES, beam_prior_kwargs, data_kwargs
 from .runs import EXIT_REFUSED, execute_with_bars, report_run, run_spec
-from .terminal import refusal_message
+from .terminal import band_limit_line, refusal_message
 
 __all__ = ["data_command"]
 
@@ -69,7 +69,7 @@ def _data_settings(args, selection: dict) -> dict:
     return {"data_file": str(Path(args.data).resolve()), "data_sha256": _file_digest(args.data),
             "beam": args.beam, "dish_diameter": args.dish_diameter, "prior": args.prior,
             "prior_scale": args.prior_scale, "noise": args.noise, "compress": not args.no_compress,
-            "lmax": args.lmax, "nside": args.nside, **beam_prior_kwargs(args),
+            "lmax": args.lmax, "nside": args.nside, "band_limit": args.band_limit, **beam_prior_kwargs(args),
             "selection": {k: (list(v) if isinstance(v, tuple) else v) for k, v in selection.items()}}
 
 
@@ -79,7 +79,8 @@ def _read_problem(args, selection: dict):
 
     return from_uvdata(args.data, lmax=args.lmax, nside=args.nside, beam=args.beam,  # a path: its file is recorded
                        dish_diameter_m=args.dish_diameter, prior=args.prior, prior_scale=args.prior_scale,
-                       noise=args.noise, compress=not args.no_compress, **beam_prior_kwargs(args), **selection)
+                       noise=args.noise, compress=not args.no_compress, band_limit=args.band_limit,
+                       **beam_prior_kwargs(args), **selection)
 
 
 def _run_data(args) -> int:
@@ -107,5 +108,6 @@ def _run_data(args) -> int:
     print(f"gcrsky: {args.data}: {len(cfg.conventions['antenna_numbers'])} antennas, {prob.data.shape[2]} rows "
           f"({'compressed' if cfg.compressed else 'all baselines'}), {prob.data.shape[1]} times, "
           f"{prob.data.shape[0]} channels, {cfg.pol}; prior: {cfg.prior}")
+    print(band_limit_line(cfg.checks.get("band_limit")))
     done = execute_with_bars(args, prob, spec, (PaperReport(),), build_s=build_s, compile_since=compile0)
     return done if isinstance(done, int) else report_run(*done, out)

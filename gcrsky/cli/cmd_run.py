@@ -26,6 +26,10 @@ def run_command(args, parser) -> int:
         from .cmd_data import data_command
 
         return data_command(args, parser)
+    if args.lmax is None:  # the simulation's default (with --data: the baselines' reach)
+        from ..sim.config import Config
+
+        args.lmax = Config().lmax
     _check_sim_options(parser, args)
     with logging_redirect_tqdm():
         return _run(args)

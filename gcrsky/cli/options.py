@@ -168,6 +168,10 @@ def add_data_options(g, *, with_data: bool) -> None:
         g.add_argument("--noise", choices=("autos", "diff"), default="autos",
                        help="noise: radiometer equation on the file's autos, or time-adjacent differences")
         g.add_argument("--no-compress", action="store_true", help="keep every baseline (no redundant compression)")
+        g.add_argument("--band-limit", choices=("cut", "marginalise", "truncate"), default="cut",
+                       help="rows whose reach 2 pi (|b| + D) nu / c exceeds --lmax: cut them (default; the summary "
+                       "says which lengths), marginalise the sky above lmax (its variance from the prior's C_l added "
+                       "to the noise), or truncate (keep them: a control)")
         add_beam_prior_options(g)
     g.add_argument("--pol", default="pI", metavar="pI|xx|yy|xx,yy",
                    help="modelled product: pseudo-Stokes I (xx + yy), one feed product, or xx and yy jointly; "

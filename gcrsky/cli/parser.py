@@ -107,7 +107,9 @@ def _add_simulation_options(r, d) -> None:
     """The options of ``gcrsky run`` that mirror :class:`gcrsky.sim.Config` fields (defaults ``d``)."""
     r.add_argument("--data-seed", type=int_at_least(0, "data-seed"), default=d.seed,
                    help="seed of the simulated noise and prior mean (Config.seed)")
-    r.add_argument("--lmax", type=int_at_least(1, "lmax"), default=d.lmax, help="maximum degree l")
+    r.add_argument("--lmax", type=int_at_least(1, "lmax"), default=None,
+                   help=f"maximum degree l (default: {d.lmax} for a simulation; with --data the reach of every used "
+                   "baseline at the highest used frequency, capped by memory)")
     r.add_argument("--nside", type=nside_arg, default=d.nside, help="HEALPix nside of the response quadrature and maps")
     r.add_argument("--lst-start", type=finite_float("lst-start"), default=d.lst_range_hours[0],
                    help="first LST (sidereal hours)")

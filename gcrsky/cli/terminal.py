@@ -97,6 +97,33 @@ def _metric_lines(s: dict) -> list[str]:
     return lines
 
 
+def band_limit_line(check: dict | None) -> str:
+    """One line of a file's band limit (``DataConfig.checks["band_limit"]``)."""
+    if not check:
+        return "gcrsky: band limit: not checked"
+    how = {"given": "given", "reach": "the reach of every baseline", "memory": "capped by memory"}[check["chosen"]]
+    line = f"gcrsky: band limit: lmax {check['lmax']} ({how}; reach {check['reach']}), {check['mode']}"
+    if check["mode"] == "cut":
+        line += (f": {check['rows_cut']} rows and {check['samples_cut']} (channel, row) samples cut"
+                 + (f", lengths {check['cut_lengths_m']} m" if check["cut_lengths_m"] else ""))
+    elif check["mode"] == "marginalise" and "added_std_over_noise" in check:
+        line += f": l up to {check['lmax_hi']}, added std / noise median {check['added_std_over_noise']['median']:.3g}"
+    else:
+        line += f": {check['rows_beyond_lmax']} rows reach beyond lmax (unmodelled)"
+    return line
+
+
+def fit_line(gof: dict) -> str:
+    """One line of the run's goodness of fit (``summary.json``'s ``goodness_of_fit``)."""
+    chi = ", ".join("-" if x is None else f"{x:.3g}" for x in gof["chi2_per_dof"][:8]) + (
+        " ..." if len(gof["chi2_per_dof"]) > 8 else "")
+    p = [x for x in gof["p_value"] if x is not None]
+    verdict = (f"REJECTED in {len(gof['rejected_channels'])} channels" if gof["rejected"]
+               else f"not rejected at p < {gof['threshold_p']:.2g}")
+    return (f"  fit: chi2/dof {chi} (min p {min(p) if p else float('nan'):.2g}: {verdict}); outliers: "
+            f"{gof['rows']['n_outliers']} rows, {gof['times']['n_outliers']} times")
+
+
 def print_summary(summary, out: Path, written=None) -> None:
     """Print what a run did (a :class:`gcrsky.run.RunSummary`, or its ``summary.json`` dict)."""
     s = summary.to_json() if hasattr(summary, "to_json") else summary
@@ -120,6 +147,8 @@ def print_summary(summary, out: Path, written=None) -> None:
     ]
     if s.get("compile"):  # not in the summary of a run made before it was recorded
         lines.append(compile_line(s["compile"]))
+    if s.get("goodness_of_fit"):
+        lines.append(fit_line(s["goodness_of_fit"]))
     if written is None:
         written = ["results.h5", "summary.json", *s.get("figures", {}).values()]
     lines.append("  wrote " + (", ".join(written) if written else "nothing (every file was there)"))

@@ -247,7 +247,7 @@ def load_beam(beam, *, peak_normalize: bool = False, **read_kwargs):
             any file ``UVBeam.from_file`` reads (beamfits, CST text files or their yaml
             settings file, MWA beam files), or a one-plane primary-beam image in a SIN RA/Dec
             projection about the zenith (converted to az/za:
-            :func:`gcrsky.instrument.beamprep.image_beam`).
+            :func:`gcrsky.instrument.beamfiles.image_beam`).
         peak_normalize: normalise a UVBeam to a peak of 1 per frequency (pyuvdata
             ``peak_normalize``, on a copy; gcrsky's visibilities scale with the beam's
             normalisation, which the file keeps as it is by default).
@@ -265,7 +265,7 @@ def load_beam(beam, *, peak_normalize: bool = False, **read_kwargs):
     from pyuvdata.analytic_beam import AnalyticBeam
 
     if isinstance(beam, (str, os.PathLike)):
-        from .beamprep import read_beam  # UVBeam files, and SIN beam images converted to az/za
+        from .beamfiles import read_beam  # UVBeam files, and SIN beam images converted to az/za
 
         obj = read_beam(beam, **read_kwargs)[0]
     elif isinstance(beam, (UVBeam, AnalyticBeam, BeamInterface)):

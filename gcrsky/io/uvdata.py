@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..model.bandlimit import observation_lmax
 from ..model.observation import POLS, Observation, parse_products
 from ..model.observed import (
     COMPRESS_RTOL,
@@ -43,7 +44,7 @@ from ..model.observed import (
 )
 from ..model.prior import Prior, flat_prior, isotropic_prior
 from ..model.problem import Problem
-from ..model.skyprior import gsm_cl
+from ..model.skyprior import check_gsm_cl_frequencies, gsm_cl
 from ..sphere.modes import n_params
 from .observation import read_bytes, read_observation, read_uvdata
 
@@ -201,7 +202,7 @@ def _resolve_prior(prior, prior_scale, freqs, lmax) -> tuple[Prior, str]:
 def from_uvdata(
     data,
     *,
-    lmax: int,
+    lmax: int | None = None,
     nside: int,
     beam=None,
     dish_diameter_m: float | None = None,
@@ -222,13 +223,16 @@ def from_uvdata(
     beam_freq_scaling: str | None = None,
     accept_x_orientation_mismatch: bool = False,
     prior_mean: str | None = None,
+    band_limit: str = "truncate",
 ) -> Problem:
     """The inference problem of a visibility file: ICRS coefficients at ``lmax`` (module docstring).
 
     Args:
         data: a path to any file ``UVData.from_file`` reads, or a ``UVData`` object (not
             modified).
-        lmax: maximum degree of the sky's ICRS coefficients.
+        lmax: maximum degree of the sky's ICRS coefficients; None: the reach of every used
+            baseline at the highest used frequency, capped by memory
+            (:func:`gcrsky.model.bandlimit.observation_lmax`).
         nside: HEALPix nside of the response quadrature.
         beam: a pyuvdata beam object (``UVBeam``, an ``AnalyticBeam`` such as
             ``GaussianBeam``, a ``BeamInterface``), a path to a beam file ``UVBeam`` reads
@@ -263,6 +267,11 @@ def from_uvdata(
         accept_x_orientation_mismatch: the beam's feed x may point elsewhere than the file's.
         prior_mean: None / ``"zero"`` (the prior's own mean) or ``"gsm"`` (the GSM's
             coefficients at the data's frequencies, :func:`gcrsky.model.skyprior.gsm_prior_mean`).
+        band_limit: what to do with the rows whose reach exceeds ``lmax``
+            (:mod:`gcrsky.model.bandlimit`): ``"cut"`` (weight 0; the CLI's default),
+            ``"marginalise"`` (the sky above ``lmax`` as extra noise variance) or
+            ``"truncate"`` (default here: kept, with a warning and the count in
+            ``config.checks["band_limit"]``; right for data simulated at ``lmax``).
 
     ``pol`` may name products by compass direction (``"ee"``, ``"nn"``, ``"ee,nn"``): they are
     the file's feed products through its ``x_orientation``.  What the beams and the prior
@@ -285,15 +294,19 @@ def from_uvdata(
     for line in obs.notes:
         log.warning(line)
     check_observation(obs, pol, noise)  # units, products, autos: before any beam or prior file is read
-    prior_obj, prior_note = _resolve_prior(prior, prior_scale, obs.freqs_hz, lmax)  # its band: before the build
-    prior_obj, prior_note, prior_rec = apply_prior_mean(prior_obj, prior_note, prior_mean, prior, obs.freqs_hz, lmax)
+    if prior is None or (isinstance(prior, str) and prior == "gsm"):
+        check_gsm_cl_frequencies(obs.freqs_hz)  # the prior's band: before any beam is read or response built
     beams, beam_note = _resolve_beams(beam, dish_diameter_m, obs)
     beams, beam_rec = prepare_beams(beams, beam, obs, normalization=beam_normalization,
                                     freq_scaling=beam_freq_scaling,
                                     accept_x_orientation_mismatch=accept_x_orientation_mismatch)
+    lmax, band_note = observation_lmax(obs, beams, lmax, n_products=len(parse_products(pol)[0]),
+                                       frame_pad=frame_pad, budget_bytes=memory_budget)
+    prior_obj, prior_note = _resolve_prior(prior, prior_scale, obs.freqs_hz, lmax)
+    prior_obj, prior_note, prior_rec = apply_prior_mean(prior_obj, prior_note, prior_mean, prior, obs.freqs_hz, lmax)
     prob = problem_from_observation(obs, beams, lmax=lmax, nside=nside, pol=pol, prior=prior_obj, noise=noise,
                                     compress=compress, frame_pad=frame_pad, beam_note=beam_note,
-                                    prior_note=prior_note)
+                                    prior_note=prior_note, band_limit=band_limit, band_note=band_note)
     return with_checks(prob, {"beam": beam_rec, "prior": prior_rec, **({"pol": pol_rec} if pol_rec else {})})
 
 

@@ -13,10 +13,18 @@
   gcrsky's grids, no physics; :func:`gcrsky.io.read_observation` reads one)
 - ``observed``: :func:`problem_from_observation`: an Observation plus beams as a
   :class:`Problem` (modelled products, units, radiometer noise, weights, responses)
+- ``bandlimit``: the reach of a baseline, the lmax that models every baseline, and what to
+  do with those beyond it (cut, marginalise the sky above lmax, truncate)
 - ``template``: hyperparameter families: the paper's spectral template (one coefficient
   set for all channels, scaled by ``(nu/nu0)^beta``), noise and prior scales
 """
 
+from .bandlimit import (
+    BAND_LIMIT_MODES,
+    baseline_reach,
+    cut_rows,
+    marginalise_rows,
+)
 from .compress import (
     compress_problem,
     compress_system,
@@ -81,6 +89,7 @@ from .template import (
 )
 
 __all__ = [
+    "BAND_LIMIT_MODES",
     "DataConfig",
     "GSM_CL_FIT_RANGE",
     "Geometry",
@@ -92,6 +101,7 @@ __all__ = [
     "adjoint",
     "apply",
     "assemble_problem",
+    "baseline_reach",
     "build_problem",
     "check_gsm_cl_frequencies",
     "check_observation",
@@ -100,6 +110,7 @@ __all__ = [
     "compress_problem",
     "compress_system",
     "compress_visibilities",
+    "cut_rows",
     "data_apply",
     "dense_matrix",
     "draw_noise",
@@ -113,6 +124,7 @@ __all__ = [
     "from_response_frame",
     "inverse_variance",
     "isotropic_prior",
+    "marginalise_rows",
     "n_in",
     "observation_geometry",
     "paper_prior",

@@ -344,6 +344,8 @@ def problem_from_observation(
     frame_pad: int = 4,
     beam_note: str | None = None,
     prior_note: str | None = None,
+    band_limit: str | None = "truncate",
+    band_note: dict | None = None,
 ) -> Problem:
     """The inference problem of an Observation: ICRS coefficients at ``lmax`` (module docstring).
 
@@ -362,6 +364,10 @@ def problem_from_observation(
         compress: merge redundant baselines (exactly: only identical responses merge).
         frame_pad: degree margin of the ICRS -> of-date frame map.
         beam_note, prior_note: descriptions recorded in ``config`` (default: from the objects).
+        band_limit: rows whose reach exceeds ``lmax`` (:mod:`gcrsky.model.bandlimit`):
+            ``"cut"``, ``"marginalise"``, ``"truncate"`` (default: kept as they are, with a
+            warning), or None (not checked); recorded in ``config.checks["band_limit"]``.
+        band_note: how ``lmax`` was chosen (:func:`gcrsky.model.bandlimit.observation_lmax`).
 
     Returns:
         a :class:`~gcrsky.model.Problem` with ``pols`` recording each row's product and
@@ -386,4 +392,10 @@ def problem_from_observation(
     prob = assemble_problem(array, obs.freqs_hz, geom, responses, lmax, nside, data, sigma, weights=weights,
                             prior=prior, lst_ref_rad=lst_ref, config=cfg, pairs=pairs, pols=row_pols,
                             sky_note=f"data: {obs.source}")
+    if band_limit is not None:
+        from .bandlimit import apply_band_limit, observation_lmax
+
+        note = band_note if band_note is not None else observation_lmax(obs, beams, lmax)[1]
+        prob = apply_band_limit(prob, array, band_limit, note, nside=nside)
+        cfg = prob.config
     return _compress(prob, array, cfg) if compress else prob

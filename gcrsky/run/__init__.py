@@ -17,9 +17,11 @@ and figures through report hooks (:class:`ReportHook`; the paper's are in
 - ``report``: :class:`ReportHook`, :class:`RunView`: what applications add after the draws;
 - ``products``: :func:`write_products`: HEALPix FITS, healpy alm, pyradiosky skyh5;
 - ``summary``: :class:`RunSummary` (``summary.json``), :class:`RunProducts`, the solver block;
+- ``fit``: :func:`goodness_of_fit`, the posterior predictive check every run writes;
 - ``runner``: :func:`execute`, the stages in order.
 """
 
+from .fit import goodness_of_fit
 from .maps import RunMaps, mode_z_scores, parameter_frame, run_maps
 from .output import (
     FIGURE_FILES,
@@ -67,6 +69,7 @@ __all__ = [
     "check_output",
     "execute",
     "existing_run_files",
+    "goodness_of_fit",
     "info_stats",
     "mode_z_scores",
     "open_run",

@@ -8,7 +8,8 @@
    hooks (:mod:`gcrsky.run.report`), then their figures;
 4. the products (:func:`~gcrsky.run.products.write_products`), ``results.h5`` finished
    (:func:`gcrsky.io.finalize_results_h5`: maps and z-scores) and ``summary.json``
-   (:class:`~gcrsky.run.summary.RunSummary`).
+   (:class:`~gcrsky.run.summary.RunSummary`), with the posterior predictive check of the
+   data (:func:`gcrsky.run.fit.goodness_of_fit`; a rejected fit is a warning).
 
 Every file is written atomically; a resumed run writes only the files that are missing
 and keeps the summary its run wrote.  Stage timings are recorded by a
@@ -29,6 +30,7 @@ from ..io.results import finalize_results_h5, read_draws, read_results_state, wr
 from ..parallel.runtime import CompileStats, compile_cache_dir, compile_stats
 from .channels import channel_draws, worker_channels
 from .draws import joint_draws
+from .fit import run_fit
 from .maps import RunMaps, parameter_frame, run_maps, stored_maps
 from .output import PRODUCT_FILES, RESULTS_FILE, SUMMARY_FILE, OpenRun, existing_run_files, open_run
 from .products import write_products
@@ -91,11 +93,13 @@ def execute(prob, spec: RunSpec, *, hooks: Sequence[ReportHook] = (), watch: Wat
     if not np.isfinite(stored.draws).all():
         warnings.append(f"ERROR: {int((~np.isfinite(stored.draws)).sum())} non-finite values in the draws.")
     view, figures = _report(prob, spec, run, stored, hooks, st, warnings)
+    gof = None if (run.out / SUMMARY_FILE).exists() else run_fit(prob, stored.wiener_filter, warnings,
+                                                                     rank=stored.rank)
     st.start("write")
     finalized = _write(prob, spec, run, stored, view.maps, method)
     st.stop()
     timings, compiled = _timings(st, stored, compile0)
-    summary = _summary(prob, spec, run, view, solver, warnings, (timings, compiled), figures, method)
+    summary = _summary(prob, spec, run, view, solver, warnings, (timings, compiled), figures, method, gof)
     written = [f for f in existing_run_files(run.out)
                if f not in run.before or (f == RESULTS_FILE and finalized)]
     return summary, _products(prob, run, view, stored.draws, written)
@@ -149,7 +153,7 @@ def _timings(st: StageTimer, stored, compile0: CompileStats) -> tuple[dict, dict
 
 
 def _summary(prob, spec: RunSpec, run: OpenRun, view: RunView, solver: dict, warnings: list,
-             timings: tuple[dict, dict], figures: dict, method: str) -> RunSummary:
+             timings: tuple[dict, dict], figures: dict, method: str, gof: dict | None = None) -> RunSummary:
     """The run's :class:`RunSummary`, written to ``summary.json`` (a resumed run keeps the one its run wrote)."""
     path = run.out / SUMMARY_FILE
     if path.exists():
@@ -172,6 +176,7 @@ def _summary(prob, spec: RunSpec, run: OpenRun, view: RunView, solver: dict, war
         config=cfg.to_dict() if cfg is not None else None, sky_note=prob.sky_note, versions=versions(),
         exit_status=0 if view.finite else 1,
         data_checks=dict(getattr(cfg, "checks", None) or {}) or None,
+        goodness_of_fit=gof,
     )
     write_json(path, summary.to_json())
     return summary
