@@ -42,6 +42,7 @@ from ..base.units import kelvin_sr_to_jy
 from ..instrument.antennas import make_array
 from ..instrument.beams import unique_beams
 from ..instrument.response import response_matrix
+from .datachecks import refuse_empty
 from .noise import radiometer_variance, time_difference_variance
 from .observation import POLS, Observation, parse_products
 from .prior import Prior
@@ -136,7 +137,7 @@ def kelvin_sr_per_unit(obs: Observation) -> np.ndarray:
     """(Nf,) K sr per unit of the file's visibilities; uncalibrated or unknown units are refused."""
     if obs.vis_units == "uncalib":
         raise ValueError("the file's visibilities are uncalibrated (vis_units 'uncalib'): gcrsky needs Jy or K str; "
-                         "calibrate them first")
+                         "calibrate them first, or apply gain solutions with --cal FILE (cal=, a calfits/calh5 UVCal)")
     if obs.vis_units == "Jy":
         return 1.0 / kelvin_sr_to_jy(obs.freqs_hz)
     if obs.vis_units == "K str":
@@ -155,8 +156,10 @@ def check_observation(obs: Observation, pol="pI", noise="autos") -> None:
     """Refuse, before anything is built, an Observation that cannot give a Problem in physical units.
 
     Checks the units (:func:`kelvin_sr_per_unit`), that the feed products ``pol`` needs
-    are there, and that the radiometer noise (``noise="autos"``) has autocorrelations.
+    are there, that the radiometer noise (``noise="autos"``) has autocorrelations, and that
+    some cross-correlation is unflagged with a positive nsample (:func:`gcrsky.model.datachecks.refuse_empty`).
     """
+    refuse_empty(obs)
     kelvin_sr_per_unit(obs)
     _, raw = parse_products(pol)
     missing = [r for r in raw if r not in obs.pol_names]
