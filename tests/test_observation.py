@@ -207,7 +207,8 @@ def test_problem_from_observation_is_from_uvdata(sim_file):
         ref = from_uvdata(path, lmax=LMAX, nside=NSIDE, beam=beam, **kw)
         pol = kw.get("pol")
         obs = read_observation(path, pol=pol, autos=kw.get("noise", "autos") == "autos")
-        prob = problem_from_observation(obs, beam, lmax=LMAX, nside=NSIDE, **kw)
+        prob = problem_from_observation(obs, beam, lmax=LMAX, nside=NSIDE, checks=ref.config.checks, **kw)
+        assert not ref.config.checks["flags"]["outliers"]["channels"]  # nothing flagged: the same data
         la, ta = jax.tree_util.tree_flatten(ref)
         lb, tb = jax.tree_util.tree_flatten(prob)
         assert ta == tb and len(la) == len(lb)

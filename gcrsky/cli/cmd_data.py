@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from ..solvers.options import DEFAULT_TOL
-from .options import DEFAULT_NSAMPLES, data_kwargs
+from .options import DEFAULT_NSAMPLES, check_kwargs, data_kwargs
 from .runs import EXIT_REFUSED, execute_with_bars, report_run, run_spec
 from .terminal import refusal_message
 
@@ -51,6 +51,8 @@ def _check_data_options(parser, args) -> None:
         parser.error(f"--prior {args.prior!r}: neither 'gsm', 'flat' nor an existing file")
     if not Path(args.data).exists():
         parser.error(f"--data {args.data!r}: no such file")
+    if args.cal is not None and not Path(args.cal).exists():
+        parser.error(f"--cal {args.cal!r}: no such file")
 
 
 def _file_digest(path) -> str:
@@ -69,7 +71,8 @@ def _data_settings(args, selection: dict) -> dict:
     return {"data_file": str(Path(args.data).resolve()), "data_sha256": _file_digest(args.data),
             "beam": args.beam, "dish_diameter": args.dish_diameter, "prior": args.prior,
             "prior_scale": args.prior_scale, "noise": args.noise, "compress": not args.no_compress,
-            "lmax": args.lmax, "nside": args.nside,
+            "lmax": args.lmax, "nside": args.nside, **check_kwargs(args),
+            "cal_sha256": _file_digest(args.cal) if args.cal else None,
             "selection": {k: (list(v) if isinstance(v, tuple) else v) for k, v in selection.items()}}
 
 
@@ -84,7 +87,7 @@ def _read_problem(args, selection: dict):
         beam = load_beam(args.beam)
     return from_uvdata(args.data, lmax=args.lmax, nside=args.nside, beam=beam, dish_diameter_m=args.dish_diameter,
                        prior=args.prior, prior_scale=args.prior_scale, noise=args.noise,
-                       compress=not args.no_compress, **selection)
+                       compress=not args.no_compress, **selection, **check_kwargs(args))
 
 
 def _run_data(args) -> int:

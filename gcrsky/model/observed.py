@@ -347,6 +347,7 @@ def problem_from_observation(
     frame_pad: int = 4,
     beam_note: str | None = None,
     prior_note: str | None = None,
+    checks: dict | None = None,
 ) -> Problem:
     """The inference problem of an Observation: ICRS coefficients at ``lmax`` (module docstring).
 
@@ -365,6 +366,7 @@ def problem_from_observation(
         compress: merge redundant baselines (exactly: only identical responses merge).
         frame_pad: degree margin of the ICRS -> of-date frame map.
         beam_note, prior_note: descriptions recorded in ``config`` (default: from the objects).
+        checks: what the ingest checked, by section (``DataConfig.checks``; JSON-friendly).
 
     Returns:
         a :class:`~gcrsky.model.Problem` with ``pols`` recording each row's product and
@@ -383,6 +385,7 @@ def problem_from_observation(
     array, geom, responses, lst_ref = _instrument(obs, beams, lmax, nside, frame_pad, pairs, row_pols)
     cfg = _data_config(obs, prods, geom, beams, lmax=lmax, nside=nside, noise=noise, beam_note=beam_note or note,
                        prior_note=prior_note or "given (a Prior)")
+    cfg = dataclasses.replace(cfg, checks=dict(checks or {}))
     log.info("problem_from_observation: %s; %d antennas, %d baselines x %d products, %d times, %d channels; "
              "prior: %s", obs.source, obs.n_antennas, obs.n_baselines, len(prods), obs.n_times, obs.n_freqs,
              cfg.prior)
