@@ -85,7 +85,7 @@ def test_clean_noise_excess_is_one():
 
 
 def test_false_alarm_rate_on_clean_data():
-    """20 clean files of 24 channels, 10 baselines, 8 times: nothing flagged (the rule's k = 5 and factor 2)."""
+    """20 clean files of 24 channels, 10 baselines, 8 times (4800 cells): nothing flagged (k = 5, factor 2)."""
     found = [find_outliers(synthetic(seed=s)) for s in range(20)]
     assert not any(o.any for o in found)
 
@@ -95,7 +95,7 @@ def test_injected_rfi_channels_baselines_and_times_are_flagged_and_reported(capl
     obs = with_rfi(obs, baselines=(6,), power=30, seed=2)
     obs = with_rfi(obs, times=(5,), power=50, seed=3)
     flagged, out = flag_outliers(obs)
-    assert out.channels == (4, 17) and out.baselines == (6,) and out.times == (5,)
+    assert out.channels == (4, 17) and out.baselines == (6,) and out.times == (5,) and out.cells == ()
     assert min(out.channel_excess) > 300  # ~ 1 + 1e3 / 2 x (A^2 / 100^2) per channel
     assert np.all(flagged.flags[:, [4, 17]]) and np.all(flagged.flags[..., 6]) and np.all(flagged.flags[:, :, 5])
     assert not np.any(obs.flags)  # the input is not changed
@@ -155,8 +155,20 @@ def test_h1c_rfi_channels():
     pc = ex.per_channel()
     out = find_outliers(obs, ex)
     assert out.dead_channels == (0, 1, 2) and out.channels == (3, 4, 5, 24)
+    assert out.cells == ((63, 9),) and out.cell_excess[0] > 50  # 198.4 MHz on baseline 1-13 only
+    assert list(obs.baseline_antnums[9]) == [1, 13]
     clean = np.delete(pc, [0, 1, 2, 3, 4, 5, 24])
     assert 0.8 < clean.min() and clean.max() < 1.4  # medians over baselines; per baseline up to ~1.6
     assert pc[24] > 1e4 and pc[4] > 1e3
     assert abs(obs.freqs_hz[24] / 1e6 - 137.5) < 0.8
     assert flagged_antennas(obs) == []
+
+
+def test_a_single_bad_cell_is_flagged_alone():
+    obs = synthetic(seed=11)
+    vis = np.array(obs.vis)
+    rng = np.random.default_rng(4)
+    vis[:, 8, :, 3] += 0.5 * (rng.normal(size=(2, 8)) + 1j * rng.normal(size=(2, 8)))  # ~50 x the noise variance
+    flagged, out = flag_outliers(dataclasses.replace(obs, vis=vis))
+    assert out.cells == ((8, 3),) and out.channels == () and out.baselines == ()
+    assert np.all(flagged.flags[:, 8, :, 3]) and flagged.flags.sum() == 2 * 8

@@ -50,7 +50,10 @@ def _flags(rec: dict, freqs_mhz) -> list[str]:
         f"{c} ({f:.2f} MHz, excess {e:.4g})" for c, f, e in zip(out["channels"], out["channels_mhz"],
                                                                  out["channel_excess"])) or "none")
         + f"; dead channels {out['dead_channels'] or 'none'}; baselines {out['baselines'] or 'none'}; times "
-        f"{out['times'] or 'none'} (threshold: channel excess > {_fmt(th['channel'])}, k {th['k']:g})")
+        f"{out['times'] or 'none'}; (channel, baseline) cells "
+        + (", ".join(f"{c} {a}-{b} ({e:.4g})" for (c, (a, b)), e in zip(out.get("cells", []),
+                                                                      out.get("cell_excess", []))) or "none")
+        + f" (threshold: channel excess > {_fmt(th['channel'])}, k {th['k']:g})")
     lines.append(f"  antennas      fully flagged: {rec['fully_flagged_antennas'] or 'none'}")
     return lines
 

@@ -20,7 +20,9 @@ radiometer equation (:mod:`gcrsky.model.noise`) that can run before anything cos
   the items); the estimator's scatter keeps a very clean file (MAD ~ 0) from flagging its
   fluctuations; ``min_factor = 2`` (a noise variance twice the median) keeps the sky's drift
   over one integration and the autos' own scatter (10-60 % on H1C) from flagging channels
-  and long baselines.  Channels are judged first; baselines and times on what remains.
+  and long baselines.  Channels are judged first; baselines and times on what remains; then
+  single (channel, baseline) cells (median over products) among the kept channels and
+  baselines (H1C: 198.4 MHz on baseline 1-13, excess 103).
 * **Nothing to constrain** (:func:`refuse_empty`): every cross-correlation flagged, or a zero
   nsample everywhere, is refused with the reason before anything is built.
 """
@@ -95,10 +97,12 @@ class Outliers:
     baseline_excess: tuple
     thresholds: dict
     dead_channels: tuple = ()
+    cells: tuple = ()
+    cell_excess: tuple = ()
 
     @property
     def any(self) -> bool:
-        return bool(self.channels or self.baselines or self.times or self.dead_channels)
+        return bool(self.channels or self.baselines or self.times or self.dead_channels or self.cells)
 
     def to_dict(self, obs: Observation) -> dict:
         """JSON-friendly: channels by index and MHz, baselines by antenna numbers, times by index."""
@@ -106,6 +110,8 @@ class Outliers:
                 "channel_excess": list(self.channel_excess), "dead_channels": list(self.dead_channels),
                 "baselines": [[int(a) for a in obs.baseline_antnums[b]] for b in self.baselines],
                 "baseline_excess": list(self.baseline_excess), "times": list(self.times),
+                "cells": [[int(c), [int(a) for a in obs.baseline_antnums[b]]] for c, b in self.cells],
+                "cell_excess": list(self.cell_excess),
                 "thresholds": dict(self.thresholds)}
 
 
@@ -219,16 +225,31 @@ def find_outliers(obs: Observation, ex: NoiseExcess | None = None, *, k: float =
     t_terms = np.sum(np.isfinite(np.moveaxis(z, 2, 0).reshape(z.shape[2], -1)), axis=1) * 2.0 / np.pi
     pair_bad, t_cut = outlier_rule(t_stat, t_terms, k=k, min_factor=min_factor)
     times = _times_of_pairs(pair_bad, obs.n_times)
+    cells, cell_stat, c_cut = _cell_outliers(ex, keep, np.flatnonzero(~bl_bad), k=k, min_factor=min_factor)
     return Outliers(
         channels=tuple(int(i) for i in np.flatnonzero(ch_bad)),
         baselines=tuple(int(i) for i in np.flatnonzero(bl_bad)),
         times=tuple(int(i) for i in times),
         channel_excess=tuple(float(x) for x in ch_stat[ch_bad]),
         baseline_excess=tuple(float(x) for x in bl_stat[bl_bad]),
-        thresholds={"channel": ch_cut, "baseline": bl_cut, "time_pair": t_cut, "k": float(k),
+        thresholds={"channel": ch_cut, "baseline": bl_cut, "time_pair": t_cut, "cell": c_cut, "k": float(k),
                     "min_factor": float(min_factor)},
         dead_channels=tuple(dead),
+        cells=tuple(cells),
+        cell_excess=tuple(cell_stat),
     )
+
+
+def _cell_outliers(ex: NoiseExcess, chans, bls, *, k, min_factor):
+    """Single (channel, baseline) cells among the kept channels and baselines (median over products)."""
+    if len(chans) == 0 or len(bls) == 0:
+        return [], [], float("nan")
+    sub = ex.excess[:, chans][:, :, bls]
+    cell = _nanmedian(np.moveaxis(sub, 0, -1).reshape(-1, sub.shape[0]))
+    bad, cut = outlier_rule(cell, np.sum(ex.n_pairs[:, chans][:, :, bls], axis=0).reshape(-1) / sub.shape[0],
+                            k=k, min_factor=min_factor)
+    idx = np.flatnonzero(bad)
+    return ([(int(chans[i // len(bls)]), int(bls[i % len(bls)])) for i in idx], [float(cell[i]) for i in idx], cut)
 
 
 def dead_channels(obs: Observation) -> list[int]:
@@ -278,8 +299,11 @@ def flag_outliers(obs: Observation, *, k: float = DEFAULT_K,
         extra[tuple(sl)] = True
         aux[tuple(sl)] = True
     extra[:, :, list(out.baselines)] = True
-    log.warning("flagged as noise-excess outliers: channels %s (dead: %s), baselines %s, times %s",
-                list(out.channels), list(out.dead_channels),
+    for c, b in out.cells:
+        extra[c, :, b] = True
+    log.warning("flagged as noise-excess outliers: channels %s (dead: %s), (channel, baseline) cells %s, "
+                "baselines %s, times %s", list(out.channels), list(out.dead_channels),
+                [(c, tuple(int(a) for a in obs.baseline_antnums[b])) for c, b in out.cells],
                 [tuple(int(a) for a in obs.baseline_antnums[b]) for b in out.baselines], list(out.times))
     new = dataclasses.replace(obs, flags=obs.flags | extra[None], auto_flags=obs.auto_flags | aux[None])
     return new, out
