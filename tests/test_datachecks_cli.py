@@ -79,3 +79,11 @@ def test_injected_rfi_in_a_file_is_flagged_and_reported(tmp_path, capsys):
     assert out["channels"] == [5] and out["baselines"] == [] and out["times"] == []
     assert cli.main(["inspect", str(path), "--no-flag-outliers"]) == 0
     assert "outliers (not flagged: --no-flag-outliers): channels 5" in capsys.readouterr().out
+
+
+def test_zero_nsample_file_is_refused_by_a_run(tmp_path, capsys):
+    """H2C (nsample 0 everywhere): exit 2 with the reason, before any response (it used to give prior-only results)."""
+    rc = cli.main(["run", "--data", str(H2C), "--pol", "xx", "--dish-diameter", "14", "--lmax", "4", "--nside", "16",
+                   "--out", str(tmp_path / "h2c")])
+    assert rc == 2 and "nsample of every unflagged sample is zero" in capsys.readouterr().err
+    assert not (tmp_path / "h2c" / "summary.json").exists()

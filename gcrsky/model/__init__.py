@@ -13,6 +13,8 @@
   gcrsky's grids, no physics; :func:`gcrsky.io.read_observation` reads one)
 - ``observed``: :func:`problem_from_observation`: an Observation plus beams as a
   :class:`Problem` (modelled products, units, radiometer noise, weights, responses)
+- ``datachecks``: pre-fit checks of an Observation (noise excess, outlier flags, nothing to fit)
+- ``fluxscale``: the data's autos against the GSM's through the beam
 - ``template``: hyperparameter families: the paper's spectral template (one coefficient
   set for all channels, scaled by ``(nu/nu0)^beta``), noise and prior scales
 """
@@ -22,6 +24,8 @@ from .compress import (
     compress_system,
     compress_visibilities,
 )
+from .datachecks import find_outliers, flag_outliers, flagged_antennas, noise_excess, refuse_empty
+from .fluxscale import FLUX_BOUNDS, flux_scale_check, model_autos
 from .noise import (
     clean_data,
     draw_noise,
@@ -82,6 +86,7 @@ from .template import (
 
 __all__ = [
     "DataConfig",
+    "FLUX_BOUNDS",
     "GSM_CL_FIT_RANGE",
     "Geometry",
     "LinearSystem",
@@ -94,6 +99,13 @@ __all__ = [
     "assemble_problem",
     "build_problem",
     "check_observation",
+    "find_outliers",
+    "flag_outliers",
+    "flagged_antennas",
+    "flux_scale_check",
+    "model_autos",
+    "noise_excess",
+    "refuse_empty",
     "check_system",
     "clean_data",
     "compress_problem",
