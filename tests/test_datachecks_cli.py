@@ -87,3 +87,17 @@ def test_zero_nsample_file_is_refused_by_a_run(tmp_path, capsys):
                    "--out", str(tmp_path / "h2c")])
     assert rc == 2 and "nsample of every unflagged sample is zero" in capsys.readouterr().err
     assert not (tmp_path / "h2c" / "summary.json").exists()
+
+
+def test_flagging_that_leaves_nothing_is_refused_with_the_reason(tmp_path, capsys):
+    """Only H1C's zeroed edge channels 0-2 (dead, unflagged in the file; units set to Jy): nothing is left."""
+    from pyuvdata import UVData
+
+    uvd = UVData.from_file(str(H1C), freq_chans=[0, 1, 2])
+    uvd.vis_units = "Jy"
+    path = tmp_path / "edge.uvh5"
+    uvd.write_uvh5(str(path))
+    rc = cli.main(["run", "--data", str(path), "--dish-diameter", "14", "--lmax", "4", "--nside", "16",
+                   "--flux-scale", "off", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "dead channels [0, 1, 2]" in err and "--no-flag-outliers" in err

@@ -43,10 +43,13 @@ def read_checked(data, *, cal=None, pol="pI", **selection) -> tuple[Observation,
     return obs, {"calibration": {"applied": info, "vis_units": obs.vis_units}}
 
 
-def flag_checks(obs: Observation, *, flag: bool = True, k: float = DEFAULT_K) -> tuple[Observation, dict]:
+def flag_checks(obs: Observation, *, flag: bool = True, k: float = DEFAULT_K,
+                refuse: bool = True) -> tuple[Observation, dict]:
     """Noise excess, outliers (flagged if ``flag``), fully flagged antennas: (Observation, ``{"flags": ...}``).
 
     The excess needs the autos and two integrations; without them it is skipped with the reason.
+    Flagging that leaves nothing usable raises a ``ValueError`` saying so if ``refuse``, else is
+    recorded (``"emptied"``).
     """
     rec: dict = {"flagged_fraction_read": obs.flagged_fraction, "outlier_flagging": bool(flag)}
     try:
@@ -62,13 +65,21 @@ def flag_checks(obs: Observation, *, flag: bool = True, k: float = DEFAULT_K) ->
                             for row in np.moveaxis(ex.excess, 1, 0).reshape(obs.n_freqs, -1)],
         "products": list(ex.pol_names),
     }
+    had = bool(np.any(obs.usable))
     if flag:
         obs, out = flag_outliers(obs, k=k)
     else:
         out = find_outliers(obs, ex, k=k)
+    if had and not np.any(obs.usable):
+        rec["emptied"] = ("every usable sample was flagged by the data checks (noise-excess outlier channels "
+                          f"{list(out.channels)}, dead channels {list(out.dead_channels)}, baselines "
+                          f"{list(out.baselines)}, times {list(out.times)}): select other data, or keep them with "
+                          "--no-flag-outliers (flag_outliers=False)")
     rec["outliers"] = out.to_dict(obs)
     rec["fully_flagged_antennas"] = flagged_antennas(obs)
     rec["flagged_fraction_used"] = obs.flagged_fraction
+    if refuse and "emptied" in rec:
+        raise ValueError(rec["emptied"])
     if rec["fully_flagged_antennas"]:
         log.warning("antennas flagged entirely (every cross-correlation): %s", rec["fully_flagged_antennas"])
     return obs, {"flags": rec}
@@ -129,8 +140,10 @@ def inspect_checks(obs: Observation, checks: dict, *, pol="pI", flag: bool = Tru
     from ..model.observed import kelvin_sr_per_unit
 
     problems = []
-    obs, flags = flag_checks(obs, flag=flag)
+    obs, flags = flag_checks(obs, flag=flag, refuse=False)
     checks.update(flags)
+    if "emptied" in flags["flags"]:
+        problems.append(flags["flags"]["emptied"])
     for check in (refuse_empty, kelvin_sr_per_unit):
         try:
             check(obs)

@@ -22,7 +22,9 @@ radiometer equation (:mod:`gcrsky.model.noise`) that can run before anything cos
   over one integration and the autos' own scatter (10-60 % on H1C) from flagging channels
   and long baselines.  Channels are judged first; baselines and times on what remains; then
   single (channel, baseline) cells (median over products) among the kept channels and
-  baselines (H1C: 198.4 MHz on baseline 1-13, excess 103).
+  baselines (H1C: 198.4 MHz on baseline 1-13, excess 103).  The rule is relative to the
+  selection: it needs most items clean (and at least three); one or two channels cannot
+  reveal an RFI channel.
 * **Nothing to constrain** (:func:`refuse_empty`): every cross-correlation flagged, or a zero
   nsample everywhere, is refused with the reason before anything is built.
 """
@@ -88,7 +90,15 @@ class NoiseExcess:
 
 @dataclasses.dataclass(frozen=True)
 class Outliers:
-    """What :func:`find_outliers` judged and found (indices into the Observation's axes)."""
+    """What :func:`find_outliers` found (indices into the Observation's axes; :meth:`to_dict` names them).
+
+    Attributes:
+        channels, baselines, times: outlying channels, baselines (pair indices) and times.
+        channel_excess, baseline_excess: their statistics (median excess).
+        thresholds: the thresholds on each statistic, ``k`` and ``min_factor``.
+        dead_channels: channels whose data are all exactly 0 or whose autos are all <= 0.
+        cells: outlying (channel, baseline) cells among the kept ones; cell_excess their excess.
+    """
 
     channels: tuple
     baselines: tuple
