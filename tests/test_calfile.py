@@ -167,3 +167,18 @@ def test_all_flagged_file_is_refused_before_any_build(tmp_path, monkeypatch):
     _no_response(monkeypatch)
     with pytest.raises(ValueError, match="every cross-correlation sample of the selection is flagged"):
         from_uvdata(path, lmax=4, nside=16, dish_diameter_m=14.0)
+
+
+@pytest.mark.filterwarnings("ignore:Changing number of antennas")  # pyuvdata's note on the quality array
+def test_solutions_missing_an_antenna_are_refused_naming_it(tmp_path):
+    from gcrsky.io.calibration import read_calibrated_observation, read_calibration
+
+    uvc, _ = read_calibration(CAL)
+    keep = [int(a) for a in uvc.ant_array if int(a) != 11]
+    uvc.select(antenna_nums=keep)
+    path = tmp_path / "no11.calfits"
+    uvc.write_calfits(str(path))
+    with pytest.raises(ValueError, match=r"no solutions for the data's antennas \[11\]"):
+        read_calibrated_observation(H1C, path, pol="pI", freq_chans=CHANS)
+    obs, _ = read_calibrated_observation(H1C, path, pol="pI", freq_chans=CHANS, antennas=[1, 12, 13])
+    assert list(obs.antenna_numbers) == [1, 12, 13]  # select the others: it applies
