@@ -72,7 +72,8 @@ def check_lines(info: dict) -> list[str]:
     checks = info["data_checks"]
     freqs = checks.get("flux_scale", {}).get("freqs_mhz")
     lines = [f"  redundancy    {info['n_unique_baselines']} unique within {info['redundancy_tol_m']:g} m (largest "
-             f"offset in a group {info['redundancy_max_offset_m']:.3g} m)"]
+             f"offset in a group {info['redundancy_max_offset_m']:.3g} m); the run merges only identical responses: "
+             f"{info['n_rows_exact']} rows"]
     lines += _calibration(checks["calibration"]) + _flags(checks["flags"], freqs) + _flux(checks["flux_scale"])
     lines += [f"PROBLEM: {p}" for p in info["problems"]]
     return lines

@@ -333,7 +333,7 @@ def inspect_uvdata(path, *, pol="pI", lmax: int | None = None, nside: int | None
     lat, lon, _ = obs.site_lat_lon_alt
     out["site_lat_lon_deg"] = [lat, lon]
     if lmax is not None:
-        out.update(_memory(obs, len(prods), out["n_unique_baselines"], lmax, nside))
+        out.update(_memory(obs, len(prods), out["n_rows_exact"], lmax, nside))
     out["data_checks"] = checks
     out["problems"] = problems
     return out
@@ -353,6 +353,7 @@ def _describe_observation(obs: Observation, prods, redundancy_tol_m: float = 0.5
         "n_unique_baselines": groups.n_groups,
         "redundancy_tol_m": float(redundancy_tol_m),
         "redundancy_max_offset_m": float(np.max(groups.max_offset_m)),
+        "n_rows_exact": redundant_groups(obs.antpos_enu_m, obs.antpairs).n_groups,  # what the run's compression keeps
         "n_times": obs.n_times,
         "time_range_jd": [float(obs.times_jd.min()), float(obs.times_jd.max())],
         "lst_range_hours": [float(np.rad2deg(obs.lsts_rad.min()) / 15), float(np.rad2deg(obs.lsts_rad.max()) / 15)],
