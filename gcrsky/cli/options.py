@@ -186,7 +186,7 @@ def add_check_options(g, *, with_data: bool) -> None:
                    "matched by number")
     g.add_argument("--flag-outliers", action=argparse.BooleanOptionalAction, default=True,
                    help="flag channels, baselines and times whose noise excess (time-difference scatter over the "
-                   "autos' radiometer noise) is a robust outlier (default: on; inspect reports them either way)")
+                   "autos' radiometer noise) is a robust outlier; inspect reports them either way")
     g.add_argument("--flux-scale", choices=("check", "accept", "off"), default="check",
                    help="the data's autos against the GSM's through the beam: check (refuse a ratio outside "
                    "0.5-2), accept (record it), off")
@@ -195,8 +195,8 @@ def add_check_options(g, *, with_data: bool) -> None:
         g.add_argument("--dish-diameter", type=positive_float("dish-diameter"), default=None, metavar="D",
                        help="Gaussian beam of a D m dish for the flux-scale check")
         g.add_argument("--redundancy-tol", type=positive_float("redundancy-tol"), default=0.5, metavar="M",
-                       help="tolerance (metres) on baseline vectors when counting unique baselines (default 0.5: "
-                       "above real arrays' position scatter, 0.16 m in HERA H1C, below their spacing, 14.6 m)")
+                       help="tolerance (metres) on baseline vectors when counting unique baselines: above real "
+                       "arrays' position scatter (0.16 m in HERA H1C), below their spacing (14.6 m)")
 
 
 def check_kwargs(args) -> dict:
