@@ -172,3 +172,20 @@ def test_a_single_bad_cell_is_flagged_alone():
     flagged, out = flag_outliers(dataclasses.replace(obs, vis=vis))
     assert out.cells == ((8, 3),) and out.channels == () and out.baselines == ()
     assert np.all(flagged.flags[:, 8, :, 3]) and flagged.flags.sum() == 2 * 8
+
+
+def test_sky_drift_over_long_steps_is_not_flagged_as_a_bad_baseline():
+    """30-minute steps: a bright baseline's fringe turns ~radians per step, its excess is sky, not RFI.
+
+    Negative control: with the drift gate off (max_drift_rad=inf) the same baseline is flagged.
+    """
+    obs = synthetic(seed=9)
+    nt = obs.n_times
+    times = 2460000.0 + np.arange(nt) * 1800.0 / 86400
+    vis = np.array(obs.vis)
+    vis[..., 6] += 0.5 * np.exp(1j * 1.0 * np.arange(nt))[None, None, :]  # a bright source drifting 1 rad per step
+    drifting = dataclasses.replace(obs, vis=vis, times_jd=times)
+    out = find_outliers(drifting)
+    assert out.baselines == () and out.cells == () and len(out.not_judged_baselines) == obs.n_baselines
+    assert find_outliers(drifting, max_drift_rad=np.inf).baselines == (6,)
+    assert find_outliers(obs).not_judged_baselines == ()  # 10 s steps: every baseline judged

@@ -53,7 +53,9 @@ def _flags(rec: dict, freqs_mhz) -> list[str]:
         f"{out['times'] or 'none'}; (channel, baseline) cells "
         + (", ".join(f"{c} {a}-{b} ({e:.4g})" for (c, (a, b)), e in zip(out.get("cells", []),
                                                                       out.get("cell_excess", []))) or "none")
-        + f" (threshold: channel excess > {_fmt(th['channel'])}, k {th['k']:g})")
+        + f" (threshold: channel excess > {_fmt(th['channel'])}, k {th['k']:g})"
+        + (f"; {out['not_judged_baselines']} baselines not judged one by one (the sky drifts > "
+           f"{th['max_drift_rad']:g} rad per step)" if out.get("not_judged_baselines") else ""))
     lines.append(f"  antennas      fully flagged: {rec['fully_flagged_antennas'] or 'none'}")
     return lines
 

@@ -22,7 +22,13 @@ radiometer equation (:mod:`gcrsky.model.noise`) that can run before anything cos
   over one integration and the autos' own scatter (10-60 % on H1C) from flagging channels
   and long baselines.  Channels are judged first; baselines and times on what remains; then
   single (channel, baseline) cells (median over products) among the kept channels and
-  baselines (H1C: 198.4 MHz on baseline 1-13, excess 103).  The rule is relative to the
+  baselines (H1C: 198.4 MHz on baseline 1-13, excess 103).  A baseline's excess also holds
+  the sky's drift between integrations, ~ (fringe rotation per step)^2 x |V|^2 / noise: it
+  grows with the baseline, the step and the sky's brightness, so a baseline whose fringe turns
+  more than :data:`MAX_DRIFT_RAD` = 0.2 rad per step (H1C: at most 0.13 rad, 40 m at 198 MHz
+  over 10.7 s; a simulation with 30-minute steps: radians) is not judged on its own: with long
+  steps the short, bright baselines would stand out as "outliers" of pure sky.  Channels and
+  times are judged on every baseline (the drift changes smoothly across them).  The rule is relative to the
   selection: it needs most items clean (and at least three); one or two channels cannot
   reveal an RFI channel.
 * **Nothing to constrain** (:func:`refuse_empty`): every cross-correlation flagged, or a zero
@@ -43,7 +49,9 @@ from .observation import Observation
 __all__ = [
     "DEFAULT_K",
     "DEFAULT_MIN_FACTOR",
+    "MAX_DRIFT_RAD",
     "dead_channels",
+    "drift_phase_rad",
     "NoiseExcess",
     "Outliers",
     "find_outliers",
@@ -60,6 +68,11 @@ log = logging.getLogger(__name__)
 DEFAULT_K = 5.0
 #: Smallest excess over the median that is flagged (module docstring).
 DEFAULT_MIN_FACTOR = 2.0
+#: Largest fringe rotation between adjacent integrations (radians) of a baseline judged on its own
+#: (module docstring).
+MAX_DRIFT_RAD = 0.2
+#: Earth's rotation rate (sidereal), rad/s.
+OMEGA_EARTH = 7.2921150e-5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,6 +111,7 @@ class Outliers:
         thresholds: the thresholds on each statistic, ``k`` and ``min_factor``.
         dead_channels: channels whose data are all exactly 0 or whose autos are all <= 0.
         cells: outlying (channel, baseline) cells among the kept ones; cell_excess their excess.
+        not_judged_baselines: baselines not judged one by one (the sky drifts too far per step).
     """
 
     channels: tuple
@@ -109,6 +123,7 @@ class Outliers:
     dead_channels: tuple = ()
     cells: tuple = ()
     cell_excess: tuple = ()
+    not_judged_baselines: tuple = ()
 
     @property
     def any(self) -> bool:
@@ -122,6 +137,7 @@ class Outliers:
                 "baseline_excess": list(self.baseline_excess), "times": list(self.times),
                 "cells": [[int(c), [int(a) for a in obs.baseline_antnums[b]]] for c, b in self.cells],
                 "cell_excess": list(self.cell_excess),
+                "not_judged_baselines": len(self.not_judged_baselines),
                 "thresholds": dict(self.thresholds)}
 
 
@@ -220,22 +236,44 @@ def _effective_terms(n_pairs: np.ndarray, axes) -> np.ndarray:
     return per * np.maximum(m, 1) * 2.0 / np.pi
 
 
+def drift_phase_rad(obs: Observation) -> np.ndarray:
+    """(Nbl,) how far a baseline's fringe turns between adjacent integrations, radians (upper bound).
+
+    ``2 pi omega_E dt |b_horizontal| nu_max / c`` with ``dt`` the median step between the
+    integrations: the sky's own change over one step is ~ this phase times the visibility, and
+    it enters the time differences beside the noise.
+    """
+    from ..base.units import SPEED_OF_LIGHT
+
+    if obs.n_times < 2:
+        return np.zeros(obs.n_baselines)
+    dt = float(np.median(np.diff(obs.times_jd))) * 86400.0
+    b = np.linalg.norm(obs.baselines_enu_m[:, :2], axis=1)
+    return 2 * np.pi * OMEGA_EARTH * dt * b * float(obs.freqs_hz.max()) / SPEED_OF_LIGHT
+
+
 def find_outliers(obs: Observation, ex: NoiseExcess | None = None, *, k: float = DEFAULT_K,
-                  min_factor: float = DEFAULT_MIN_FACTOR) -> Outliers:
-    """Channels, then baselines, then times whose noise excess is a robust outlier (module docstring)."""
+                  min_factor: float = DEFAULT_MIN_FACTOR, max_drift_rad: float = MAX_DRIFT_RAD) -> Outliers:
+    """Channels, then baselines, then times, then cells whose noise excess is a robust outlier (module docstring).
+
+    Baselines (and their cells) whose fringe turns more than ``max_drift_rad`` between
+    adjacent integrations (:func:`drift_phase_rad`) are not judged one by one: their excess
+    holds the sky's drift, which grows with the baseline and the sky's brightness.
+    """
     ex = noise_excess(obs) if ex is None else ex
     ch_stat = ex.per_channel()
     ch_bad, ch_cut = outlier_rule(ch_stat, _effective_terms(ex.n_pairs, (0, 2)), k=k, min_factor=min_factor)
     dead = dead_channels(obs)
     keep = np.flatnonzero(~ch_bad & ~np.isin(np.arange(obs.n_freqs), dead))
-    bl_stat = ex.per_baseline(keep)
+    judged = drift_phase_rad(obs) <= max_drift_rad
+    bl_stat = np.where(judged, ex.per_baseline(keep), np.nan)
     bl_bad, bl_cut = outlier_rule(bl_stat, _effective_terms(ex.n_pairs[:, keep], (0, 1)), k=k, min_factor=min_factor)
     z = ex.z[:, keep][..., ~bl_bad]
     t_stat = _nanmedian(np.moveaxis(z, 2, 0).reshape(z.shape[2], -1))
     t_terms = np.sum(np.isfinite(np.moveaxis(z, 2, 0).reshape(z.shape[2], -1)), axis=1) * 2.0 / np.pi
     pair_bad, t_cut = outlier_rule(t_stat, t_terms, k=k, min_factor=min_factor)
     times = _times_of_pairs(pair_bad, obs.n_times)
-    cells, cell_stat, c_cut = _cell_outliers(ex, keep, np.flatnonzero(~bl_bad), k=k, min_factor=min_factor)
+    cells, cell_stat, c_cut = _cell_outliers(ex, keep, np.flatnonzero(~bl_bad & judged), k=k, min_factor=min_factor)
     return Outliers(
         channels=tuple(int(i) for i in np.flatnonzero(ch_bad)),
         baselines=tuple(int(i) for i in np.flatnonzero(bl_bad)),
@@ -243,10 +281,11 @@ def find_outliers(obs: Observation, ex: NoiseExcess | None = None, *, k: float =
         channel_excess=tuple(float(x) for x in ch_stat[ch_bad]),
         baseline_excess=tuple(float(x) for x in bl_stat[bl_bad]),
         thresholds={"channel": ch_cut, "baseline": bl_cut, "time_pair": t_cut, "cell": c_cut, "k": float(k),
-                    "min_factor": float(min_factor)},
+                    "min_factor": float(min_factor), "max_drift_rad": float(max_drift_rad)},
         dead_channels=tuple(dead),
         cells=tuple(cells),
         cell_excess=tuple(cell_stat),
+        not_judged_baselines=tuple(int(i) for i in np.flatnonzero(~judged)),
     )
 
 
