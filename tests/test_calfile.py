@@ -87,7 +87,7 @@ def test_h1c_flux_scale_is_refused_then_accepted(calibrated, caplog):
 
 def _constant_gsm(monkeypatch, temp):
     """The GSM replaced by a map ``temp(theta, phi)`` at nside 128 (fine enough to resolve a step)."""
-    import gcrsky.model.gsmsky as gsmsky
+    from gcrsky.model import gsmsky
 
     theta, phi = hp.pix2ang(128, np.arange(hp.nside2npix(128)))
     monkeypatch.setattr(gsmsky, "gsm_maps", lambda f: (np.stack([temp(theta, phi)] * len(f)), 128))
@@ -134,7 +134,7 @@ def test_a_file_300x_off_is_caught(raw, monkeypatch):
 
 def _no_response(monkeypatch):
     """Any response build fails the test: refusals must come first."""
-    import gcrsky.model.observed as observed
+    from gcrsky.model import observed
 
     def boom(*a, **k):
         raise AssertionError("a response was built")

@@ -51,7 +51,8 @@ def synthetic(seed=0, nf=24, nt=8, nant=5, dt=10.0, dnu=1e5, nsamples=1.0):
         site_ecef_m=np.array([5109342.8, 2005241.9, -3239939.4]), freqs_hz=100e6 + dnu * np.arange(nf),
         channel_width_hz=np.full(nf, dnu), polarizations=np.array([-5, -6]), x_orientation="east",
         vis_units="Jy", pol_convention=None, phase_type="unprojected", telescope_name="TEST",
-        telescope_antenna_numbers=np.arange(nant) * 10, telescope_antenna_names=np.array([f"A{i}" for i in range(nant)]),
+        telescope_antenna_numbers=np.arange(nant) * 10,
+        telescope_antenna_names=np.array([f"A{i}" for i in range(nant)]),
         source="synthetic")
 
 

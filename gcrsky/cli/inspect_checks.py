@@ -7,8 +7,8 @@ __all__ = ["check_lines", "inspect_check_kwargs"]
 
 def inspect_check_kwargs(args) -> dict:
     """inspect_uvdata's data-check keywords from ``inspect``'s options."""
-    return dict(cal=args.cal, flag_outliers=args.flag_outliers, flux_scale=args.flux_scale, beam=args.beam,
-                dish_diameter_m=args.dish_diameter, redundancy_tol_m=args.redundancy_tol)
+    return {"cal": args.cal, "flag_outliers": args.flag_outliers, "flux_scale": args.flux_scale, "beam": args.beam,
+            "dish_diameter_m": args.dish_diameter, "redundancy_tol_m": args.redundancy_tol}
 
 
 def _fmt(x) -> str:
@@ -19,9 +19,9 @@ def _calibration(cal: dict) -> list[str]:
     app = cal["applied"]
     if app is None:
         return [f"  calibration   none applied (vis_units {cal['vis_units']})"]
-    lines = [f"  calibration   {app['file']}: cal_style {app['cal_style']}, {app['cal_type']}, gain_convention "
-             f"{app['gain_convention']}, gain_scale {app['gain_scale']}; units {app['units_before']} -> "
-             f"{app['units_after']}"]
+    lines = [(f"  calibration   {app['file']}: cal_style {app['cal_style']}, {app['cal_type']}, gain_convention "
+              f"{app['gain_convention']}, gain_scale {app['gain_scale']}; units {app['units_before']} -> "
+              f"{app['units_after']}")]
     if app["renamed_antennas"]:
         lines.append(f"                antennas matched by number ({len(app['renamed_antennas'])} names differ, e.g. "
                      + ", ".join(f"{a} {b}->{c}" for a, (b, c) in list(app["renamed_antennas"].items())[:3]) + ")")
@@ -30,7 +30,7 @@ def _calibration(cal: dict) -> list[str]:
     return lines
 
 
-def _flags(rec: dict, freqs_mhz) -> list[str]:
+def _flags(rec: dict) -> list[str]:
     ne = rec.get("noise_excess", {})
     if "skipped" in ne:
         return [f"  noise excess  skipped: {ne['skipped']}"]
@@ -41,9 +41,9 @@ def _flags(rec: dict, freqs_mhz) -> list[str]:
     if not med:
         return ["  noise excess  no usable adjacent pair of samples (nothing unflagged with a positive nsample)",
                 f"  antennas      fully flagged: {rec['fully_flagged_antennas'] or 'none'}"]
-    lines = [f"  noise excess  time-difference / radiometer variance, median over baselines per channel: clean "
-             f"channels {_fmt(min(clean) if clean else None)} - {_fmt(max(clean) if clean else None)}, all "
-             f"{_fmt(min(med) if med else None)} - {_fmt(max(med) if med else None)}"]
+    lines = [(f"  noise excess  time-difference / radiometer variance, median over baselines per channel: clean "
+              f"channels {_fmt(min(clean) if clean else None)} - {_fmt(max(clean) if clean else None)}, all "
+              f"{_fmt(min(med))} - {_fmt(max(med))}")]
     verb = "flagged" if rec["outlier_flagging"] else "outliers (not flagged: --no-flag-outliers)"
     th = out["thresholds"]
     lines.append(f"  outliers      {verb}: channels " + (", ".join(
@@ -65,17 +65,16 @@ def _flux(rec: dict) -> list[str]:
         return ["  flux scale    off"]
     if "skipped" in rec:
         return [f"  flux scale    skipped: {rec['skipped']}"]
-    return [f"  flux scale    data / model autos (GSM through the beam) {_fmt(rec['ratio'])} ({rec['units']}; bounds "
-            f"{rec['bounds'][0]:g}-{rec['bounds'][1]:g}: {'within' if rec['within'] else 'OUTSIDE'})"]
+    return [(f"  flux scale    data / model autos (GSM through the beam) {_fmt(rec['ratio'])} ({rec['units']}; "
+             f"bounds {rec['bounds'][0]:g}-{rec['bounds'][1]:g}: {'within' if rec['within'] else 'OUTSIDE'})")]
 
 
 def check_lines(info: dict) -> list[str]:
     """The report's data-check lines, then one PROBLEM line per thing a run would refuse."""
     checks = info["data_checks"]
-    freqs = checks.get("flux_scale", {}).get("freqs_mhz")
-    lines = [f"  redundancy    {info['n_unique_baselines']} unique within {info['redundancy_tol_m']:g} m (largest "
-             f"offset in a group {info['redundancy_max_offset_m']:.3g} m); the run merges only identical responses: "
-             f"{info['n_rows_exact']} rows"]
-    lines += _calibration(checks["calibration"]) + _flags(checks["flags"], freqs) + _flux(checks["flux_scale"])
+    lines = [(f"  redundancy    {info['n_unique_baselines']} unique within {info['redundancy_tol_m']:g} m (largest "
+              f"offset in a group {info['redundancy_max_offset_m']:.3g} m); the run merges only identical responses: "
+              f"{info['n_rows_exact']} rows")]
+    lines += _calibration(checks["calibration"]) + _flags(checks["flags"]) + _flux(checks["flux_scale"])
     lines += [f"PROBLEM: {p}" for p in info["problems"]]
     return lines

@@ -119,8 +119,8 @@ def match_antennas(uvc, uvd) -> dict:
         uvc.telescope.antenna_names = np.asarray(names)
         log.info("calibration: antennas matched by number, the solutions' names replaced by the data's: %s",
                  ", ".join(f"{a} {b}->{c}" for a, (b, c) in sorted(renamed.items())))
-    missing = sorted(set(int(a) for a in np.unique(np.r_[uvd.ant_1_array, uvd.ant_2_array]))
-                     - set(int(a) for a in uvc.ant_array))
+    missing = sorted({int(a) for a in np.unique(np.r_[uvd.ant_1_array, uvd.ant_2_array])}
+                     - {int(a) for a in uvc.ant_array})
     if missing:
         raise ValueError(f"the calibration file has no solutions for the data's antennas {missing}: select the "
                          f"others (--antennas) or give solutions for them")
@@ -186,6 +186,5 @@ def read_calibrated_observation(data, cal, *, pol=None, **selection) -> tuple[Ob
         uvd = uvd.copy()
     info = apply_calibration(uvd, cal)
     phase_type, notes = _unproject(uvd)
-    notes = list(notes) + [f"calibrated with {cal} ({info['cal_style']}, gain_convention "
-                           f"{info['gain_convention']})"]
+    notes = [*notes, f"calibrated with {cal} ({info['cal_style']}, gain_convention {info['gain_convention']})"]
     return _observation(uvd, source=source, selection=sel, phase_type=phase_type, notes=notes), info

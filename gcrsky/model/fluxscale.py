@@ -68,7 +68,7 @@ def model_autos(obs: Observation, beam, *, nside: int = NSIDE_QUAD) -> np.ndarra
     from ..instrument.beams import beam_amplitude
     from .gsmsky import gsm_maps
 
-    maps, nside_g = gsm_maps(obs.freqs_hz)
+    maps, _ = gsm_maps(obs.freqs_hz)  # any nside: interpolated onto the quadrature grid
     theta, phi = hp.pix2ang(nside, np.arange(hp.nside2npix(nside)))
     temp = np.stack([hp.get_interp_val(m, theta, phi) for m in maps])  # (Nf, npix) K
     idx = np.unique(np.linspace(0, obs.n_times - 1, min(obs.n_times, MAX_MODEL_TIMES)).round().astype(int))
