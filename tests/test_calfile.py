@@ -182,3 +182,20 @@ def test_solutions_missing_an_antenna_are_refused_naming_it(tmp_path):
         read_calibrated_observation(H1C, path, pol="pI", freq_chans=CHANS)
     obs, _ = read_calibrated_observation(H1C, path, pol="pI", freq_chans=CHANS, antennas=[1, 12, 13])
     assert list(obs.antenna_numbers) == [1, 12, 13]  # select the others: it applies
+
+
+def test_flux_check_power_falls_back_to_the_efield_where_interpolated_power_dips_negative(monkeypatch):
+    """Where the power route refuses (an interpolated power beam below zero at a null), |E_x|^2 is used: equal here."""
+    import gcrsky.instrument.beams as beams_mod
+    from gcrsky.model.fluxscale import _power_x
+
+    beam = gaussian_beam(14.0)
+    rng = np.random.default_rng(0)
+    az, za, freqs = rng.uniform(0, 2 * np.pi, 200), rng.uniform(0, 1.4, 200), np.array([120e6, 150e6])
+    want = beams_mod.beam_amplitude(beam, az, za, freqs) ** 2
+
+    def negative(*a, **k):
+        raise ValueError("beam power is negative somewhere; cannot take an unpolarised amplitude")
+
+    monkeypatch.setattr(beams_mod, "beam_amplitude", negative)
+    np.testing.assert_allclose(_power_x(beam, az, za, freqs), want, rtol=1e-12, atol=1e-15)

@@ -65,7 +65,6 @@ def model_autos(obs: Observation, beam, *, nside: int = NSIDE_QUAD) -> np.ndarra
     """
     import healpy as hp
 
-    from ..instrument.beams import beam_amplitude
     from .gsmsky import gsm_maps
 
     maps, _ = gsm_maps(obs.freqs_hz)  # any nside: interpolated onto the quadrature grid
@@ -77,11 +76,39 @@ def model_autos(obs: Observation, beam, *, nside: int = NSIDE_QUAD) -> np.ndarra
     out = np.empty((obs.n_freqs, idx.size))
     for k in range(idx.size):
         up = za[k] < np.pi / 2
-        p = beam_amplitude(beam, az[k][up], za[k][up], obs.freqs_hz) ** 2  # (Nf, nup)
+        p = _power_x(beam, az[k][up], za[k][up], obs.freqs_hz)  # (Nf, nup)
         out[:, k] = np.sum(p * temp[:, up], axis=1) * domega
     if idx.size == obs.n_times:
         return out
     return np.stack([np.interp(obs.times_jd, obs.times_jd[idx], row) for row in out])
+
+
+def _power_x(beam, az, za, freqs) -> np.ndarray:
+    """(Nf, Npix) feed-x power: the response's own (:func:`gcrsky.instrument.beams.beam_amplitude` squared), or,
+    where an interpolated power beam dips below zero at its nulls, ``|E_x|^2`` summed over the E-field's axes."""
+    from ..instrument.beams import beam_amplitude
+
+    try:
+        return beam_amplitude(beam, az, za, freqs) ** 2
+    except ValueError as err:
+        if "negative" not in str(err):
+            raise
+    from pyuvdata import BeamInterface
+
+    bi = beam if isinstance(beam, BeamInterface) else BeamInterface(beam)
+    if bi.beam_type != "efield":
+        raise ValueError("the power beam interpolates below zero: give the E-field beam for the flux-scale check "
+                         "(or --flux-scale off)")
+    kw = {}
+    if bi._isuvbeam:
+        b = bi.beam
+        kw["freq_interp_kind"] = b.freq_interp_kind or ("cubic" if b.Nfreqs >= 4 else "linear")
+        if b.pixel_coordinate_system == "az_za":
+            kw.update(interpolation_function="az_za_map_coordinates", check_azza_domain=False)
+    e = np.asarray(bi.compute_response(az_array=az, za_array=za, freq_array=freqs, **kw))  # (Naxes, Nfeeds, Nf, Npix)
+    feeds = [str(f) for f in np.asarray(bi.beam.feed_array)]
+    x = feeds.index("x") if "x" in feeds else 0  # pyuvdata's feed x ("e"/"n" files: the first, as read)
+    return np.sum(np.abs(e[:, x]) ** 2, axis=0)
 
 
 def _data_autos(obs: Observation, prod: str) -> tuple[np.ndarray, str]:
