@@ -294,7 +294,7 @@ def test_cli_beam_options(uvh5, tmp_path, capsys):
     image = REAL / "HERABEAM.FITS"
     if image.exists():
         rc = cli.main(["run", "--data", str(uvh5), "--beam", str(image), "--out", str(tmp_path / "a"), "--no-progress",
-                       "--lmax", str(LMAX), "--band-limit", "truncate"])
+                       "--lmax", str(LMAX), "--band-limit", "truncate", "--flux-scale", "accept"])
         assert rc == 2 and "--beam-freq-scaling" in capsys.readouterr().err
     assert cli.main(["inspect", str(uvh5), "--json", "--pol", "nn"]) == 0
     assert json.loads(capsys.readouterr().out)["modelled_products"] == ["yy"]
@@ -305,7 +305,7 @@ def test_cli_beam_options(uvh5, tmp_path, capsys):
     phys.write_beamfits(str(hera))
     out = tmp_path / "run"
     rc = cli.main(["run", "--data", str(uvh5), "--beam", str(hera), "--pol", "ee", "--prior-mean", "gsm", "--lmax",
-                   str(LMAX), "--band-limit", "truncate", "--nside", str(NSIDE), "--nsamples", "4", "--batch", "4",
+                   str(LMAX), "--band-limit", "truncate", "--flux-scale", "accept", "--nside", str(NSIDE), "--nsamples", "4", "--batch", "4",
                    "--no-progress", "--no-plots", "--out", str(out)])
     assert rc == 0
     checks = json.loads((out / "summary.json").read_text())["data_checks"]

@@ -205,7 +205,8 @@ def test_problem_from_observation_is_from_uvdata(sim_file):
     beam = gaussian_beam(14.0)
     for kw in ({"pol": "pI"}, {"pol": ("xx", "yy"), "noise": "diff", "compress": False}):
         ref = from_uvdata(path, lmax=LMAX, nside=NSIDE, beam=beam, **kw)
-        assert {"beam", "prior"} <= set(ref.config.checks)  # what from_uvdata checked besides: recorded
+        assert {"beam", "prior", "flags"} <= set(ref.config.checks)  # what from_uvdata checked besides: recorded
+        assert not ref.config.checks["flags"]["outliers"]["channels"]  # nothing flagged: the same data
         ref = dataclasses.replace(ref, config=dataclasses.replace(ref.config, checks={}))
         pol = kw.get("pol")
         obs = read_observation(path, pol=pol, autos=kw.get("noise", "autos") == "autos")

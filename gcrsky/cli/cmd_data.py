@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from ..solvers.options import DEFAULT_TOL
-from .options import DEFAULT_NSAMPLES, beam_prior_kwargs, data_kwargs
+from .options import DEFAULT_NSAMPLES, beam_prior_kwargs, check_kwargs, data_kwargs
 from .runs import EXIT_REFUSED, execute_with_bars, report_run, run_spec
 from .terminal import band_limit_line, refusal_message
 
@@ -51,6 +51,8 @@ def _check_data_options(parser, args) -> None:
         parser.error(f"--prior {args.prior!r}: neither 'gsm', 'flat' nor an existing file")
     if not Path(args.data).exists():
         parser.error(f"--data {args.data!r}: no such file")
+    if args.cal is not None and not Path(args.cal).exists():
+        parser.error(f"--cal {args.cal!r}: no such file")
 
 
 def _file_digest(path) -> str:
@@ -70,6 +72,7 @@ def _data_settings(args, selection: dict) -> dict:
             "beam": args.beam, "dish_diameter": args.dish_diameter, "prior": args.prior,
             "prior_scale": args.prior_scale, "noise": args.noise, "compress": not args.no_compress,
             "lmax": args.lmax, "nside": args.nside, "band_limit": args.band_limit, **beam_prior_kwargs(args),
+            **check_kwargs(args), "cal_sha256": _file_digest(args.cal) if args.cal else None,
             "selection": {k: (list(v) if isinstance(v, tuple) else v) for k, v in selection.items()}}
 
 
@@ -80,7 +83,7 @@ def _read_problem(args, selection: dict):
     return from_uvdata(args.data, lmax=args.lmax, nside=args.nside, beam=args.beam,  # a path: its file is recorded
                        dish_diameter_m=args.dish_diameter, prior=args.prior, prior_scale=args.prior_scale,
                        noise=args.noise, compress=not args.no_compress, band_limit=args.band_limit,
-                       **beam_prior_kwargs(args), **selection)
+                       **beam_prior_kwargs(args), **check_kwargs(args), **selection)
 
 
 def _run_data(args) -> int:

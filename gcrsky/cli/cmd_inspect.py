@@ -23,8 +23,10 @@ def _inspect(args) -> int:
 
     from ..base.memory import format_bytes
     from ..io.uvdata import inspect_uvdata
+    from .inspect_checks import check_lines, inspect_check_kwargs
 
-    info = inspect_uvdata(args.file, lmax=args.lmax, nside=args.nside, **data_kwargs(args))
+    info = inspect_uvdata(args.file, lmax=args.lmax, nside=args.nside, **data_kwargs(args),
+                          **inspect_check_kwargs(args))
     if args.json:
         print(json.dumps(info, indent=1))
         return 0
@@ -40,12 +42,14 @@ def _inspect(args) -> int:
         f"  products      file {', '.join(info['file_polarizations'])}; modelled {', '.join(info['modelled_products'])}",
         f"  conventions   {c['vis_units']}, pol_convention {c['pol_convention']}, {c['phase']}",
         f"  flagged       {100 * info['flagged_fraction']:.2f}% of the samples used",
-        "  noise         " + (f"radiometer (autos): median sigma {info['noise_sigma_median_k_sr']:.4g} K sr per component"
+        "  noise         " + (f"radiometer (autos): median sigma {info['noise_sigma_median_k_sr'] or float('nan'):.4g} "
+                               f"{info['noise_units']} per component"
                                if info["has_autos"] else "no autocorrelations: use --noise diff"),
         f"  memory        read {format_bytes(info['read_bytes'])}; dense P at lmax {args.lmax}: "
         f"{format_bytes(info['dense_precision_bytes'])}; response {format_bytes(info.get('response_bytes', 0))}",
         f"  site          lat {info['site_lat_lon_deg'][0]:.4f} deg, lon {info['site_lat_lon_deg'][1]:.4f} deg",
     ]
     lines += [f"  note          {n}" for n in info["notes"]]
+    lines += check_lines(info)
     print("\n".join(lines))
     return 0

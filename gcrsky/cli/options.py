@@ -19,6 +19,7 @@ __all__ = [
     "beam_prior_kwargs",
     "channel_mode",
     "check_channel_options",
+    "check_kwargs",
     "data_kwargs",
     "finite_float",
     "int_at_least",
@@ -183,6 +184,32 @@ def add_data_options(g, *, with_data: bool) -> None:
                    help="keep integrations with LST in [START, STOP] hours (START > STOP wraps through 0 h)")
     g.add_argument("--antennas", type=_csv("antennas", _antenna), default=None, metavar="A,B,...",
                    help="antenna numbers or names to keep")
+    add_check_options(g, with_data=with_data)
+
+
+def add_check_options(g, *, with_data: bool) -> None:
+    """The data checks' options (docs/ingest.md: data checks, calibration, flux scale)."""
+    g.add_argument("--cal", default=None, metavar="FILE",
+                   help="gain solutions (calfits, calh5: any file UVCal reads) applied to the data first; antennas "
+                   "matched by number")
+    g.add_argument("--flag-outliers", action=argparse.BooleanOptionalAction, default=True,
+                   help="flag channels, baselines and times whose noise excess (time-difference scatter over the "
+                   "autos' radiometer noise) is a robust outlier; inspect reports them either way")
+    g.add_argument("--flux-scale", choices=("check", "accept", "off"), default="check",
+                   help="the data's autos against the GSM's through the beam: check (refuse a ratio outside "
+                   "0.5-2), accept (record it), off")
+    if not with_data:
+        g.add_argument("--beam", default=None, metavar="FILE", help="beam file for the flux-scale check")
+        g.add_argument("--dish-diameter", type=positive_float("dish-diameter"), default=None, metavar="D",
+                       help="Gaussian beam of a D m dish for the flux-scale check")
+        g.add_argument("--redundancy-tol", type=positive_float("redundancy-tol"), default=0.5, metavar="M",
+                       help="tolerance (metres) on baseline vectors when counting unique baselines: above real "
+                       "arrays' position scatter (0.16 m in HERA H1C), below their spacing (14.6 m)")
+
+
+def check_kwargs(args) -> dict:
+    """from_uvdata / inspect_uvdata data-check keywords from the parsed options."""
+    return dict(cal=args.cal, flag_outliers=args.flag_outliers, flux_scale=args.flux_scale)
 
 
 def add_beam_prior_options(g) -> None:

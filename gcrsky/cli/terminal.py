@@ -117,10 +117,10 @@ def fit_line(gof: dict) -> str:
     """One line of the run's goodness of fit (``summary.json``'s ``goodness_of_fit``)."""
     chi = ", ".join("-" if x is None else f"{x:.3g}" for x in gof["chi2_per_dof"][:8]) + (
         " ..." if len(gof["chi2_per_dof"]) > 8 else "")
-    p = [x for x in gof["p_value"] if x is not None]
+    p = [min(u, lo) for u, lo in zip(gof["p_value"], gof["p_value_low"]) if u is not None]
     verdict = (f"REJECTED in {len(gof['rejected_channels'])} channels" if gof["rejected"]
-               else f"not rejected at p < {gof['threshold_p']:.2g}")
-    return (f"  fit: chi2/dof {chi} (min p {min(p) if p else float('nan'):.2g}: {verdict}); outliers: "
+               else f"not rejected at p < {gof['threshold_p']:.2g} in either tail")
+    return (f"  fit: chi2/dof {chi} (min tail p {min(p) if p else float('nan'):.2g}: {verdict}); outliers: "
             f"{gof['rows']['n_outliers']} rows, {gof['times']['n_outliers']} times")
 
 

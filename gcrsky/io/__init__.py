@@ -22,6 +22,7 @@
 """
 
 from .atomic import atomic_path, atomic_write_text, is_temporary
+from .calibration import read_calibrated_observation
 from .fits import FRAMES, freq_column_names, write_alm_fits, write_healpix_fits
 from .observation import read_observation
 from .results import (
@@ -62,6 +63,7 @@ __all__ = [
     "is_temporary",
     "json_default",
     "read_draws",
+    "read_calibrated_observation",
     "read_observation",
     "read_results_state",
     "read_uvdata",

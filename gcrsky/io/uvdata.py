@@ -46,7 +46,7 @@ from ..model.prior import Prior, flat_prior, isotropic_prior
 from ..model.problem import Problem
 from ..model.skyprior import check_gsm_cl_frequencies, gsm_cl
 from ..sphere.modes import n_params
-from .observation import read_bytes, read_observation, read_uvdata
+from .observation import read_bytes, read_uvdata
 
 __all__ = [
     "COMPRESS_RTOL",
@@ -224,6 +224,9 @@ def from_uvdata(
     accept_x_orientation_mismatch: bool = False,
     prior_mean: str | None = None,
     band_limit: str = "truncate",
+    cal=None,
+    flag_outliers: bool = True,
+    flux_scale: str = "accept",
 ) -> Problem:
     """The inference problem of a visibility file: ICRS coefficients at ``lmax`` (module docstring).
 
@@ -273,83 +276,116 @@ def from_uvdata(
             ``"truncate"`` (default here: kept, with a warning and the count in
             ``config.checks["band_limit"]``; right for data simulated at ``lmax``).
 
+        cal: a gain solutions file (calfits, calh5) applied first (:mod:`gcrsky.io.calibration`).
+        flag_outliers: flag the noise-excess outliers (:mod:`gcrsky.model.datachecks`).
+        flux_scale: ``"accept"`` (default: record the data / GSM autos ratio, a warning outside
+            :data:`gcrsky.model.fluxscale.FLUX_BOUNDS`), ``"check"`` (refuse a ratio outside
+            them: ``gcrsky run --data``'s default) or ``"off"``.
+
     ``pol`` may name products by compass direction (``"ee"``, ``"nn"``, ``"ee,nn"``): they are
     the file's feed products through its ``x_orientation``.  What the beams and the prior
     checked is in ``config.checks["beam"]``, ``["prior"]`` (and ``["pol"]``).
 
     Returns:
         a :class:`~gcrsky.model.Problem` with ``pols`` recording each row's product and
-        ``config`` a :class:`DataConfig`.
+        ``config`` a :class:`DataConfig` (``checks``: calibration, flags, flux_scale).
     """
     from ..base.dtypes import require_x64
     from .beamprior import apply_prior_mean, feed_pol_of, prepare_beams, with_checks
+    from .datachecks import flag_checks, flux_checks, read_checked
 
     require_x64("from_uvdata")
     pol, pol_rec = feed_pol_of(data, pol)
     parse_products(pol)
-    obs = read_observation(
-        data, pol=pol, freq_chans=freq_chans, freq_range_hz=freq_range_hz, times_jd=times_jd,
+    obs, checks = read_checked(
+        data, cal=cal, pol=pol, freq_chans=freq_chans, freq_range_hz=freq_range_hz, times_jd=times_jd,
         lst_range_hours=lst_range_hours, antennas=antennas, bls=bls, autos=noise_kind(noise) == "autos",
         memory_budget=memory_budget)
     for line in obs.notes:
         log.warning(line)
-    check_observation(obs, pol, noise)  # units, products, autos: before any beam or prior file is read
+    check_observation(obs, pol, noise)  # units, products, autos, data: before any beam or prior file is read
     if prior is None or (isinstance(prior, str) and prior == "gsm"):
         check_gsm_cl_frequencies(obs.freqs_hz)  # the prior's band: before any beam is read or response built
+    obs, flags = flag_checks(obs, flag=flag_outliers)
+    checks.update(flags)
+    check_observation(obs, pol, noise)  # still something to fit once the outliers are flagged
     beams, beam_note = _resolve_beams(beam, dish_diameter_m, obs)
     beams, beam_rec = prepare_beams(beams, beam, obs, normalization=beam_normalization,
                                     freq_scaling=beam_freq_scaling,
                                     accept_x_orientation_mismatch=accept_x_orientation_mismatch)
+    checks.update(flux_checks(obs, beams[0], pol=pol, mode=flux_scale))  # through the prepared beam
     lmax, band_note = observation_lmax(obs, beams, lmax, n_products=len(parse_products(pol)[0]),
                                        frame_pad=frame_pad, budget_bytes=memory_budget)
     prior_obj, prior_note = _resolve_prior(prior, prior_scale, obs.freqs_hz, lmax)
     prior_obj, prior_note, prior_rec = apply_prior_mean(prior_obj, prior_note, prior_mean, prior, obs.freqs_hz, lmax)
     prob = problem_from_observation(obs, beams, lmax=lmax, nside=nside, pol=pol, prior=prior_obj, noise=noise,
                                     compress=compress, frame_pad=frame_pad, beam_note=beam_note,
-                                    prior_note=prior_note, band_limit=band_limit, band_note=band_note)
+                                    prior_note=prior_note, band_limit=band_limit, band_note=band_note,
+                                    checks=checks)
     return with_checks(prob, {"beam": beam_rec, "prior": prior_rec, **({"pol": pol_rec} if pol_rec else {})})
 
 
 # ---------------------------------------------------------------- inspect
 
 
-def inspect_uvdata(path, *, pol="pI", lmax: int | None = None, nside: int | None = None, **selection) -> dict:
+def inspect_uvdata(path, *, pol="pI", lmax: int | None = None, nside: int | None = None, cal=None,
+                  flag_outliers: bool = True, flux_scale: str = "check", beam=None,
+                  dish_diameter_m: float | None = None, redundancy_tol_m: float = 0.5, **selection) -> dict:
     """What :func:`from_uvdata` would use, without building the response or solving (a JSON-friendly dict).
 
-    Reads the selection (so flags and autos are known) and reports the antennas,
-    baselines (and unique ones), times and LST coverage, channels, products, units,
-    conventions, the flagged fraction, a radiometer noise estimate from the autos (median
-    per-component sigma of the modelled product, K sr: the run's own noise,
-    :func:`gcrsky.model.raw_variance`) and the memory of the read and, with ``lmax`` (and
-    ``nside``), of the dense posterior precision.
+    Reads the selection (so flags and autos are known), applies ``cal`` if given, and reports
+    the antennas, baselines (and unique ones, within ``redundancy_tol_m`` metres), times and
+    LST coverage, channels, products, units, conventions, the flagged fraction, a radiometer
+    noise estimate from the autos (median per-component sigma of the modelled product, K sr,
+    or the file's units when uncalibrated: the run's own noise, :func:`gcrsky.model.raw_variance`),
+    the memory of the read and, with ``lmax`` (and ``nside``), of the dense posterior
+    precision; then the data checks (``"data_checks"``: calibration, noise excess and
+    outliers, fully flagged antennas, the flux scale with ``beam`` or ``dish_diameter_m``;
+    :func:`gcrsky.io.datachecks.inspect_checks`) and ``"problems"``: what a run would refuse.
     """
-    from .beamprior import feed_pol_of
+    from .beamprior import feed_pol_of, prepare_beams
+    from .datachecks import inspect_checks, read_checked
 
     pol = feed_pol_of(path, pol)[0]
     prods, _ = parse_products(pol)
-    obs = read_observation(path, pol=pol, **selection)
-    to_ksr = kelvin_sr_per_unit(obs)
-    out = _describe_observation(obs, prods)
+    obs, checks = read_checked(path, cal=cal, pol=pol, **selection)
+    out = _describe_observation(obs, prods, redundancy_tol_m)
+    b, beam_problem = None, None
+    if beam is not None or dish_diameter_m is not None:
+        try:  # the beam a run would use (peak-normalised, frequencies checked): the flux check's beam
+            b = prepare_beams(_resolve_beams(beam, dish_diameter_m, obs)[0], beam, obs)[0][0]
+        except ValueError as e:
+            beam_problem = f"the beam: {e}"
+    obs, checks, problems = inspect_checks(obs, checks, pol=pol, flag=flag_outliers, flux_scale=flux_scale, beam=b)
+    problems = problems + ([beam_problem] if beam_problem else [])
+    out["flagged_fraction"] = obs.flagged_fraction  # after the outliers are flagged, as a run would use them
+    try:
+        to_ksr, out["noise_units"] = kelvin_sr_per_unit(obs), "K sr"
+    except ValueError:
+        to_ksr, out["noise_units"] = np.ones(obs.n_freqs), obs.vis_units
     sig = None
     if obs.has_autos:
         var = {r: raw_variance(obs, r, "autos") for r in POLS[prods[0]]}
-        v = modelled_product(obs, prods[0], var)[1]
+        v, ok = modelled_product(obs, prods[0], var)[1:]
         with np.errstate(invalid="ignore"):
-            sig = float(np.nanmedian(np.sqrt(v) * to_ksr[:, None, None]))
+            s = np.where(ok, np.sqrt(v) * to_ksr[:, None, None], np.nan)
+            sig = float(np.nanmedian(s)) if np.any(ok) else None
     out["noise_sigma_median_k_sr"] = sig
     out["read_bytes"] = read_bytes(obs.nblts_read, obs.n_freqs, obs.n_pols)
     lat, lon, _ = obs.site_lat_lon_alt
     out["site_lat_lon_deg"] = [lat, lon]
     if lmax is not None:
-        out.update(_memory(obs, len(prods), out["n_unique_baselines"], lmax, nside))
+        out.update(_memory(obs, len(prods), out["n_rows_exact"], lmax, nside))
+    out["data_checks"] = checks
+    out["problems"] = problems
     return out
 
 
-def _describe_observation(obs: Observation, prods) -> dict:
+def _describe_observation(obs: Observation, prods, redundancy_tol_m: float = 0.5) -> dict:
     """The part of :func:`inspect_uvdata`'s report that describes the file (in the report's key order)."""
     from ..instrument.redundancy import redundant_groups
 
-    groups = redundant_groups(obs.antpos_enu_m, obs.antpairs)
+    groups = redundant_groups(obs.antpos_enu_m, obs.antpairs, tol_m=redundancy_tol_m)
     return {
         "source": obs.source,
         "selection": obs.selection,
@@ -357,6 +393,9 @@ def _describe_observation(obs: Observation, prods) -> dict:
         "n_antennas": obs.n_antennas,
         "n_baselines": obs.n_baselines,
         "n_unique_baselines": groups.n_groups,
+        "redundancy_tol_m": float(redundancy_tol_m),
+        "redundancy_max_offset_m": float(np.max(groups.max_offset_m)),
+        "n_rows_exact": redundant_groups(obs.antpos_enu_m, obs.antpairs).n_groups,  # what the run's compression keeps
         "n_times": obs.n_times,
         "time_range_jd": [float(obs.times_jd.min()), float(obs.times_jd.max())],
         "lst_range_hours": [float(np.rad2deg(obs.lsts_rad.min()) / 15), float(np.rad2deg(obs.lsts_rad.max()) / 15)],

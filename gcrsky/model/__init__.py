@@ -15,6 +15,8 @@
   :class:`Problem` (modelled products, units, radiometer noise, weights, responses)
 - ``bandlimit``: the reach of a baseline, the lmax that models every baseline, and what to
   do with those beyond it (cut, marginalise the sky above lmax, truncate)
+- ``datachecks``: pre-fit checks of an Observation (noise excess, outlier flags, nothing to fit)
+- ``fluxscale``: the data's autos against the GSM's through the beam
 - ``template``: hyperparameter families: the paper's spectral template (one coefficient
   set for all channels, scaled by ``(nu/nu0)^beta``), noise and prior scales
 """
@@ -30,6 +32,8 @@ from .compress import (
     compress_system,
     compress_visibilities,
 )
+from .datachecks import find_outliers, flag_outliers, flagged_antennas, noise_excess, refuse_empty
+from .fluxscale import FLUX_BOUNDS, flux_scale_check, model_autos
 from .noise import (
     clean_data,
     draw_noise,
@@ -91,6 +95,7 @@ from .template import (
 __all__ = [
     "BAND_LIMIT_MODES",
     "DataConfig",
+    "FLUX_BOUNDS",
     "GSM_CL_FIT_RANGE",
     "Geometry",
     "LinearSystem",
@@ -105,6 +110,13 @@ __all__ = [
     "build_problem",
     "check_gsm_cl_frequencies",
     "check_observation",
+    "find_outliers",
+    "flag_outliers",
+    "flagged_antennas",
+    "flux_scale_check",
+    "model_autos",
+    "noise_excess",
+    "refuse_empty",
     "check_system",
     "clean_data",
     "compress_problem",

@@ -42,6 +42,7 @@ from ..base.units import kelvin_sr_to_jy
 from ..instrument.antennas import make_array
 from ..instrument.beams import unique_beams
 from ..instrument.response import response_matrix
+from .datachecks import refuse_empty
 from .noise import radiometer_variance, time_difference_variance
 from .observation import POLS, Observation, parse_products
 from .prior import Prior
@@ -136,7 +137,7 @@ def kelvin_sr_per_unit(obs: Observation) -> np.ndarray:
     """(Nf,) K sr per unit of the file's visibilities; uncalibrated or unknown units are refused."""
     if obs.vis_units == "uncalib":
         raise ValueError("the file's visibilities are uncalibrated (vis_units 'uncalib'): gcrsky needs Jy or K str; "
-                         "calibrate them first")
+                         "calibrate them first, or apply gain solutions with --cal FILE (cal=, a calfits/calh5 UVCal)")
     if obs.vis_units == "Jy":
         return 1.0 / kelvin_sr_to_jy(obs.freqs_hz)
     if obs.vis_units == "K str":
@@ -155,8 +156,10 @@ def check_observation(obs: Observation, pol="pI", noise="autos") -> None:
     """Refuse, before anything is built, an Observation that cannot give a Problem in physical units.
 
     Checks the units (:func:`kelvin_sr_per_unit`), that the feed products ``pol`` needs
-    are there, and that the radiometer noise (``noise="autos"``) has autocorrelations.
+    are there, that the radiometer noise (``noise="autos"``) has autocorrelations, and that
+    some cross-correlation is unflagged with a positive nsample (:func:`gcrsky.model.datachecks.refuse_empty`).
     """
+    refuse_empty(obs)
     kelvin_sr_per_unit(obs)
     _, raw = parse_products(pol)
     missing = [r for r in raw if r not in obs.pol_names]
@@ -346,6 +349,7 @@ def problem_from_observation(
     prior_note: str | None = None,
     band_limit: str | None = "truncate",
     band_note: dict | None = None,
+    checks: dict | None = None,
 ) -> Problem:
     """The inference problem of an Observation: ICRS coefficients at ``lmax`` (module docstring).
 
@@ -368,6 +372,7 @@ def problem_from_observation(
             ``"cut"``, ``"marginalise"``, ``"truncate"`` (default: kept as they are, with a
             warning), or None (not checked); recorded in ``config.checks["band_limit"]``.
         band_note: how ``lmax`` was chosen (:func:`gcrsky.model.bandlimit.observation_lmax`).
+        checks: what the ingest checked, by section (``DataConfig.checks``; JSON-friendly).
 
     Returns:
         a :class:`~gcrsky.model.Problem` with ``pols`` recording each row's product and
@@ -386,6 +391,7 @@ def problem_from_observation(
     array, geom, responses, lst_ref = _instrument(obs, beams, lmax, nside, frame_pad, pairs, row_pols)
     cfg = _data_config(obs, prods, geom, beams, lmax=lmax, nside=nside, noise=noise, beam_note=beam_note or note,
                        prior_note=prior_note or "given (a Prior)")
+    cfg = dataclasses.replace(cfg, checks=dict(checks or {}))
     log.info("problem_from_observation: %s; %d antennas, %d baselines x %d products, %d times, %d channels; "
              "prior: %s", obs.source, obs.n_antennas, obs.n_baselines, len(prods), obs.n_times, obs.n_freqs,
              cfg.prior)

@@ -17,9 +17,10 @@ first order.  Prior directions that are flat (``inv_var = 0``) are fitted, not
 predicted: each that the data constrain takes one degree of freedom (all of them, or the
 eigen path's kept rank less the proper directions).  The p-value is the *upper* tail
 ``P(chi2_dof >= chi2)`` (a model that fits worse than its noise and prior say); the
-lower tail is reported too (``p_value_low``: noise overestimated).  The fit is rejected
-when a channel's upper p-value is below ``alpha / Nf`` (Bonferroni over channels,
-``alpha = 1e-3``).
+lower tail ``p_value_low`` says the data vary far *less* than the model expects (noise or
+prior too large: a flux scale far below the prior's, as redundantly calibrated data in
+uncalibrated units give).  The fit is rejected when either tail of a channel is below
+``alpha / (2 Nf)`` (two-sided, Bonferroni over channels, ``alpha = 1e-3``).
 
 **Where, per sample.**  The Wiener residual ``d - X a_wf`` has covariance
 ``N - X P^-1 X^T <= N``: whitened by the noise alone, ``z = (d - X a_wf) / sigma`` per
@@ -51,8 +52,8 @@ MAX_LISTED = 10
 
 FIT_NOTE = (
     "posterior predictive check: chi2 = (d - X a0)^T (N + X S X^T)^-1 (d - X a0) per channel, chi-square with dof "
-    "= real unflagged data values (minus flat prior directions) under the model; p_value: upper tail; rejected when "
-    "a channel's p_value < alpha / Nf (Bonferroni); rows / times: the Wiener residual whitened by the noise alone "
+    "= real unflagged data values (minus flat prior directions) under the model; p_value: upper tail, p_value_low: "
+    "lower tail; rejected when either tail of a channel < alpha / (2 Nf) (two-sided, Bonferroni); rows / times: the Wiener residual whitened by the noise alone "
     "(variance <= 1 per value, so chi2/dof a little below 1 on a right model), outliers beyond the chi-square's "
     "upper alpha / Ngroups quantile (conservative); z_max: |z| threshold of single values (alpha / Nvalues two-sided)"
 )
@@ -124,7 +125,7 @@ def goodness_of_fit(prob, wiener, *, alpha: float = FIT_ALPHA, rank=None) -> dic
         a JSON-friendly dict: ``chi2`` (Nf), ``dof`` (Nf), ``chi2_per_dof`` (Nf),
         ``p_value`` (Nf, upper tail), ``p_value_low`` (Nf) (None where no degree of freedom
         is left), ``alpha``, ``threshold_p``
-        (``alpha / Nf``), ``rejected_channels``, ``rejected`` (bool), ``rows`` and
+        (``alpha / (2 Nf)``, each tail), ``rejected_channels``, ``rejected`` (bool), ``rows`` and
         ``times`` (chi2/dof of the noise-whitened Wiener residual per group, outliers),
         ``residual_chi2_per_dof`` (Nf), ``z_max``, ``n_values_beyond_z_max``, ``note``.
     """
@@ -135,8 +136,8 @@ def goodness_of_fit(prob, wiener, *, alpha: float = FIT_ALPHA, rank=None) -> dic
     dof_safe = np.maximum(dof, 1)
     p_up = stats.chi2.sf(chi2, dof_safe)
     p_low = stats.chi2.cdf(chi2, dof_safe)
-    threshold = alpha / chi2.size
-    rejected = np.flatnonzero((p_up < threshold) & ok)
+    threshold = alpha / (2 * chi2.size)
+    rejected = np.flatnonzero((np.minimum(p_up, p_low) < threshold) & ok)
 
     def per_channel(x):
         return [float(v) if k else None for v, k in zip(x, ok)]
@@ -153,10 +154,14 @@ def fit_warning(gof: dict, freqs_hz) -> str | None:
     if not gof.get("rejected"):
         return None
     chans = gof["rejected_channels"]
-    worst = max(chans, key=lambda k: gof["chi2_per_dof"][k])
-    return (f"WARNING: the model does not fit the data: chi2/dof rejected at p < {gof['threshold_p']:.2g} in "
+    worst = min(chans, key=lambda k: min(gof["p_value"][k], gof["p_value_low"][k]))
+    low = gof["p_value_low"][worst] < gof["p_value"][worst]
+    why = ("the data vary far less than the model expects: noise or prior too large, e.g. a flux scale far below "
+           "the prior's" if low else "the data vary more than noise and prior allow")
+    return (f"WARNING: the model does not fit the data: chi2/dof rejected at p < {gof['threshold_p']:.2g} (each tail) in "
             f"{len(chans)} of {len(gof['chi2'])} channels (worst {float(freqs_hz[worst]) / 1e6:.3f} MHz: chi2/dof "
-            f"{gof['chi2_per_dof'][worst]:.3g}, p = {gof['p_value'][worst]:.2g}); see summary.json goodness_of_fit")
+            f"{gof['chi2_per_dof'][worst]:.3g}, {'lower' if low else 'upper'} p = "
+            f"{gof['p_value_low' if low else 'p_value'][worst]:.2g}: {why}); see summary.json goodness_of_fit")
 
 
 def run_fit(prob, wiener, warnings: list, rank=None) -> dict | None:

@@ -1,0 +1,169 @@
+"""The ingest's data checks, in the order a run and ``inspect`` need them (``DataConfig.checks`` sections).
+
+1. :func:`read_checked`: the file's selection, calibrated with ``cal`` (:mod:`gcrsky.io.calibration`) or
+   not (``checks["calibration"]``);
+2. :func:`flag_checks`: the noise excess and its outliers (flagged with ``flag_outliers``), dead
+   channels, fully flagged antennas (``checks["flags"]``; :mod:`gcrsky.model.datachecks`);
+3. :func:`flux_checks`: the flux-scale ratio (``checks["flux_scale"]``, :mod:`gcrsky.model.fluxscale`),
+   refused outside its bounds unless ``flux_scale="accept"``.
+
+All sections are JSON-friendly.  Nothing here builds a response.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from ..model.datachecks import DEFAULT_K, find_outliers, flag_outliers, flagged_antennas, noise_excess
+from ..model.fluxscale import FLUX_BOUNDS, flux_scale_check
+from ..model.observation import Observation, parse_products
+from .observation import read_observation
+
+__all__ = ["FLUX_SCALE_MODES", "flag_checks", "flux_checks", "inspect_checks", "read_checked"]
+
+log = logging.getLogger(__name__)
+
+#: ``flux_scale``: refuse a ratio outside the bounds, accept it (recorded, a warning), or skip the check.
+FLUX_SCALE_MODES = ("check", "accept", "off")
+
+
+def read_checked(data, *, cal=None, pol="pI", **selection) -> tuple[Observation, dict]:
+    """The Observation of the selection (calibrated with ``cal`` if given) and ``{"calibration": ...}``."""
+    if cal is None:
+        obs = read_observation(data, pol=pol, **selection)
+        state = {"applied": None, "vis_units": obs.vis_units}
+        return obs, {"calibration": state}
+    from .calibration import read_calibrated_observation
+
+    obs, info = read_calibrated_observation(data, cal, pol=pol, **selection)
+    used = {str(int(a)) for a in obs.antenna_numbers}
+    info["renamed_antennas"] = {k: v for k, v in info["renamed_antennas"].items() if k in used}
+    return obs, {"calibration": {"applied": info, "vis_units": obs.vis_units}}
+
+
+def flag_checks(obs: Observation, *, flag: bool = True, k: float = DEFAULT_K,
+                refuse: bool = True) -> tuple[Observation, dict]:
+    """Noise excess, outliers (flagged if ``flag``), fully flagged antennas: (Observation, ``{"flags": ...}``).
+
+    The excess needs the autos and two integrations; without them it is skipped with the reason.
+    Flagging that leaves nothing usable raises a ``ValueError`` saying so if ``refuse``, else is
+    recorded (``"emptied"``).
+    """
+    rec: dict = {"flagged_fraction_read": obs.flagged_fraction, "outlier_flagging": bool(flag)}
+    try:
+        ex = noise_excess(obs)
+    except ValueError as err:
+        rec["noise_excess"] = {"skipped": str(err)}
+        rec["fully_flagged_antennas"] = flagged_antennas(obs)
+        return obs, {"flags": rec}
+    pc = ex.per_channel()
+    rec["noise_excess"] = {
+        "per_channel_median": [None if not np.isfinite(x) else float(x) for x in pc],
+        "per_channel_max": [None if not np.any(np.isfinite(row)) else float(np.nanmax(row))
+                            for row in np.moveaxis(ex.excess, 1, 0).reshape(obs.n_freqs, -1)],
+        "products": list(ex.pol_names),
+    }
+    had = bool(np.any(obs.usable))
+    if flag:
+        obs, out = flag_outliers(obs, k=k)
+    else:
+        out = find_outliers(obs, ex, k=k)
+    if had and not np.any(obs.usable):
+        rec["emptied"] = ("every usable sample was flagged by the data checks (noise-excess outlier channels "
+                          f"{list(out.channels)}, dead channels {list(out.dead_channels)}, baselines "
+                          f"{list(out.baselines)}, times {list(out.times)}): select other data, or keep them with "
+                          "--no-flag-outliers (flag_outliers=False)")
+    rec["outliers"] = out.to_dict(obs)
+    rec["fully_flagged_antennas"] = flagged_antennas(obs)
+    rec["flagged_fraction_used"] = obs.flagged_fraction
+    if refuse and "emptied" in rec:
+        raise ValueError(rec["emptied"])
+    if rec["fully_flagged_antennas"]:
+        log.warning("antennas flagged entirely (every cross-correlation): %s", rec["fully_flagged_antennas"])
+    return obs, {"flags": rec}
+
+
+def flux_checks(obs: Observation, beam, *, pol="pI", mode: str = "check", bounds=FLUX_BOUNDS) -> dict:
+    """``{"flux_scale": ...}``: the ratio (:func:`gcrsky.model.fluxscale.flux_scale_check`) and the decision.
+
+    Raises:
+        ValueError: ``mode == "check"`` and the ratio is outside ``bounds`` (the message names
+            ``--flux-scale accept``); an unknown mode.
+    """
+    if mode not in FLUX_SCALE_MODES:
+        raise ValueError(f"flux_scale must be one of {FLUX_SCALE_MODES}, got {mode!r}")
+    if mode == "off":
+        return {"flux_scale": {"mode": "off"}}
+    if not obs.has_autos:
+        return {"flux_scale": {"mode": mode, "skipped": "no autocorrelations in the selection"}}
+    prods, _ = parse_products(pol)
+    from ..model.gsmsky import GSM_RANGE_HZ
+
+    lo, hi = GSM_RANGE_HZ
+    if obs.freqs_hz.min() < lo or obs.freqs_hz.max() > hi:
+        why = f"the GSM sky is known over {lo / 1e6:g}-{hi / 1e6:g} MHz only"
+        log.warning("flux-scale check skipped: %s", why)
+        return {"flux_scale": {"mode": mode, "skipped": why}}
+    try:
+        rec = {"mode": mode, **flux_scale_check(obs, beam, prod=prods[0], bounds=bounds)}
+    except ImportError as err:  # the GSM map is pyradiosky's (the "sim" extra)
+        log.warning("flux-scale check skipped: %s", err)
+        return {"flux_scale": {"mode": mode, "skipped": str(err)}}
+    ratio = rec["ratio"]
+    if ratio is not None and not rec["within"]:
+        what = (f"the data's autocorrelations are {ratio:.4g} x the GSM sky's through the beam (expected "
+                f"{bounds[0]:g}-{bounds[1]:g} for calibrated data in {rec['units']}): the flux scale is off by that "
+                "factor (calibration, units or beam normalisation)")
+        if mode == "check":
+            raise ValueError(what + "; fix the calibration, or accept the scale with --flux-scale accept "
+                             "(flux_scale='accept'; the posterior is then on the data's scale)")
+        log.warning("%s; accepted (flux_scale='accept')", what)
+    return {"flux_scale": rec}
+
+
+def inspect_checks(obs: Observation, checks: dict, *, pol="pI", flag: bool = True, flux_scale: str = "check",
+                   beam=None) -> tuple[Observation, dict, list[str]]:
+    """``inspect``'s checks: everything is reported, and what a run would refuse becomes a PROBLEM line.
+
+    Args:
+        obs: the Observation read (and calibrated) by :func:`read_checked`; ``checks`` its record.
+        pol: the modelled product(s).  flag: flag the outliers (as a run would).
+        flux_scale: as a run's (``"off"`` skips the check).  beam: a beam object, or None
+            (the flux-scale check is then skipped with a note).
+
+    Returns:
+        (the Observation a run would fit, the checks, the problems: messages of what a run refuses).
+    """
+    from ..model.datachecks import refuse_empty
+    from ..model.observed import kelvin_sr_per_unit
+
+    problems = []
+    obs, flags = flag_checks(obs, flag=flag, refuse=False)
+    checks.update(flags)
+    if "emptied" in flags["flags"]:
+        problems.append(flags["flags"]["emptied"])
+    for check in (refuse_empty, kelvin_sr_per_unit):
+        try:
+            check(obs)
+        except ValueError as err:
+            problems.append(str(err))
+    if flux_scale == "off":
+        checks["flux_scale"] = {"mode": "off"}
+    elif beam is None:
+        checks["flux_scale"] = {"mode": flux_scale, "skipped": "no beam: give --beam FILE or --dish-diameter D"}
+    else:
+        try:
+            checks.update(flux_checks(obs, beam, pol=pol, mode="accept"))
+        except ValueError as err:
+            checks["flux_scale"] = {"mode": flux_scale, "skipped": str(err)}
+        rec = checks["flux_scale"]
+        if rec.get("ratio") is not None and not rec["within"] and flux_scale == "check":
+            problems.append(f"flux scale: the data's autos are {rec['ratio']:.4g} x the GSM's through the beam "
+                            f"(bounds {rec['bounds'][0]:g}-{rec['bounds'][1]:g}): a run refuses it unless "
+                            "--flux-scale accept")
+    cal = checks["calibration"]
+    if cal["applied"] is not None:
+        problems += [f"calibration: {w}" for w in cal["applied"]["warnings"] if "redundant" in w]
+    return obs, checks, problems

@@ -1,0 +1,164 @@
+"""Flux-scale check: the data's autocorrelations against the GSM sky seen through the beam.
+
+An autocorrelation measures ``int P(s) T(s) dOmega`` (plus receiver noise): the model auto
+of channel ``f`` at time ``t`` is ``M_ft = sum_pix P_f(s_pix(t)) T_f(pix) dOmega`` (K sr) with
+``T`` the GSM (:func:`gcrsky.model.gsmsky.gsm_maps`, interpolated bilinearly onto a finer
+HEALPix grid, :data:`NSIDE_QUAD`), ``P`` the beam's feed-x power at each pixel's
+(azimuth, zenith angle) at the data's times and site (astropy ``AltAz``; below the horizon
+0), the beam *as the Problem uses it* (a beam that is not peak-normalised shows up here).
+The data's autos are converted exactly as the Problem converts cross-correlations: the
+product's I-equivalent combination (:func:`gcrsky.model.observed.product_factor`) and the
+units (:func:`gcrsky.model.observed.kelvin_sr_per_unit`; uncalibrated data are taken as Jy
+and marked so).  The ratio is the median over channels of the median over (time,
+antenna) of ``data / model``.
+
+Bounds :data:`FLUX_BOUNDS` = (0.5, 2): calibrated autos exceed the sky's by the receiver
+noise (HERA: ``T_rx`` ~100 K against a sky of ~250-2000 K over 100-200 MHz, a ratio of
+1.05-1.4), and the GSM and beam models are good to 10-20 %: a ratio near 1-1.5 is expected,
+and no physical effect makes the autos half the sky's or more than twice it with the
+receiver.  A ratio outside is a calibration (or beam normalisation) off by that factor,
+which scales the whole posterior: a run refuses it unless accepted.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from .observation import POLS, Observation
+
+__all__ = ["FLUX_BOUNDS", "NSIDE_QUAD", "flux_scale_check", "model_autos"]
+
+log = logging.getLogger(__name__)
+
+#: Accepted range of data / model autos (module docstring).
+FLUX_BOUNDS = (0.5, 2.0)
+#: HEALPix nside of the beam quadrature (1.8 deg pixels: a 4.8 deg FWHM beam spans ~7 pixels across).
+NSIDE_QUAD = 32
+#: Most times at which the model is evaluated (it varies slowly; linear in time between them).
+MAX_MODEL_TIMES = 12
+
+
+def _pixel_altaz(obs: Observation, times_jd: np.ndarray, nside: int) -> tuple[np.ndarray, np.ndarray]:
+    """(Nt, npix) UVBeam azimuth (North of East) and zenith angle of each ICRS pixel, radians."""
+    import healpy as hp
+    from astropy import units as u
+    from astropy.coordinates import AltAz, SkyCoord
+    from astropy.time import Time
+
+    theta, phi = hp.pix2ang(nside, np.arange(hp.nside2npix(nside)))
+    sky = SkyCoord(ra=phi * u.rad, dec=(np.pi / 2 - theta) * u.rad, frame="icrs")
+    t = Time(times_jd[:, None], format="jd", scale="utc")
+    aa = sky[None, :].transform_to(AltAz(obstime=t, location=obs.location))
+    alt, az = aa.alt.to_value(u.rad), aa.az.to_value(u.rad)  # az East of North
+    return np.mod(np.pi / 2 - az, 2 * np.pi), np.pi / 2 - alt
+
+
+def model_autos(obs: Observation, beam, *, nside: int = NSIDE_QUAD) -> np.ndarray:
+    """(Nf, Nt) model autocorrelations ``int P T_GSM dOmega`` at the data's times, K sr (module docstring).
+
+    Args:
+        obs: the Observation (its frequencies, times, site).
+        beam: a pyuvdata beam object (feed x power is used for every product).
+        nside: HEALPix nside of the quadrature.
+    """
+    import healpy as hp
+
+    from .gsmsky import gsm_maps
+
+    maps, _ = gsm_maps(obs.freqs_hz)  # any nside: interpolated onto the quadrature grid
+    theta, phi = hp.pix2ang(nside, np.arange(hp.nside2npix(nside)))
+    temp = np.stack([hp.get_interp_val(m, theta, phi) for m in maps])  # (Nf, npix) K
+    idx = np.unique(np.linspace(0, obs.n_times - 1, min(obs.n_times, MAX_MODEL_TIMES)).round().astype(int))
+    az, za = _pixel_altaz(obs, obs.times_jd[idx], nside)
+    domega = 4 * np.pi / temp.shape[1]
+    out = np.empty((obs.n_freqs, idx.size))
+    for k in range(idx.size):
+        up = za[k] < np.pi / 2
+        p = _power_x(beam, az[k][up], za[k][up], obs.freqs_hz)  # (Nf, nup)
+        out[:, k] = np.sum(p * temp[:, up], axis=1) * domega
+    if idx.size == obs.n_times:
+        return out
+    return np.stack([np.interp(obs.times_jd, obs.times_jd[idx], row) for row in out])
+
+
+def _power_x(beam, az, za, freqs) -> np.ndarray:
+    """(Nf, Npix) feed-x power: the response's own (:func:`gcrsky.instrument.beams.beam_amplitude` squared), or,
+    where an interpolated power beam dips below zero at its nulls, ``|E_x|^2`` summed over the E-field's axes."""
+    from ..instrument.beams import beam_amplitude
+
+    try:
+        return beam_amplitude(beam, az, za, freqs) ** 2
+    except ValueError as err:
+        if "negative" not in str(err):
+            raise
+    from pyuvdata import BeamInterface
+
+    bi = beam if isinstance(beam, BeamInterface) else BeamInterface(beam)
+    if bi.beam_type != "efield":
+        raise ValueError("the power beam interpolates below zero: give the E-field beam for the flux-scale check "
+                         "(or --flux-scale off)")
+    kw = {}
+    if bi._isuvbeam:
+        b = bi.beam
+        kw["freq_interp_kind"] = b.freq_interp_kind or ("cubic" if b.Nfreqs >= 4 else "linear")
+        if b.pixel_coordinate_system == "az_za":
+            kw.update(interpolation_function="az_za_map_coordinates", check_azza_domain=False)
+    e = np.asarray(bi.compute_response(az_array=az, za_array=za, freq_array=freqs, **kw))  # (Naxes, Nfeeds, Nf, Npix)
+    feeds = [str(f) for f in np.asarray(bi.beam.feed_array)]
+    x = feeds.index("x") if "x" in feeds else 0  # pyuvdata's feed x ("e"/"n" files: the first, as read)
+    return np.sum(np.abs(e[:, x]) ** 2, axis=0)
+
+
+def _data_autos(obs: Observation, prod: str) -> tuple[np.ndarray, str]:
+    """(Nf, Nt, Nant) the product's I-equivalent autos in K sr (NaN where flagged) and the units assumed."""
+    from .observed import kelvin_sr_per_unit, product_factor
+
+    units = obs.vis_units
+    if units == "uncalib":  # the raw scale, reported as if it were Jy
+        from ..base.units import kelvin_sr_to_jy
+
+        to_ksr, units = 1.0 / kelvin_sr_to_jy(obs.freqs_hz), "uncalib (taken as Jy)"
+    else:
+        to_ksr = kelvin_sr_per_unit(obs)
+    c = product_factor(prod, obs.pol_convention)
+    comps = POLS[prod]
+    parts = []
+    for r in comps:
+        k = obs.pol_index(r)
+        parts.append(np.where(obs.auto_flags[k] | ~obs.auto_present[None], np.nan, obs.autos[k].real))
+    return c * sum(parts) * to_ksr[:, None, None], units
+
+
+def flux_scale_check(obs: Observation, beam, *, prod: str = "pI", bounds=FLUX_BOUNDS,
+                     nside: int = NSIDE_QUAD) -> dict:
+    """The ratio of the data's autos to the GSM's model autos (module docstring), JSON-friendly.
+
+    Returns:
+        ``{"ratio", "ratio_per_channel", "freqs_mhz", "bounds", "within", "units", "model_k_sr", "method"}``;
+        ``ratio`` None (with ``"reason"``) when no channel has an unflagged auto.
+
+    Raises:
+        ValueError: the data hold no autocorrelations; a frequency outside the GSM's 30-250 MHz.
+    """
+    if not obs.has_autos:
+        raise ValueError("the flux-scale check needs the autocorrelations (none in the selection)")
+    data, units = _data_autos(obs, prod)
+    model = model_autos(obs, beam, nside=nside)  # (Nf, Nt)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = data / model[:, :, None]
+    per = np.array([np.median(x[np.isfinite(x) & (x > 0)]) if np.any(np.isfinite(x) & (x > 0)) else np.nan
+                    for x in r])
+    ok = np.isfinite(per)
+    ratio = float(np.median(per[ok])) if np.any(ok) else None
+    out = {"ratio": ratio, "ratio_per_channel": [None if not np.isfinite(x) else float(x) for x in per],
+           "freqs_mhz": [float(f / 1e6) for f in obs.freqs_hz], "bounds": [float(b) for b in bounds],
+           "within": ratio is not None and bounds[0] <= ratio <= bounds[1], "units": units, "product": prod,
+           "model_k_sr_median": float(np.median(model)),
+           "method": f"median over channels of median(data auto / int P T_GSM dOmega) over times and antennas; "
+                     f"beam feed-x power, GSM (pyradiosky) at nside {nside}"}
+    if ratio is None:
+        out["reason"] = "no unflagged positive autocorrelation"
+    log.info("flux scale: data / model autos = %s (bounds %s)", ratio, bounds)
+    return out

@@ -1,0 +1,110 @@
+"""``gcrsky inspect`` and ``gcrsky run --data`` with the data checks: the real HERA files, small and fast.
+
+H1C with its omnical solutions end to end (3 channels, lmax 4, nside 16, 10 draws): the solutions
+apply offline, the ORBCOMM channel is flagged, the flux scale (~0.004: redundant solutions leave
+the amplitude free) is refused, then accepted with ``--flux-scale accept``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gcrsky import cli
+
+REAL = Path("/work/shared/data/real")
+if not REAL.exists():
+    REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+H1C = REAL / "zen.2458098.45361.HH_downselected.uvh5"
+CAL = REAL / "zen.2458098.45361.HH.omni_downselected.calfits"
+H2C = REAL / "zen.2458432.34569.uvh5"
+pytestmark = pytest.mark.skipif(not H1C.exists(), reason="the real HERA files are not there")
+RUN = ["run", "--data", str(H1C), "--cal", str(CAL), "--dish-diameter", "14", "--chans", "20,24,30", "--lmax", "4",
+       "--band-limit", "marginalise",  # every baseline reaches l > 80: the sky above lmax 4 as noise
+       "--nside", "16", "--nsamples", "10", "--batch", "5", "--no-progress", "--no-plots"]
+
+
+def test_h1c_with_its_solutions_end_to_end(tmp_path, capsys):
+    assert cli.main([*RUN, "--out", str(tmp_path / "refused")]) == 2
+    err = capsys.readouterr().err
+    assert "0.00" in err and "--flux-scale accept" in err
+    out = tmp_path / "run"
+    assert cli.main([*RUN, "--flux-scale", "accept", "--out", str(out)]) == 0
+    checks = json.loads((out / "summary.json").read_text())["data_checks"]
+    assert checks["flags"]["outliers"]["channels_mhz"] == [137.5]  # ORBCOMM, the middle channel
+    assert checks["flags"]["fully_flagged_antennas"] == [0]  # flagged in the solutions
+    assert 0.003 < checks["flux_scale"]["ratio"] < 0.005 and checks["flux_scale"]["mode"] == "accept"
+    assert checks["calibration"]["applied"]["renamed_antennas"]["0"] == ["ant0", "HH0"]
+    # accepted ~300x below the GSM prior's scale, the data vary far less than the model expects: the posterior
+    # predictive check rejects the fit in its lower tail (the flagged channel has no degree of freedom: None)
+    gof = json.loads((out / "summary.json").read_text())["goodness_of_fit"]
+    assert gof["rejected"] and gof["rejected_channels"] == [0, 2] and gof["chi2_per_dof"][1] is None
+    printed = capsys.readouterr()
+    assert max(gof["chi2_per_dof"][k] for k in (0, 2)) < 1e-4 and "lower p" in printed.out + printed.err
+
+
+def test_an_uncalibrated_file_is_refused_naming_cal(tmp_path, capsys):
+    rc = cli.main(["run", "--data", str(H1C), "--dish-diameter", "14", "--chans", "20", "--lmax", "4", "--nside",
+                   "16", "--out", str(tmp_path / "x")])
+    assert rc == 2 and "--cal FILE" in capsys.readouterr().err
+
+
+def test_inspect_reports_everything_then_problems(capsys):
+    assert cli.main(["inspect", str(H1C), "--dish-diameter", "14"]) == 0
+    text = capsys.readouterr().out
+    assert "11 unique within 0.5 m" in text
+    assert "137.50 MHz" in text and "dead channels [0, 1, 2]" in text
+    lines = text.splitlines()
+    problems = [k for k, line in enumerate(lines) if line.startswith("PROBLEM")]
+    assert len(problems) == 2 and problems[0] == len(lines) - 2  # last: uncalibrated; flux scale
+    assert "--cal FILE" in lines[-2] and "flux scale" in lines[-1]
+    assert cli.main(["inspect", str(H2C), "--json", "--pol", "xx"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert any("nsample of every unflagged sample is zero" in p for p in info["problems"])
+    assert info["data_checks"]["flags"]["fully_flagged_antennas"] == info["antennas"]
+    assert cli.main(["inspect", str(H1C), "--redundancy-tol", "1e-9", "--chans", "30", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["n_unique_baselines"] == 28
+
+
+def test_injected_rfi_in_a_file_is_flagged_and_reported(tmp_path, capsys):
+    """Clean H1C channels 10-20 with a strong time-varying signal added to channel 15 (index 5 of the selection)."""
+    from pyuvdata import UVData
+
+    uvd = UVData.from_file(str(H1C), freq_chans=list(range(10, 21)))
+    rng = np.random.default_rng(0)
+    cross = uvd.ant_1_array != uvd.ant_2_array
+    amp = 30 * np.median(np.abs(uvd.data_array[cross, 5]))
+    uvd.data_array[cross, 5] += amp * (rng.normal(size=(cross.sum(), uvd.Npols))
+                                       + 1j * rng.normal(size=(cross.sum(), uvd.Npols)))
+    path = tmp_path / "rfi.uvh5"
+    uvd.write_uvh5(str(path))
+    assert cli.main(["inspect", str(path), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)["data_checks"]["flags"]["outliers"]
+    assert out["channels"] == [5] and out["baselines"] == [] and out["times"] == []
+    assert cli.main(["inspect", str(path), "--no-flag-outliers"]) == 0
+    assert "outliers (not flagged: --no-flag-outliers): channels 5" in capsys.readouterr().out
+
+
+def test_zero_nsample_file_is_refused_by_a_run(tmp_path, capsys):
+    """H2C (nsample 0 everywhere): exit 2 with the reason, before any response (it used to give prior-only results)."""
+    rc = cli.main(["run", "--data", str(H2C), "--pol", "xx", "--dish-diameter", "14", "--lmax", "4", "--nside", "16",
+                   "--out", str(tmp_path / "h2c")])
+    assert rc == 2 and "nsample of every unflagged sample is zero" in capsys.readouterr().err
+    assert not (tmp_path / "h2c" / "summary.json").exists()
+
+
+def test_flagging_that_leaves_nothing_is_refused_with_the_reason(tmp_path, capsys):
+    """Only H1C's zeroed edge channels 0-2 (dead, unflagged in the file; units set to Jy): nothing is left."""
+    from pyuvdata import UVData
+
+    uvd = UVData.from_file(str(H1C), freq_chans=[0, 1, 2])
+    uvd.vis_units = "Jy"
+    path = tmp_path / "edge.uvh5"
+    uvd.write_uvh5(str(path))
+    rc = cli.main(["run", "--data", str(path), "--dish-diameter", "14", "--lmax", "4", "--nside", "16",
+                   "--flux-scale", "off", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "dead channels [0, 1, 2]" in err and "--no-flag-outliers" in err
