@@ -199,6 +199,33 @@ def _resolve_prior(prior, prior_scale, freqs, lmax) -> tuple[Prior, str]:
 # ---------------------------------------------------------------- the problem
 
 
+def _checked_observation(data, *, pol, noise, prior, cal, flag_outliers, **read) -> tuple[Observation, dict]:
+    """``(obs, checks)``: the file read (and calibrated), checked, its outliers flagged, checked again; the GSM
+    prior's band checked too: everything that can refuse a file before a beam is read or a response built."""
+    from .datachecks import flag_checks, read_checked
+
+    obs, checks = read_checked(data, cal=cal, pol=pol, autos=noise_kind(noise) == "autos", **read)
+    for line in obs.notes:
+        log.warning(line)
+    check_observation(obs, pol, noise)  # units, products, autos, data
+    if prior is None or (isinstance(prior, str) and prior == "gsm"):
+        check_gsm_cl_frequencies(obs.freqs_hz)  # the prior's band
+    obs, flags = flag_checks(obs, flag=flag_outliers)
+    checks.update(flags)
+    check_observation(obs, pol, noise)  # still something to fit once the outliers are flagged
+    return obs, checks
+
+
+def _prepared_beams(beam, dish_diameter_m, obs: Observation, **how) -> tuple[list, str, dict]:
+    """``(beams per antenna, description, checks["beam"])``: the beams resolved and prepared for ``obs``
+    (:func:`gcrsky.io.beamprior.prepare_beams`; ``how``: its normalisation and frequency options)."""
+    from .beamprior import prepare_beams
+
+    beams, note = _resolve_beams(beam, dish_diameter_m, obs)
+    beams, rec = prepare_beams(beams, beam, obs, **how)
+    return beams, note, rec
+
+
 def from_uvdata(
     data,
     *,
@@ -231,93 +258,69 @@ def from_uvdata(
     """The inference problem of a visibility file: ICRS coefficients at ``lmax`` (module docstring).
 
     Args:
-        data: a path to any file ``UVData.from_file`` reads, or a ``UVData`` object (not
-            modified).
-        lmax: maximum degree of the sky's ICRS coefficients; None: the reach of every used
-            baseline at the highest used frequency, capped by memory
-            (:func:`gcrsky.model.bandlimit.observation_lmax`).
-        nside: HEALPix nside of the response quadrature.
-        beam: a pyuvdata beam object (``UVBeam``, an ``AnalyticBeam`` such as
-            ``GaussianBeam``, a ``BeamInterface``), a path to a beam file ``UVBeam`` reads
-            (beamfits, CST, MWA), a dict from antenna numbers or names to beams, or a list
-            of beams in the file's ``antenna_numbers`` order.
+        data: a path to any file ``UVData.from_file`` reads, or a ``UVData`` (not modified).
+        lmax: degree of the ICRS coefficients; None: every used baseline's reach at the highest
+            frequency, capped by memory (:func:`gcrsky.model.bandlimit.observation_lmax`).
+        beam: a pyuvdata beam object (``UVBeam``, ``AnalyticBeam``, ``BeamInterface``), a beam
+            file's path (UVBeam files, SIN beam images), a dict from antenna numbers or names
+            to beams, or a list of beams in the file's ``antenna_numbers`` order.
         dish_diameter_m: instead of ``beam``: a Gaussian beam with the Airy FWHM of that dish.
-        pol: ``"pI"`` (pseudo-Stokes I, ``xx + yy``), ``"xx"``, ``"yy"``, or ``("xx", "yy")``
-            (or ``"xx,yy"``: both products, separately, of the same sky).
-        prior: ``None`` / ``"gsm"`` (isotropic, zero mean, C_l of the GSM at the data's
-            frequencies, :func:`gcrsky.model.gsm_cl`), ``"flat"``, a
-            :class:`~gcrsky.model.Prior`, a C_l array ((lmax+1,) or (Nf, lmax+1), K^2), a C_l
-            file (``.npy``, or text with a column of l and one of C_l per frequency), or a
-            HEALPix map / alm FITS file (ICRS, K; the prior's *mean*, with the GSM's C_l as
-            its variance).
-        prior_scale: factor on the prior variance.
-        noise: ``"autos"`` (radiometer equation on the file's autocorrelations),
-            ``"diff"`` (time-adjacent differences), or a per-component sigma (scalar or
-            broadcastable to the file's (Nf, Nt, Nbl) grid), in the file's units, of each
-            raw feed product.
+        pol: ``"pI"`` (``xx + yy``), ``"xx"``, ``"yy"``, ``("xx", "yy")`` / ``"xx,yy"`` (both, of one sky).
+        prior: ``None`` / ``"gsm"`` (isotropic, zero mean, the GSM's C_l, :func:`gcrsky.model.gsm_cl`),
+            ``"flat"``, a :class:`~gcrsky.model.Prior`, a C_l array ((lmax+1,) or (Nf, lmax+1),
+            K^2) or file (``.npy``, or text: l and C_l per frequency), or a HEALPix map / alm
+            FITS file (ICRS, K: the prior's *mean*, with the GSM's C_l as its variance).
+        prior_scale, nside: factor on the prior variance; HEALPix nside of the response quadrature.
+        noise: ``"autos"`` (radiometer equation on the autos), ``"diff"`` (time-adjacent
+            differences), or each raw product's per-component sigma in the file's units
+            (broadcastable to (Nf, Nt, Nbl)).
         freq_chans, freq_range_hz: channel indices, and/or a (lo, hi) range in Hz.
-        times_jd, lst_range_hours: integration times (JD) to keep, and/or an LST range
-            (hours; ``(22, 2)`` wraps through 0 h).
-        antennas: antenna numbers or names to keep (pairs among them).
-        bls: antenna pairs to keep (numbers or names), any subset.
-        compress: merge redundant baselines (exactly: only identical responses merge,
-            :func:`gcrsky.compress_problem`).
-        frame_pad: degree margin of the ICRS -> of-date frame map.
-        memory_budget: bytes the read may use (default: the free memory).
-        beam_normalization: ``"peak"`` (a physical UVBeam is peak-normalised, logged) or
-            ``"physical"`` (kept as it is) (:func:`gcrsky.instrument.beamprep.prepare_beam`).
-        beam_freq_scaling: a single-frequency beam at other frequencies: ``"none"`` or ``"lambda"``.
-        accept_x_orientation_mismatch: the beam's feed x may point elsewhere than the file's.
+        times_jd, lst_range_hours: times (JD) to keep, and/or an LST range (h; ``(22, 2)`` wraps).
+        antennas, bls: antenna numbers or names to keep (pairs among them); antenna pairs to keep.
+        compress: merge redundant baselines (only identical responses, :func:`gcrsky.compress_problem`).
+        frame_pad, memory_budget: degree margin of the ICRS -> of-date map; bytes the read may use.
+        beam_normalization, beam_freq_scaling, accept_x_orientation_mismatch: how a beam is
+            prepared (:func:`gcrsky.instrument.beamprep.prepare_beam`): ``"peak"`` (a physical
+            UVBeam peak-normalised) or ``"physical"``; a single-frequency beam's ``"none"`` or
+            ``"lambda"`` scaling; whether the beam's feed x may point elsewhere than the file's.
         prior_mean: None / ``"zero"`` (the prior's own mean) or ``"gsm"`` (the GSM's
             coefficients at the data's frequencies, :func:`gcrsky.model.skyprior.gsm_prior_mean`).
-        band_limit: what to do with the rows whose reach exceeds ``lmax``
-            (:mod:`gcrsky.model.bandlimit`): ``"cut"`` (weight 0; the CLI's default),
-            ``"marginalise"`` (the sky above ``lmax`` as extra noise variance) or
-            ``"truncate"`` (default here: kept, with a warning and the count in
-            ``config.checks["band_limit"]``; right for data simulated at ``lmax``).
-
+        band_limit: rows whose reach exceeds ``lmax`` (:mod:`gcrsky.model.bandlimit`): ``"cut"``
+            (the CLI's default), ``"marginalise"`` (the sky above ``lmax`` as noise) or
+            ``"truncate"`` (default here, with a warning: right for data simulated at ``lmax``).
         cal: a gain solutions file (calfits, calh5) applied first (:mod:`gcrsky.io.calibration`).
         flag_outliers: flag the noise-excess outliers (:mod:`gcrsky.model.datachecks`).
-        flux_scale: ``"accept"`` (default: record the data / GSM autos ratio, a warning outside
-            :data:`gcrsky.model.fluxscale.FLUX_BOUNDS`), ``"check"`` (refuse a ratio outside
-            them: ``gcrsky run --data``'s default) or ``"off"``.
+        flux_scale: ``"accept"`` (default: the data / GSM autos ratio recorded, a warning outside
+            :data:`gcrsky.model.fluxscale.FLUX_BOUNDS`), ``"check"`` (refused outside them: the
+            CLI's default) or ``"off"``.
 
-    ``pol`` may name products by compass direction (``"ee"``, ``"nn"``, ``"ee,nn"``): they are
-    the file's feed products through its ``x_orientation``.  What the beams and the prior
-    checked is in ``config.checks["beam"]``, ``["prior"]`` (and ``["pol"]``).
+    ``pol`` may name products by compass direction (``"ee"``, ``"nn"``): the file's feed
+    products through its ``x_orientation``.
 
     Returns:
-        a :class:`~gcrsky.model.Problem` with ``pols`` recording each row's product and
-        ``config`` a :class:`DataConfig` (``checks``: calibration, flags, flux_scale).
+        a :class:`~gcrsky.model.Problem` (``pols``: each row's product; ``config``: a
+        :class:`DataConfig` whose ``checks`` say what was checked: calibration, flags,
+        flux_scale, beam, prior, band_limit, pol).
     """
     from ..base.dtypes import require_x64
-    from .beamprior import apply_prior_mean, feed_pol_of, prepare_beams, with_checks
-    from .datachecks import flag_checks, flux_checks, read_checked
+    from .beamprior import apply_prior_mean, feed_pol_of, with_checks
+    from .datachecks import flux_checks
 
     require_x64("from_uvdata")
     pol, pol_rec = feed_pol_of(data, pol)
     parse_products(pol)
-    obs, checks = read_checked(
-        data, cal=cal, pol=pol, freq_chans=freq_chans, freq_range_hz=freq_range_hz, times_jd=times_jd,
-        lst_range_hours=lst_range_hours, antennas=antennas, bls=bls, autos=noise_kind(noise) == "autos",
+    obs, checks = _checked_observation(
+        data, pol=pol, noise=noise, prior=prior, cal=cal, flag_outliers=flag_outliers, freq_chans=freq_chans,
+        freq_range_hz=freq_range_hz, times_jd=times_jd, lst_range_hours=lst_range_hours, antennas=antennas, bls=bls,
         memory_budget=memory_budget)
-    for line in obs.notes:
-        log.warning(line)
-    check_observation(obs, pol, noise)  # units, products, autos, data: before any beam or prior file is read
-    if prior is None or (isinstance(prior, str) and prior == "gsm"):
-        check_gsm_cl_frequencies(obs.freqs_hz)  # the prior's band: before any beam is read or response built
-    obs, flags = flag_checks(obs, flag=flag_outliers)
-    checks.update(flags)
-    check_observation(obs, pol, noise)  # still something to fit once the outliers are flagged
-    beams, beam_note = _resolve_beams(beam, dish_diameter_m, obs)
-    beams, beam_rec = prepare_beams(beams, beam, obs, normalization=beam_normalization,
-                                    freq_scaling=beam_freq_scaling,
-                                    accept_x_orientation_mismatch=accept_x_orientation_mismatch)
+    beams, beam_note, beam_rec = _prepared_beams(
+        beam, dish_diameter_m, obs, normalization=beam_normalization, freq_scaling=beam_freq_scaling,
+        accept_x_orientation_mismatch=accept_x_orientation_mismatch)
     checks.update(flux_checks(obs, beams[0], pol=pol, mode=flux_scale))  # through the prepared beam
     lmax, band_note = observation_lmax(obs, beams, lmax, n_products=len(parse_products(pol)[0]),
                                        frame_pad=frame_pad, budget_bytes=memory_budget)
-    prior_obj, prior_note = _resolve_prior(prior, prior_scale, obs.freqs_hz, lmax)
-    prior_obj, prior_note, prior_rec = apply_prior_mean(prior_obj, prior_note, prior_mean, prior, obs.freqs_hz, lmax)
+    prior_obj, prior_note, prior_rec = apply_prior_mean(*_resolve_prior(prior, prior_scale, obs.freqs_hz, lmax),
+                                                        prior_mean, prior, obs.freqs_hz, lmax)
     prob = problem_from_observation(obs, beams, lmax=lmax, nside=nside, pol=pol, prior=prior_obj, noise=noise,
                                     compress=compress, frame_pad=frame_pad, beam_note=beam_note,
                                     prior_note=prior_note, band_limit=band_limit, band_note=band_note,
@@ -343,7 +346,7 @@ def inspect_uvdata(path, *, pol="pI", lmax: int | None = None, nside: int | None
     outliers, fully flagged antennas, the flux scale with ``beam`` or ``dish_diameter_m``;
     :func:`gcrsky.io.datachecks.inspect_checks`) and ``"problems"``: what a run would refuse.
     """
-    from .beamprior import feed_pol_of, prepare_beams
+    from .beamprior import feed_pol_of
     from .datachecks import inspect_checks, read_checked
 
     pol = feed_pol_of(path, pol)[0]
@@ -353,7 +356,7 @@ def inspect_uvdata(path, *, pol="pI", lmax: int | None = None, nside: int | None
     b, beam_problem = None, None
     if beam is not None or dish_diameter_m is not None:
         try:  # the beam a run would use (peak-normalised, frequencies checked): the flux check's beam
-            b = prepare_beams(_resolve_beams(beam, dish_diameter_m, obs)[0], beam, obs)[0][0]
+            b = _prepared_beams(beam, dish_diameter_m, obs)[0][0]
         except ValueError as e:
             beam_problem = f"the beam: {e}"
     obs, checks, problems = inspect_checks(obs, checks, pol=pol, flag=flag_outliers, flux_scale=flux_scale, beam=b)
