@@ -14,7 +14,12 @@ OVERRIDES = {
     "hyperparameters.ipynb": {"LMAX": 8, "NSIDE": 32, "GRID": 4, "STEPS": 8},
     "gibbs.ipynb": {"LMAX": 8, "NSIDE": 32, "STEPS": 1500, "NUTS_WARMUP": 150, "NUTS_SAMPLES": 300},
     "point_sources.ipynb": {"LMAX": 8, "NSIDE": 32, "STEPS": 1500},
+    "real_data.ipynb": {"LMAX": 8, "BAND_LIMIT": "marginalise", "NSIDE": 32, "NSAMPLES": 20},
 }
+
+#: Notebooks that read the real HERA files (skipped where ../shared/data/real is absent).
+REAL = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+NEEDS_REAL = {"real_data.ipynb"}
 
 
 def _check_quickstart(ns):
@@ -89,6 +94,23 @@ def _check_point_sources(ns):
     assert np.all(np.abs(ns["t_joint"] - ns["t_true"]) < 4 * ns["sd_joint"])
 
 
+def _check_real_data(ns):
+    import numpy as np
+
+    # RFI: FM (~106 MHz) and ORBCOMM (137.5 MHz) flagged, the clean band's excess near 1
+    assert 137.5 in ns["flagged_mhz"] and any(105.0 < f < 108.0 for f in ns["flagged_mhz"])
+    assert 0.8 < np.nanmedian(ns["excess"][~np.isin(ns["freqs_mhz"], ns["flagged_mhz"])]) < 1.5
+    # the redundant solutions leave the data ~250x below the GSM's autos: outside the bounds
+    assert ns["fs"]["ratio"] < 0.01 and not ns["fs"]["within"]
+    # the model is rejected (here, marginalised at lmax 8: the lower tail), and the dense eigen-decomposition
+    # of the whitened data covariance gives the run's chi2 (an independent route, to rounding)
+    assert ns["gof"]["rejected"]
+    chi2 = ns["contrib"].sum() / ns["r"].size
+    assert abs(chi2 - ns["gof"]["chi2_per_dof"][0]) < 1e-6 * ns["gof"]["chi2_per_dof"][0]
+    assert np.all(np.isfinite(ns["draws"])) and ns["draws"].shape == (1, 20, 81)
+    assert ns["std_map"][ns["centre"]] < ns["std_map"][ns["far"]]  # the data constrain the zenith patch
+
+
 #: The notebooks' claims, checked on their own numbers (every notebook needs an entry).
 CHECKS = {
     "quickstart.ipynb": _check_quickstart,
@@ -96,12 +118,17 @@ CHECKS = {
     "hyperparameters.ipynb": _check_hyperparameters,
     "gibbs.ipynb": _check_gibbs,
     "point_sources.ipynb": _check_point_sources,
+    "real_data.ipynb": _check_real_data,
 }
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
-def test_notebook_runs(path):
+def test_notebook_runs(path, monkeypatch):
+    if path.name in NEEDS_REAL:
+        if not REAL.is_dir():
+            pytest.skip(f"the real HERA files are not at {REAL}")
+        monkeypatch.setenv("GCRSKY_REAL_DATA", str(REAL))
     nb = json.loads(path.read_text())
     assert nb["nbformat"] == 4
     ns: dict = {"__name__": "__notebook__"}
