@@ -57,6 +57,10 @@ def test_inspect_reports_everything_then_problems(capsys):
     text = capsys.readouterr().out
     assert "11 unique within 0.5 m" in text
     assert "137.50 MHz" in text and "dead channels [0, 1, 2]" in text
+    # the band limit a run would choose: H1C's 38.7 m baselines with 14 m dishes reach l ~ 2 pi 52.7 m / 1.51 m
+    # ~ 219 at 198.4 MHz (driftscan's form from the east/north components: 246); all 64 channels cap it by memory
+    band = next(line for line in text.splitlines() if line.strip().startswith("band limit"))
+    assert "reach l = 246" in band and "models lmax" in band
     lines = text.splitlines()
     problems = [k for k, line in enumerate(lines) if line.startswith("PROBLEM")]
     assert len(problems) == 2 and problems[0] == len(lines) - 2  # last: uncalibrated; flux scale

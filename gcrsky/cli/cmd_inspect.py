@@ -45,10 +45,14 @@ def _inspect(args) -> int:
         "  noise         " + (f"radiometer (autos): median sigma {info['noise_sigma_median_k_sr'] or float('nan'):.4g} "
                                f"{info['noise_units']} per component"
                                if info["has_autos"] else "no autocorrelations: use --noise diff"),
-        f"  memory        read {format_bytes(info['read_bytes'])}; dense P at lmax {args.lmax}: "
+        f"  memory        read {format_bytes(info['read_bytes'])}; dense P at lmax {info['lmax_for_sizes']}: "
         f"{format_bytes(info['dense_precision_bytes'])}; response {format_bytes(info.get('response_bytes', 0))}",
         f"  site          lat {info['site_lat_lon_deg'][0]:.4f} deg, lon {info['site_lat_lon_deg'][1]:.4f} deg",
     ]
+    band = info.get("band_limit")
+    if band:
+        lines.append(f"  band limit    the baselines reach l = {band['reach']} at the highest frequency (dish "
+                     f"{band['dish_m'][0]:g} m); a run without --lmax models lmax {band['lmax']} ({band['chosen']})")
     lines += [f"  note          {n}" for n in info["notes"]]
     lines += check_lines(info)
     print("\n".join(lines))

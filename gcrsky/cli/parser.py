@@ -146,7 +146,9 @@ def _add_inspect_parser(sub) -> None:
         "the response or solving.",
     )
     ins.add_argument("file", help="visibility file (UVH5, or UVFITS / MS where pyuvdata's readers are installed)")
-    ins.add_argument("--lmax", type=int_at_least(1, "lmax"), default=d.lmax, help="maximum degree l (for the sizes)")
+    ins.add_argument("--lmax", type=int_at_least(1, "lmax"), default=None,
+                     help="maximum degree l for the sizes (default: with a beam, the lmax a run would choose, the reach "
+                     f"of every used baseline; without, {d.lmax})")
     ins.add_argument("--nside", type=nside_arg, default=d.nside, help="HEALPix nside (for the sizes)")
     ins.add_argument("--json", action="store_true", help="print the report as JSON")
     ins.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)")

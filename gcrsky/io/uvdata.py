@@ -345,6 +345,9 @@ def inspect_uvdata(path, *, pol="pI", lmax: int | None = None, nside: int | None
     precision; then the data checks (``"data_checks"``: calibration, noise excess and
     outliers, fully flagged antennas, the flux scale with ``beam`` or ``dish_diameter_m``;
     :func:`gcrsky.io.datachecks.inspect_checks`) and ``"problems"``: what a run would refuse.
+    With a beam, ``"band_limit"`` is the lmax a run would choose (the reach of every used
+    baseline, :func:`gcrsky.model.bandlimit.observation_lmax`) and the sizes are at it
+    (``"lmax_for_sizes"``: ``lmax`` if given, else that reach, else :data:`SIZES_LMAX`).
     """
     from .beamprior import feed_pol_of
     from .datachecks import inspect_checks, read_checked
@@ -353,10 +356,11 @@ def inspect_uvdata(path, *, pol="pI", lmax: int | None = None, nside: int | None
     prods, _ = parse_products(pol)
     obs, checks = read_checked(path, cal=cal, pol=pol, **selection)
     out = _describe_observation(obs, prods, redundancy_tol_m)
-    b, beam_problem = None, None
+    beams, b, beam_problem = None, None, None
     if beam is not None or dish_diameter_m is not None:
-        try:  # the beam a run would use (peak-normalised, frequencies checked): the flux check's beam
-            b = _prepared_beams(beam, dish_diameter_m, obs)[0][0]
+        try:  # the beams a run would use (peak-normalised, frequencies checked): the flux check's, the reach's
+            beams = _prepared_beams(beam, dish_diameter_m, obs)[0]
+            b = beams[0]
         except ValueError as e:
             beam_problem = f"the beam: {e}"
     obs, checks, problems = inspect_checks(obs, checks, pol=pol, flag=flag_outliers, flux_scale=flux_scale, beam=b)
@@ -377,8 +381,11 @@ def inspect_uvdata(path, *, pol="pI", lmax: int | None = None, nside: int | None
     out["read_bytes"] = read_bytes(obs.nblts_read, obs.n_freqs, obs.n_pols)
     lat, lon, _ = obs.site_lat_lon_alt
     out["site_lat_lon_deg"] = [lat, lon]
-    if lmax is not None:
-        out.update(_memory(obs, len(prods), out["n_rows_exact"], lmax, nside))
+    if beams is not None:  # the band limit a run would choose: the reach of every used baseline (lmax None)
+        chosen, out["band_limit"] = observation_lmax(obs, beams, lmax, n_products=len(prods))
+        lmax = chosen if lmax is None else lmax
+    out["lmax_for_sizes"] = lmax = SIZES_LMAX if lmax is None else lmax
+    out.update(_memory(obs, len(prods), out["n_rows_exact"], lmax, nside))
     out["data_checks"] = checks
     out["problems"] = problems
     return out
@@ -422,6 +429,10 @@ def _memory(obs: Observation, nprods: int, n_unique: int, lmax: int, nside: int 
     if nside is not None:
         out["response_bytes"] = float(obs.n_freqs * n_unique * nprods * n_params(lmax + frame_pad_default()) * 16)
     return out
+
+
+#: The degree :func:`inspect_uvdata` sizes the problem at when neither ``lmax`` nor a beam (a reach) is given.
+SIZES_LMAX = 20
 
 
 def frame_pad_default() -> int:
