@@ -96,6 +96,11 @@ def test_choose_lmax_reach_memory_and_given():
     lmax, note = choose_lmax(reach, None, n_rows=2, budget_bytes=1e6)
     assert lmax == memory_lmax(1, 2, 1e6) < 31 and note["chosen"] == "memory"
     assert choose_lmax(reach, 7, n_rows=2)[1] == {"lmax": 7, "reach": 31, "chosen": "given"}
+    # few data values (28 rows x 10 times, like H1C): the data-space arrays are far smaller than a dense P, so the
+    # cap is set by the response; by hand at lmax 150 (n 22801, response (28, 156^2) complex: 10.9 MB; N_d 560:
+    # 3 x 2.5 MB + 2 x 102 MB) 0.22 GB fits 0.5 GB where the dense P (4.2 GB) does not
+    dense_cap, ds_cap = memory_lmax(1, 28, 5e8), memory_lmax(1, 28, 5e8, n_times=10)
+    assert dense_cap < 100 < 150 < ds_cap
 
 
 def test_extend_cl_power_law():

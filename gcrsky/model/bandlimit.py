@@ -152,19 +152,27 @@ def required_lmax(reach) -> int:
     return int(math.ceil(float(np.max(reach))))
 
 
-def memory_lmax(n_freqs: int, n_rows: int, budget_bytes: float, *, frame_pad: int = 4) -> int:
-    """The largest lmax whose response (Nf, Nrow, (lmax + pad + 1)^2 complex128) and one dense
-    (n, n) float64 precision per channel fit in ``budget_bytes`` (the dense paths' large arrays)."""
+def memory_lmax(n_freqs: int, n_rows: int, budget_bytes: float, *, frame_pad: int = 4,
+                n_times: int | None = None) -> int:
+    """The largest lmax whose large arrays fit in ``budget_bytes``: the response (Nf, Nrow,
+    (lmax + pad + 1)^2 complex128) plus, per channel, the cheaper exact path's: one dense (n, n)
+    float64 precision, or (with ``n_times``) the data-space path's (N_d, N_d) float64 matrix three
+    times over and the explicit (N_d / 2, n_resp) complex128 operator twice (``N_d = 2 Nrow Nt``
+    real data values; a conservative bound of its set-up, which issue 27 measures)."""
     lmax = 1
     while True:
         n, nr = (lmax + 2) ** 2, (lmax + 2 + frame_pad) ** 2
-        if 16.0 * n_freqs * n_rows * nr + 8.0 * n_freqs * n * n > budget_bytes:
+        per_channel = 8.0 * n * n
+        if n_times is not None:
+            nd = 2 * n_rows * n_times
+            per_channel = min(per_channel, 3 * 8.0 * nd * nd + 2 * 16.0 * (nd / 2) * nr)
+        if 16.0 * n_freqs * n_rows * nr + n_freqs * per_channel > budget_bytes:
             return lmax
         lmax += 1
 
 
 def choose_lmax(reach, lmax: int | None, *, n_rows: int, budget_bytes: float | None = None,
-                frame_pad: int = 4) -> tuple[int, dict]:
+                frame_pad: int = 4, n_times: int | None = None) -> tuple[int, dict]:
     """The model's lmax: ``lmax`` if given, else the reach of every row (capped by memory).
 
     Returns:
@@ -180,7 +188,7 @@ def choose_lmax(reach, lmax: int | None, *, n_rows: int, budget_bytes: float | N
         from ..base.memory import available_memory_bytes
 
         budget_bytes = 0.5 * available_memory_bytes()
-    cap = memory_lmax(np.shape(reach)[0], n_rows, budget_bytes, frame_pad=frame_pad)
+    cap = memory_lmax(np.shape(reach)[0], n_rows, budget_bytes, frame_pad=frame_pad, n_times=n_times)
     chosen = min(need, cap)
     if chosen < need:
         log.warning("band limit: the longest baselines reach l = %d, memory allows lmax %d: using %d and cutting "
@@ -336,7 +344,7 @@ def observation_lmax(obs, beams, lmax: int | None, *, n_products: int = 1, frame
     baseline at the highest used frequency, capped by memory) and its note (reach, D)."""
     reach, dish = observation_reach(obs, beams, dish_diameter_m)
     chosen, note = choose_lmax(reach, lmax, n_rows=reach.shape[1] * n_products, budget_bytes=budget_bytes,
-                               frame_pad=frame_pad)
+                               n_times=obs.n_times, frame_pad=frame_pad)
     note["dish_m"] = [round(float(dish.min()), 3), round(float(dish.max()), 3)]
     return chosen, note
 
