@@ -163,6 +163,10 @@ def test_plot_correlation_matrix(synth, tmp_path):
     draws[:, 1] = 2.0  # a mode with no spread: drawn grey, no crash
     out = P.plot_correlation_matrix(draws, mt.ell, mt.m, mt.is_imag, tmp_path / "fig7_corr.png", zoom_lmax=3)
     _check_png(out)
+    # a large lmax shows l <= max_lmax only (H1C's lmax 145: 10^4 rows, 3.6 GB for the whole matrix)
+    out = P.plot_correlation_matrix(draws, mt.ell, mt.m, mt.is_imag, tmp_path / "fig7_cut.png", zoom_lmax=2,
+                                    max_lmax=4)
+    _check_png(out)
 
 
 def test_plot_corner(synth, tmp_path):

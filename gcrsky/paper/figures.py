@@ -552,6 +552,7 @@ def plot_correlation_matrix(
     *,
     zoom_lmax: int = 9,
     title: str | None = None,
+    max_lmax: int = 40,
 ) -> str:
     """Posterior correlation matrix of the real parts of the coefficients (paper Fig. 7, top right).
 
@@ -566,12 +567,18 @@ def plot_correlation_matrix(
         path: output PNG path.
         zoom_lmax: largest degree in the zoom panel.
         title: optional title.
+        max_lmax: largest degree shown (the matrix has ~(l + 1)^2 / 2 rows: at the lmax a real
+            file's baselines reach, 145, all of them would take 3.6 GB and a picture of 10^4
+            rows no screen resolves).
     """
     plt = _plt()
     draws = np.asarray(draws, np.float64)
     if draws.ndim != 2 or draws.shape[0] < 2:
         raise ValueError(f"draws must be (ndraws >= 2, n), got shape {draws.shape}")
     idx, ls, ms = _lm_sorted_real(ell, m, is_imag)
+    full_lmax = int(ls.max())
+    keep = ls <= max_lmax
+    idx, ls, ms = idx[keep], ls[keep], ms[keep]
     x = draws[:, idx]
     x = x - x.mean(axis=0)
     sd = np.sqrt(np.mean(x**2, axis=0))
@@ -589,7 +596,8 @@ def plot_correlation_matrix(
     for ax, (sub, lsub, sep, name) in zip(
         axes,
         (
-            (corr, ls, corr.shape[0] / 30.0, f"real parts, $\\ell \\leq {lmax}$ ({corr.shape[0]} modes)"),
+            (corr, ls, corr.shape[0] / 30.0, f"real parts, $\\ell \\leq {lmax}$ ({corr.shape[0]} modes"
+             + (f" of $\\ell \\leq {full_lmax}$)" if full_lmax > lmax else ")")),
             (corr[:nz, :nz], ls[:nz], nz / 30.0, f"zoom on $\\ell \\leq {zl}$ ({nz} modes)"),
         ),
     ):
