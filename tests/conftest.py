@@ -18,6 +18,14 @@ import sys
 from pathlib import Path
 from typing import NamedTuple
 
+#: The real telescope files (../shared/data/real next to the repository, see its README): tests that
+#: read them skip where they are absent.
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+H1C = REAL / "zen.2458098.45361.HH_downselected.uvh5"
+H1C_CAL = REAL / "zen.2458098.45361.HH.omni_downselected.calfits"
+H2C = REAL / "zen.2458432.34569.uvh5"
+HERABEAM = REAL / "HERABEAM.FITS"
+
 
 def _safe_threading():
     """gcrsky.parallel.runtime.use_safe_cpu_threading, loaded from its file (standard library only) so

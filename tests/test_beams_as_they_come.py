@@ -12,7 +12,6 @@ to the east, CDELT1 < 0), and on HERABEAM.FITS (FWHM ~4.8 deg).
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -35,9 +34,7 @@ from gcrsky.model.observation import feed_pol  # noqa: E402
 LMAX, NSIDE = 4, 16
 FREQS = np.array([100e6, 101e6])
 PEAK = 8243.0  # the HERA CST E-field beam's peak power in physical (directivity) units
-REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real"
-if not REAL.exists():
-    REAL = Path("/work/shared/data/real")
+from conftest import REAL  # noqa: E402
 
 
 def _hera():

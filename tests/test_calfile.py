@@ -9,20 +9,15 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from pathlib import Path
 
 import healpy as hp
 import numpy as np
 import pytest
+from conftest import H1C, H2C  # noqa: E402
+from conftest import H1C_CAL as CAL  # noqa: E402
 
 from gcrsky.instrument.beams import beam_fwhm_rad, gaussian_beam
 
-REAL = Path("/work/shared/data/real")
-if not REAL.exists():
-    REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-H1C = REAL / "zen.2458098.45361.HH_downselected.uvh5"
-CAL = REAL / "zen.2458098.45361.HH.omni_downselected.calfits"
-H2C = REAL / "zen.2458432.34569.uvh5"
 pytestmark = pytest.mark.skipif(not H1C.exists(), reason="the real HERA files are not there")
 CHANS = [30, 40]
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import H1C  # noqa: E402
 
 from gcrsky.model.datachecks import (
     dead_channels,
@@ -26,7 +27,6 @@ from gcrsky.model.datachecks import (
 )
 from gcrsky.model.observation import Observation
 
-H1C = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "zen.2458098.45361.HH_downselected.uvh5"
 if not H1C.exists():
     H1C = Path("/work/shared/data/real/zen.2458098.45361.HH_downselected.uvh5")
 

@@ -8,19 +8,14 @@ the amplitude free) is refused, then accepted with ``--flux-scale accept``.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import H1C, H2C  # noqa: E402
+from conftest import H1C_CAL as CAL  # noqa: E402
 
 from gcrsky import cli
 
-REAL = Path("/work/shared/data/real")
-if not REAL.exists():
-    REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-H1C = REAL / "zen.2458098.45361.HH_downselected.uvh5"
-CAL = REAL / "zen.2458098.45361.HH.omni_downselected.calfits"
-H2C = REAL / "zen.2458432.34569.uvh5"
 pytestmark = pytest.mark.skipif(not H1C.exists(), reason="the real HERA files are not there")
 RUN = ["run", "--data", str(H1C), "--cal", str(CAL), "--dish-diameter", "14", "--chans", "20,24,30", "--lmax", "4",
        "--band-limit", "marginalise",  # every baseline reaches l > 80: the sky above lmax 4 as noise

@@ -18,7 +18,8 @@ OVERRIDES = {
 }
 
 #: Notebooks that read the real HERA files (skipped where ../shared/data/real is absent).
-REAL = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+from conftest import REAL  # noqa: E402
+
 NEEDS_REAL = {"real_data.ipynb"}
 
 

@@ -17,18 +17,14 @@ equation written out by hand.  Files:
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
+from conftest import H1C, H2C  # noqa: E402
 
 from gcrsky.io import from_uvdata, read_observation
 from gcrsky.model import Observation, problem_from_observation, radiometer_variance, raw_variance
-
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-H1C = REAL / "zen.2458098.45361.HH_downselected.uvh5"
-H2C = REAL / "zen.2458432.34569.uvh5"
 
 
 def _uvdata(path):
