@@ -56,6 +56,7 @@ from .gains import (
     joint_gain_step,
     recentre,
     scale_conditional,
+    scale_sky_step,
     scale_step,
 )
 from .gibbs import (
@@ -113,6 +114,7 @@ __all__ = [
     "joint_gain_step",
     "recentre",
     "scale_conditional",
+    "scale_sky_step",
     "scale_step",
     "CL_PRIORS",
     "DRAW_BATCH",

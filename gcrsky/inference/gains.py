@@ -54,7 +54,7 @@ from ..model.gains import (
 )
 from ..model.operator import adjoint, apply
 from ..model.system import precision_data_matrix
-from ..solvers.info import SolveInfo
+from ..solvers.info import SolveInfo, direct_info
 from .gibbs import GibbsFixed, sky_step
 
 __all__ = [
@@ -73,6 +73,7 @@ __all__ = [
     "joint_gain_step",
     "recentre",
     "scale_conditional",
+    "scale_sky_step",
     "scale_step",
 ]
 
@@ -349,10 +350,97 @@ def gauge_step_size(fixed: GibbsFixed, block: GainBlock) -> float:
     return float(2.4 / np.sqrt(kf) / np.sqrt(2.0 * fixed.system.prior.mean.size))
 
 
+class _Whitened(NamedTuple):
+    """Per channel, the sky's data term given the gains but not the scale, in the prior-whitened frame."""
+
+    lam: jax.Array  # (Nf, n) eigenvalues of S^1/2 H1 S^1/2 (clamped at 0)
+    vec: jax.Array  # (Nf, n, n) its eigenvectors
+    g1: jax.Array  # (Nf, n) V^T S^1/2 b1
+    g2: jax.Array  # (Nf, n) V^T S^1/2 H1 a0
+    e1: jax.Array  # (Nf,) a0 . b1
+    e2: jax.Array  # (Nf,) a0 . H1 a0
+
+
+def _whitened(fixed: GibbsFixed, block: GainBlock, theta) -> _Whitened:
+    """``H1 = X^T W |D1|^2 X`` and ``b1 = X^T W conj(D1) d`` with ``D1 = G (1 + x_i + conj(x_j))``, whitened by the prior."""
+    system = fixed.system
+    D1 = gain_factor(block.model, theta, 1.0) * block.pair_gains
+    H1 = precision_data_matrix(system.op, system.inv_noise * jnp.abs(D1) ** 2)
+    b1 = adjoint(system.op, system.inv_noise * jnp.conj(D1) * system.data)
+    a0, sd = system.prior.mean, 1.0 / jnp.sqrt(system.prior.inv_var)
+    lam, V = jnp.linalg.eigh(sd[:, :, None] * H1 * sd[:, None, :])
+    H1a0 = jnp.einsum("fij,fj->fi", H1, a0)
+    proj = lambda v: jnp.einsum("fij,fi->fj", V, sd * v)  # noqa: E731
+    return _Whitened(jnp.maximum(lam, 0.0), V, proj(b1), proj(H1a0), jnp.sum(a0 * b1, -1), jnp.sum(a0 * H1a0, -1))
+
+
+def _log_marginal_q(w: _Whitened, q):
+    """``log p(d | q, theta)`` per channel (Nf,) up to a constant, the sky integrated out: O(Nf n)."""
+    q = q[:, None]
+    beta = q * (w.g1 - q * w.g2)
+    quad = jnp.sum(beta**2 / (1.0 + q**2 * w.lam), -1)
+    return q[:, 0] * w.e1 - 0.5 * q[:, 0] ** 2 * w.e2 + 0.5 * quad - 0.5 * jnp.sum(jnp.log1p(q**2 * w.lam), -1)
+
+
+def scale_sky_step(key: jax.Array, state: GainState, fixed: GibbsFixed, block: GainBlock, *, moves: int = 8,
+                   step_size=None) -> tuple[GainState, jax.Array]:
+    """The scale and the sky jointly, ``(s, a) | theta, d``: the amplitude collapsed analytically.
+
+    Given the gains the model is ``q(nu) D1 X a`` with the sky Gaussian, so the scale's marginal
+    ``p(s | theta, d) = p(s) prod_f N(d_f; q_f D1 X a0, q_f^2 D1 X S X^H D1^H + N)`` is exact.  In the
+    eigenbasis of the prior-whitened data term ``S^1/2 X^T W |D1|^2 X S^1/2 = V diag(lam) V^T``
+    (one ``eigh`` per channel and sweep) it costs O(Nf n) per value of ``s``: ``moves`` random-walk
+    Metropolis steps ``s' = s + N(0, step_size^2)`` on it, then the sky drawn exactly at the
+    accepted scale, ``a = a0 + S^1/2 V (V^T beta + q sqrt(lam) z1 + z2) / (1 + q^2 lam)``
+    with ``beta = q S^1/2 X^T W conj(D1) (d - q D1 X a0)``.  Cholesky path only (dense data term).
+
+    Args:
+        step_size: the walk's scale of ``s`` (default 0.1: the scale's marginal is as wide as the
+            sky prior's leverage on it, typically 0.05-0.3 for a prior-dominated overall flux).
+
+    Returns:
+        (GainState, the moves' acceptance rate).
+    """
+    if fixed.data_term is None:
+        raise ValueError("scale_sky_step needs gibbs_setup's Cholesky path (a dense data term)")
+    w = _whitened(fixed, block, state.theta)
+    tau = 0.1 if step_size is None else step_size
+    model = block.model
+
+    def log_target(s):
+        q = scale_profile(model, s)
+        lp = jnp.sum(_log_marginal_q(w, q)) - 0.5 * jnp.sum(block.scale_inv_var * (s - block.scale_mean) ** 2)
+        return jnp.where(jnp.all(q > 0), lp, -jnp.inf)
+
+    def move(carry, k):
+        s, lp = carry
+        k1, k2 = jax.random.split(k)
+        s_new = s + tau * jax.random.normal(k1, s.shape, s.dtype)
+        lp_new = log_target(s_new)
+        ok = jnp.log(jax.random.uniform(k2, (), s.dtype)) < lp_new - lp
+        return (jnp.where(ok, s_new, s), jnp.where(ok, lp_new, lp)), ok
+
+    k_m, k_a = jax.random.split(key)
+    (s, _), acc = jax.lax.scan(move, (state.scale, log_target(state.scale)), jax.random.split(k_m, moves))
+    q = scale_profile(model, s)[:, None]
+    beta = q * (w.g1 - q * w.g2)
+    z1, z2 = jax.random.normal(k_a, (2,) + beta.shape, beta.dtype)
+    u = (beta + q * jnp.sqrt(w.lam) * z1 + z2) / (1.0 + q**2 * w.lam)
+    prior = fixed.system.prior
+    sky = prior.mean + jnp.einsum("fij,fj->fi", w.vec, u) / jnp.sqrt(prior.inv_var)
+    return state._replace(sky=sky, scale=s), jnp.mean(acc)
+
+
 def joint_gain_step(key: jax.Array, state: GainState, fixed: GibbsFixed, block: GainBlock, *,
-                    gauge_moves: int = 4, step_size=None) -> tuple[GainState, GainInfo]:
-    """One sweep: sky ``a | theta, s``, gains ``theta | a, s``, scale ``s | a, theta``, then
-    ``gauge_moves`` gauge moves (0: plain Gibbs).  Pure; jit / ``lax.scan`` it yourself.
+                    gauge_moves: int = 4, step_size=None, collapsed: bool = False) -> tuple[GainState, GainInfo]:
+    """One sweep of the joint (sky, gains, scale) chain.  Pure; jit / ``lax.scan`` it yourself.
+
+    * ``collapsed=False``: sky ``a | theta, s`` (:func:`gain_sky_step`), gains ``theta | a, s``
+      (:func:`gains_step`), scale ``s | a, theta`` (:func:`scale_step`), then ``gauge_moves``
+      moves along the gauge orbit (:func:`gauge_step`; 0: plain Gibbs, which crawls along it);
+    * ``collapsed=True``: ``(s, a) | theta`` with the amplitude collapsed analytically
+      (:func:`scale_sky_step`, ``gauge_moves`` Metropolis steps on the scale's exact marginal,
+      Cholesky path only), then ``theta | a, s``.
 
     Args:
         key: PRNG key.
@@ -360,12 +448,21 @@ def joint_gain_step(key: jax.Array, state: GainState, fixed: GibbsFixed, block: 
         fixed: :func:`gcrsky.inference.gibbs_setup` of the system with the raw data ``d``
             (Cholesky path, or ``CGOptions(dense=False)``).
         block: :func:`gain_setup`'s block (same rows, times and channels as the system).
-        gauge_moves: Metropolis moves along the gauge orbit per sweep (each ``O(N)``).
-        step_size: their scale of ``log s`` (default :func:`gauge_step_size`).
+        gauge_moves: Metropolis moves per sweep, along the orbit (each ``O(N)``) or on the
+            collapsed marginal (each ``O(Nf n)``).
+        step_size: their scale (defaults: :func:`gauge_step_size`; 0.1 collapsed).
+        collapsed: which of the two sweeps.
 
     Returns:
-        (GainState, GainInfo).
+        (GainState, GainInfo); the collapsed sweep's SolveInfo is a direct solve's.
     """
+    if collapsed:
+        k_a, k_g = jax.random.split(key)
+        state, acc = scale_sky_step(k_a, state, fixed, block, moves=max(gauge_moves, 1), step_size=step_size)
+        state = gains_step(k_g, state, fixed, block)
+        zeros = jnp.zeros(state.sky.shape[0], state.sky.dtype)
+        info = direct_info(zeros, zeros, jnp.all(jnp.isfinite(state.sky), axis=1), fixed.options.tol)
+        return state, GainInfo(info, acc, jnp.zeros((), state.sky.dtype))
     k_a, k_g, k_q, k_m = jax.random.split(key, 4)
     state, info = gain_sky_step(k_a, state, fixed, block)
     state = gains_step(k_g, state, fixed, block)
