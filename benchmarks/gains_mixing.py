@@ -55,7 +55,14 @@ from gcrsky.inference import (  # noqa: E402
     sky_step,
 )
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array  # noqa: E402
-from gcrsky.model import build_problem, gain_factor, gain_model, isotropic_prior, n_gain_params  # noqa: E402
+from gcrsky.model import (  # noqa: E402
+    build_problem,
+    gain_factor,
+    gain_model,
+    isotropic_prior,
+    n_gain_params,
+    phase_gradient_directions,
+)
 from gcrsky.model.gains import perturbation_coefficients  # noqa: E402
 from gcrsky.model.operator import apply  # noqa: E402
 
@@ -124,6 +131,40 @@ def mixing(system, block, steps, burn=300):
         sec = time.perf_counter() - t0
         ess = float(effective_sample_size(np.asarray(s0)[None]))
         rows.append((label, steps, sec, ess, ess / sec, float(np.std(s0)), float(np.mean(acc)) if moves else np.nan))
+    return rows
+
+
+def directions(system, block, steps, positions, burn=300):
+    """Rows (direction, posterior sd, prior sd, ratio, ESS) from a chain with 4 gauge moves a sweep."""
+    fixed = gibbs_setup(system)
+
+    def scan(blk, st, key, n):
+        def body(s, k):
+            s, _ = joint_gain_step(k, s, fixed, blk)
+            return s, (s.theta, s.scale)
+
+        return jax.lax.scan(body, st, jax.random.split(key, n))
+
+    run = jax.jit(scan, static_argnums=3)
+    st, _ = run(block, gain_init(system.prior.mean, block), jax.random.PRNGKey(1), burn)
+    blk, st = recentre(block, st)
+    _, (th, sc) = run(blk, st, jax.random.PRNGKey(4), steps)
+    th, sc = np.asarray(th), np.asarray(sc)
+    T = phase_gradient_directions(block.model, positions)
+    sd_prior = 1.0 / np.sqrt(np.asarray(block.prior_inv_var))
+    rows = []
+    for name, x, prior_sd in (("phase gradient east", th @ T[0], sd_prior[np.argmax(np.abs(T[0]))]),
+                              ("phase gradient north", th @ T[1], sd_prior[np.argmax(np.abs(T[1]))]),
+                              ("scale s_0 (flat prior)", sc[:, 0], np.inf),
+                              ("scale s_1 (flat prior)", sc[:, 1], np.inf)):
+        ess = float(effective_sample_size(x[None]))
+        rows.append((name, float(np.std(x)), prior_sd, float(np.std(x)) / prior_sd, ess))
+    ratio = th.std(0) * np.sqrt(np.asarray(block.prior_inv_var))
+    ess = np.asarray(effective_sample_size(th[None]))
+    rows.append(("theta, median of P", float(np.median(th.std(0))), float(np.median(sd_prior)), float(np.median(ratio)),
+                 float(np.median(ess))))
+    rows.append(("theta, least ESS", float(th.std(0)[np.argmin(ess)]), float(sd_prior[np.argmin(ess)]),
+                 float(ratio[np.argmin(ess)]), float(ess.min())))
     return rows
 
 
@@ -214,6 +255,10 @@ def main(argv=None):
     print(f"{'sweep':<26} {'sweeps':>7} {'run s':>7} {'ESS s_0':>8} {'ESS/s':>8} {'sd s_0':>9} {'accept':>7}")
     for r in mixing(system, block, args.steps):
         print(f"{r[0]:<26} {r[1]:>7d} {r[2]:>7.2f} {r[3]:>8.1f} {r[4]:>8.1f} {r[5]:>9.4f} {r[6]:>7.2f}")
+    print("\n1b. which directions stay prior-dominated (chain with 4 gauge moves a sweep; ratio = posterior / prior sd)")
+    print(f"{'direction':<26} {'post sd':>9} {'prior sd':>9} {'ratio':>7} {'ESS':>7}")
+    for name, sd, psd, ratio, ess in directions(system, block, args.steps, hex_array((2, 3))):
+        print(f"{name:<26} {sd:>9.4f} {psd:>9.3f} {ratio:>7.3f} {ess:>7.1f}")
     for label, c in (("small (above)", case), ("10 antennas, 4 channels, 12 LSTs, lmax 8", ((3, 4, 3), 4, 12, 8))):
         sys_c, blk_c, th_c, _ = simulate(*c)
         print(f"\n2. cost of a step, {label}: n = {sys_c.prior.mean.shape[1]}, Nf = {sys_c.data.shape[0]}, "
