@@ -499,3 +499,38 @@ def test_sbc_of_the_joint_kernel_and_a_mis_specified_gain_prior_fails():
     narrow = gain_setup(model, sigma=0.0125, scale_mean=1.0, scale_sd=0.1)
     bad = rank_pvalues(np.asarray(_sbc_ranks(keys, system, sigma, block, narrow, n_draws=19, thin=3)), 19)
     assert bad["p_family"] < 1e-3, bad
+
+
+def test_unit_gains_make_the_exact_factor_and_a_calfits_pyuvdata_reads_back(tmp_path):
+    """``g_i conj(g_j)`` of :func:`unit_gains` is the exact model's factor (rounding); the posterior-mean gains
+    written as calfits and calh5 read back by pyuvdata (``gain_convention`` divide, both feeds of a pI unit)."""
+    from pyuvdata import UVCal
+
+    from gcrsky.io.gaincal import posterior_mean_gains, write_gain_calibration
+    from gcrsky.model import unit_gains
+
+    rng = np.random.default_rng(9)
+    model = gain_model(antpairs(4), 3, 2, (2, 1))
+    th = 0.05 * rng.standard_normal((5, n_gain_params(model)))
+    s = 1.0 + 0.1 * rng.standard_normal((5, 2))
+    gbar = np.exp(0.2j * rng.standard_normal((3, 2, 4)))
+    g = unit_gains(model, th[0], s[0], gbar)
+    i, j = model.unit_pairs[:, 0], model.unit_pairs[:, 1]
+    np.testing.assert_allclose(g[..., i] * np.conj(g[..., j]), gain_factor(model, th[0], s[0], gbar, exact=True),
+                               atol=1e-14)
+    mean = posterior_mean_gains(model, th, s, gbar)
+    np.testing.assert_allclose(mean, np.mean([unit_gains(model, t, q, gbar) for t, q in zip(th, s)], axis=0), atol=1e-14)
+    site = dict(latitude_deg=HERA_LATITUDE_DEG, longitude_deg=21.428, altitude_m=1051.7)
+    for name in ("gains.calfits", "gains.calh5"):
+        path = write_gain_calibration(tmp_path / name, mean, model, antenna_numbers=[10, 11, 12, 13],
+                                      antenna_names=["A10", "A11", "A12", "A13"], antpos_enu_m=hex_array((2, 2)),
+                                      freqs_hz=[100e6, 101e6, 102e6], times_jd=[2459000.1, 2459000.2], **site)
+        cal = UVCal.from_file(str(path))
+        assert cal.gain_convention == "divide" and list(cal.ant_array) == [10, 11, 12, 13]
+        for feed in range(2):
+            np.testing.assert_allclose(cal.gain_array[:, :, :, feed], np.moveaxis(mean, 2, 0), rtol=1e-12)
+        assert not cal.flag_array.any()
+    with pytest.raises(ValueError, match="exists"):
+        write_gain_calibration(tmp_path / "gains.calfits", mean, model, antenna_numbers=[10, 11, 12, 13],
+                               antenna_names=["A10", "A11", "A12", "A13"], antpos_enu_m=hex_array((2, 2)),
+                               freqs_hz=[100e6, 101e6, 102e6], times_jd=[2459000.1, 2459000.2], **site)

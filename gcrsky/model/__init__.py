@@ -45,6 +45,7 @@ from .gains import (
     perturbations,
     phase_gradient_directions,
     scale_profile,
+    unit_gains,
 )
 from .noise import (
     clean_data,
@@ -115,6 +116,7 @@ __all__ = [
     "perturbations",
     "phase_gradient_directions",
     "scale_profile",
+    "unit_gains",
     "BAND_LIMIT_MODES",
     "DataConfig",
     "FLUX_BOUNDS",

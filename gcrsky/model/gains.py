@@ -57,6 +57,7 @@ __all__ = [
     "perturbations",
     "phase_gradient_directions",
     "scale_profile",
+    "unit_gains",
 ]
 
 #: The smooth bases of :func:`mode_basis`.
@@ -240,6 +241,18 @@ def gain_factor(model: GainModel, theta, scale=1.0, gbar=None, *, exact: bool = 
     xi, xj = x[..., model.unit_pairs[:, 0]], jnp.conj(x[..., model.unit_pairs[:, 1]])
     lin = (1.0 + xi) * (1.0 + xj) if exact else 1.0 + xi + xj
     return scale_profile(model, scale)[:, None, None] * pair_gains(model, gbar) * lin
+
+
+def unit_gains(model: GainModel, theta, scale=1.0, gbar=None) -> jnp.ndarray:
+    """The units' complex gains ``g_u = gbar_u sqrt(q(nu)) (1 + x_u)`` (Nf, Nt, U): the exact model's, with
+    ``g_i conj(g_j)`` the factor of row ``(i, j)`` (up to the unobservable overall phase, fixed by the gauge).
+
+    Args:
+        theta: (P,) coefficients; scale: ``s`` (Kf,) or a scalar ``q``; gbar: (Nf, Nt, U) or None.
+    """
+    nf, nt, nu = model.basis_f.shape[0], model.basis_t.shape[0], model.amp_proj.shape[0]
+    g = jnp.ones((nf, nt, nu), complex) if gbar is None else jnp.broadcast_to(jnp.asarray(gbar, complex), (nf, nt, nu))
+    return g * jnp.sqrt(scale_profile(model, scale))[:, None, None] * (1.0 + perturbations(model, theta))
 
 
 def phase_gradient_directions(model: GainModel, unit_positions_m) -> np.ndarray:
