@@ -508,8 +508,9 @@ def test_sbc_of_the_joint_kernel_and_a_mis_specified_gain_prior_fails():
     assert bad["p_family"] < 1e-3, bad
 
 
-def test_unit_gains_make_the_exact_factor_and_a_calfits_pyuvdata_reads_back(tmp_path):
-    """``g_i conj(g_j)`` of :func:`unit_gains` is the exact model's factor (rounding); the posterior-mean gains
+def test_unit_gains_recentre_and_a_calfits_pyuvdata_reads_back(tmp_path):
+    """``g_i conj(g_j)`` of :func:`unit_gains` is the exact model's factor, and :func:`recentre` moves the
+    linearisation point to it (rounding); the posterior-mean gains
     written as calfits and calh5 read back by pyuvdata (``gain_convention`` divide, both feeds of a pI unit)."""
     from pyuvdata import UVCal
 
@@ -525,6 +526,12 @@ def test_unit_gains_make_the_exact_factor_and_a_calfits_pyuvdata_reads_back(tmp_
     i, j = model.unit_pairs[:, 0], model.unit_pairs[:, 1]
     np.testing.assert_allclose(g[..., i] * np.conj(g[..., j]), gain_factor(model, th[0], s[0], gbar, exact=True),
                                atol=1e-14)
+    # re-centring moves the linearisation point to these gains exactly, the prior's centre to -theta
+    block = gain_setup(model, sigma=0.05, gbar=gbar)
+    moved, st = recentre(block, gain_init(jnp.zeros((3, 4)), block, theta=th[0]))
+    np.testing.assert_allclose(gain_factor(model, st.theta, s[0]) * moved.pair_gains,
+                               gain_factor(model, th[0], s[0], gbar, exact=True), atol=1e-14)
+    np.testing.assert_allclose(moved.prior_mean, -th[0])
     mean = posterior_mean_gains(model, th, s, gbar)
     np.testing.assert_allclose(mean, np.mean([unit_gains(model, t, q, gbar) for t, q in zip(th, s)], axis=0), atol=1e-14)
     site = dict(latitude_deg=HERA_LATITUDE_DEG, longitude_deg=21.428, altitude_m=1051.7)
