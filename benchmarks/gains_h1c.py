@@ -5,7 +5,7 @@ after its omnical solutions is ~300x below Jy by its autocorrelations (the flux-
 :mod:`gcrsky.model.fluxscale`: data autos / GSM autos through the beam).  Here the gains are
 sampled with the sky from the cross-correlations alone: the file read by
 :func:`gcrsky.io.from_uvdata` (``--cal`` applied, pI, channels 30 and 40 = 146.9 and 162.5 MHz,
-lmax 10 with the sky above it marginalised as noise, 14 m Gaussian beam, the GSM prior with the
+lmax 10 (``--lmax``) with the sky above it marginalised as noise, 14 m Gaussian beam, the GSM prior with the
 GSM's coefficients as its mean), gains of 1 x 1 modes per antenna (constant over the 1.6 min
 and the two channels) with a 10 % prior, applied gains ``gbar = sqrt(autos ratio)`` so that
 the scale ``q`` measures the cross-correlations' flux scale relative to the autos'.  The joint
@@ -15,7 +15,12 @@ is re-centred, and keeps ``--steps`` sweeps.
 Prints the autos ratio, the posterior flux-scale factor ``q x ratio`` (mean, sd, 95 % interval),
 its ESS, and the phase gradients' posterior sd against the prior's.
 
-Run: ``PYTHONPATH=. .venv/bin/python benchmarks/gains_h1c.py [DATA_DIR]`` (about 1 minute).
+Run: ``PYTHONPATH=. .venv/bin/python benchmarks/gains_h1c.py [DATA_DIR]`` (about 2 minutes at the default
+lmax 10; ``--lmax 24 --steps 1500 --burn 300``: 16 minutes).  Measured (2026-12-02)::
+
+    lmax 10: autos 0.00346; crosses q x ratio 0.30 +- 0.30 (95 %: 0.009-1.06), ESS 1481 of 3000
+    lmax 24: autos 0.00346; crosses q x ratio 0.067 +- 0.057 (95 %: 0.0021-0.21), ESS 1120 of 1500
+    phase gradients: posterior sd 0.096-0.101 against the 0.1 prior (prior-dominated)
 """
 
 from __future__ import annotations
