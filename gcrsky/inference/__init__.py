@@ -14,6 +14,9 @@
   stochastic Lanczos quadrature), differentiable
 - ``hyper``: :func:`fit_hyperparameters`, maximum evidence by BFGS (optimistix) with
   Laplace error bars
+- ``gains``: antenna gains sampled with the sky (:func:`gain_setup`, :func:`gains_step`,
+  :func:`gain_sky_step`, :func:`scale_step`, the gauge move :func:`gauge_step`, one sweep
+  :func:`joint_gain_step`)
 - ``sources``: point-source fluxes as a linear Gaussian block (:func:`flux_setup`,
   :func:`flux_step`, :func:`sample_fluxes`) and the two-block (sky, fluxes) Gibbs step
   :func:`sky_source_step`
@@ -37,6 +40,25 @@ from .collapsed import (
     sample_hyperparameters,
 )
 from .evidence import EvidenceInfo, evidence_terms, log_evidence, log_evidence_system
+from .gains import (
+    GainBlock,
+    GainInfo,
+    GainState,
+    gain_conditional,
+    gain_init,
+    gain_posterior,
+    gain_setup,
+    gain_sky_step,
+    gained_fixed,
+    gains_step,
+    gauge_step,
+    gauge_step_size,
+    joint_gain_step,
+    recentre,
+    scale_conditional,
+    scale_sky_step,
+    scale_step,
+)
 from .gibbs import (
     GCRState,
     GibbsFixed,
@@ -77,6 +99,23 @@ from .sources import (
 )
 
 __all__ = [
+    "GainBlock",
+    "GainInfo",
+    "GainState",
+    "gain_conditional",
+    "gain_init",
+    "gain_posterior",
+    "gain_setup",
+    "gain_sky_step",
+    "gained_fixed",
+    "gains_step",
+    "gauge_step",
+    "gauge_step_size",
+    "joint_gain_step",
+    "recentre",
+    "scale_conditional",
+    "scale_sky_step",
+    "scale_step",
     "CL_PRIORS",
     "DRAW_BATCH",
     "KEY_SCHEME",

@@ -24,6 +24,7 @@
 from .atomic import atomic_path, atomic_write_text, is_temporary
 from .calibration import read_calibrated_observation
 from .fits import FRAMES, freq_column_names, write_alm_fits, write_healpix_fits
+from .gaincal import posterior_mean_gains, write_gain_calibration
 from .observation import read_observation
 from .results import (
     ResultsState,
@@ -44,6 +45,8 @@ from .skymodel import healpix_skymodel, write_skyh5
 from .uvdata import POLS, DataConfig, from_uvdata, inspect_uvdata, read_uvdata
 
 __all__ = [
+    "posterior_mean_gains",
+    "write_gain_calibration",
     "FRAMES",
     "POLS",
     "DataConfig",

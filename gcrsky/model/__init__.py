@@ -34,6 +34,19 @@ from .compress import (
 )
 from .datachecks import find_outliers, flag_outliers, flagged_antennas, noise_excess, refuse_empty
 from .fluxscale import FLUX_BOUNDS, flux_scale_check, model_autos
+from .gains import (
+    GainModel,
+    gain_factor,
+    gain_model,
+    mode_basis,
+    n_gain_params,
+    pair_gains,
+    perturbation_coefficients,
+    perturbations,
+    phase_gradient_directions,
+    scale_profile,
+    unit_gains,
+)
 from .noise import (
     clean_data,
     draw_noise,
@@ -93,6 +106,17 @@ from .template import (
 )
 
 __all__ = [
+    "GainModel",
+    "gain_factor",
+    "gain_model",
+    "mode_basis",
+    "n_gain_params",
+    "pair_gains",
+    "perturbation_coefficients",
+    "perturbations",
+    "phase_gradient_directions",
+    "scale_profile",
+    "unit_gains",
     "BAND_LIMIT_MODES",
     "DataConfig",
     "FLUX_BOUNDS",
