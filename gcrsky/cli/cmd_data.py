@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from ..solvers.options import DEFAULT_TOL
-from .options import DEFAULT_NSAMPLES, beam_prior_kwargs, check_kwargs, data_kwargs
+from .options import DEFAULT_NSAMPLES, beam_prior_kwargs, check_kwargs, data_kwargs, gain_sampling
 from .runs import EXIT_REFUSED, execute_with_bars, report_run, run_spec
 from .terminal import band_limit_line, refusal_message
 
@@ -53,6 +53,48 @@ def _check_data_options(parser, args) -> None:
         parser.error(f"--data {args.data!r}: no such file")
     if args.cal is not None and not Path(args.cal).exists():
         parser.error(f"--cal {args.cal!r}: no such file")
+    check_gain_options(parser, args)
+
+
+#: The gain block's options (dest, option) that mean something only with ``--gains sample``.
+GAIN_ONLY = (("gain_modes", "--gain-modes"), ("gain_basis", "--gain-basis"), ("gain_sigma", "--gain-sigma"),
+             ("gain_burn", "--gain-burn"), ("gain_thin", "--gain-thin"), ("gauge_moves", "--gauge-moves"))
+
+
+def check_gain_options(parser, args) -> None:
+    """The gain block's options need ``--gains sample``; ``--gains sample`` needs ``--data`` and a joint run."""
+    defaults = parser.parse_args(["run"])
+    if args.gains != "sample":
+        used = [opt for dest, opt in GAIN_ONLY if getattr(args, dest) != getattr(defaults, dest)]
+        if used:
+            parser.error(f"{', '.join(used)} set the gain block: add --gains sample")
+        return
+    if args.data is None:
+        parser.error("--gains sample samples the gains of a file's data: give --data FILE")
+
+
+def _gain_inputs(args) -> None:
+    """``--gains sample`` reads every baseline (gains are per antenna; a redundant group averages baselines with
+    different gains) and samples the overall amplitude (the flux-scale check's ratio starts it, not refuses it)."""
+    if args.gains != "sample":
+        return
+    if not args.no_compress:
+        print("gcrsky: --gains sample: every baseline kept (gains are per antenna; redundant compression would "
+              "average baselines with different gains)")
+        args.no_compress = True
+    if args.flux_scale == "check":
+        print("gcrsky: --gains sample: the overall amplitude is sampled; the flux-scale check's ratio is recorded "
+              "and starts it (--flux-scale accept)")
+        args.flux_scale = "accept"
+
+
+def _applied_amplitude(prob) -> float:
+    """The gains' starting amplitude: the square root of the flux-scale check's ratio (data autos / GSM autos),
+    1 where the check did not run."""
+    import math
+
+    ratio = (prob.config.checks.get("flux_scale") or {}).get("ratio")
+    return math.sqrt(ratio) if ratio is not None and math.isfinite(ratio) and ratio > 0 else 1.0
 
 
 def _file_digest(path) -> str:
@@ -95,6 +137,7 @@ def _run_data(args) -> int:
     from ..paper.report import PaperReport
     from ..run import RunExistsError, existing_run_files
 
+    _gain_inputs(args)
     selection = data_kwargs(args)
     spec = run_spec(args, nsamples=args.nsamples or DEFAULT_NSAMPLES, method=args.method or "auto",
                     tol=args.tol or DEFAULT_TOL, extra=_data_settings(args, selection))
@@ -112,5 +155,11 @@ def _run_data(args) -> int:
           f"({'compressed' if cfg.compressed else 'all baselines'}), {prob.data.shape[1]} times, "
           f"{prob.data.shape[0]} channels, {cfg.pol}; prior: {cfg.prior}")
     print(band_limit_line(cfg.checks.get("band_limit")))
+    if args.gains == "sample":
+        spec = run_spec(args, nsamples=spec.draws.nsamples, method=spec.solver.method, tol=spec.solver.tol,
+                        extra=spec.extra, gains=gain_sampling(args, _applied_amplitude(prob)))
+        print(f"gcrsky: gains sampled with the sky: {spec.gains.modes[0]} x {spec.gains.modes[1]} modes per gain, "
+              f"prior sd {spec.gains.sigma:g}, starting amplitude {spec.gains.applied:.4g}, burn-in {spec.gains.burn}"
+              f" sweeps; the draws are a Markov chain's")
     done = execute_with_bars(args, prob, spec, (PaperReport(),), build_s=build_s, compile_since=compile0)
     return done if isinstance(done, int) else report_run(*done, out)

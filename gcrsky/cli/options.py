@@ -14,6 +14,8 @@ __all__ = [
     "add_channel_options",
     "add_compile_cache_options",
     "add_data_options",
+    "add_gain_options",
+    "gain_sampling",
     "add_beam_prior_options",
     "add_run_flags",
     "beam_prior_kwargs",
@@ -231,6 +233,46 @@ def beam_prior_kwargs(args) -> dict:
     """from_uvdata's beam and prior-mean keywords from the parsed options."""
     return dict(beam_normalization=args.beam_normalization, beam_freq_scaling=args.beam_freq_scaling,
                 accept_x_orientation_mismatch=args.accept_x_orientation_mismatch, prior_mean=args.prior_mean)
+
+
+def _gain_modes(s: str) -> tuple:
+    parts = s.split(",")
+    try:
+        modes = tuple(int(p) for p in parts)
+    except ValueError:
+        modes = ()
+    if len(modes) not in (1, 2) or min(modes) < 1:
+        raise argparse.ArgumentTypeError(f"gain-modes must be K or KF,KT (integers >= 1), got {s!r}")
+    return modes * 2 if len(modes) == 1 else modes
+
+
+def add_gain_options(g) -> None:
+    """``--gains sample`` and the gain block's settings (:class:`gcrsky.run.GainSampling`)."""
+    g.add_argument("--gains", choices=("off", "sample"), default="off",
+                   help="off (default): the data are taken as calibrated; sample: gains and the overall amplitude "
+                   "sampled with the sky")
+    g.add_argument("--gain-modes", type=_gain_modes, default=(1, 1), metavar="KF[,KT]",
+                   help="smooth modes per gain in frequency (delay) and time (fringe rate); one number sets both "
+                   "(default 1,1: one complex gain per antenna over the selection)")
+    g.add_argument("--gain-basis", choices=("dpss", "fourier"), default="dpss", help="the modes' basis")
+    g.add_argument("--gain-sigma", type=positive_float("gain-sigma"), default=0.05, metavar="S",
+                   help="prior sd of each mode's coefficient: the rms fractional gain error (default 0.05)")
+    g.add_argument("--gain-burn", type=int_at_least(2, "gain-burn"), default=200, metavar="N",
+                   help="burn-in sweeps before the first kept draw (default 200)")
+    g.add_argument("--gain-thin", type=int_at_least(1, "gain-thin"), default=1, metavar="N",
+                   help="sweeps per kept draw (default 1)")
+    g.add_argument("--gauge-moves", type=int_at_least(0, "gauge-moves"), default=4, metavar="N",
+                   help="moves along the amplitude-sky gauge per sweep (default 4; 0: plain Gibbs)")
+
+
+def gain_sampling(args, applied: float = 1.0):
+    """The :class:`gcrsky.run.GainSampling` of the options, or None without ``--gains sample``."""
+    if args.gains != "sample":
+        return None
+    from ..run.spec import GainSampling
+
+    return GainSampling(modes=args.gain_modes, basis=args.gain_basis, sigma=args.gain_sigma, burn=args.gain_burn,
+                        thin=args.gain_thin, gauge_moves=args.gauge_moves, applied=applied)
 
 
 def data_kwargs(args) -> dict:

@@ -14,6 +14,7 @@ from .options import (
     add_channel_options,
     add_compile_cache_options,
     add_data_options,
+    add_gain_options,
     add_run_flags,
     finite_float,
     int_at_least,
@@ -94,6 +95,10 @@ def _add_run_parser(sub) -> None:
         "--data FILE with --beam FILE or --dish-diameter D; --lmax, --nside, --prior-scale, --method, --tol and the "
         "draw options apply, the simulation's options do not")
     add_data_options(dg, with_data=True)
+    add_gain_options(r.add_argument_group(
+        "gains sampled with the sky", "--data only: per-antenna complex gains (a few smooth modes in frequency and "
+        "time) and the overall amplitude sampled jointly with the sky (docs/gains.md); the draws are then a Markov "
+        "chain's, and the posterior-mean gains are written as gains.calh5"))
     ex = r.add_mutually_exclusive_group()
     ex.add_argument("--resume", action="store_true",
                     help="continue the run recorded in --out (killed or complete) from its first missing batch; "

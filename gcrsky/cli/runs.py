@@ -19,13 +19,13 @@ def existing_mode(args) -> str:
     return "resume" if args.resume else ("overwrite" if args.overwrite else "refuse")
 
 
-def run_spec(args, *, nsamples: int, method: str, tol: float, scenario: str | None = None, extra=None):
-    """The :class:`~gcrsky.run.RunSpec` of ``gcrsky run``'s options (draws, output, channels, argv)."""
+def run_spec(args, *, nsamples: int, method: str, tol: float, scenario: str | None = None, extra=None, gains=None):
+    """The :class:`~gcrsky.run.RunSpec` of ``gcrsky run``'s options (draws, output, channels, argv, gains)."""
     from ..run import Draws, Output, RunSpec, Solver
 
     return RunSpec(Draws(nsamples, args.seed, args.batch), Output(args.out, existing_mode(args), not args.no_plots),
                    Solver(method, tol), channels=channel_mode(args), scenario=scenario,
-                   argv=getattr(args, "_argv", None), extra=extra)
+                   argv=getattr(args, "_argv", None), extra=extra, gains=gains)
 
 
 def execute_with_bars(args, prob, spec, hooks, *, build_s: float, compile_since):

@@ -124,6 +124,20 @@ def fit_line(gof: dict) -> str:
             f"{gof['rows']['n_outliers']} rows, {gof['times']['n_outliers']} times")
 
 
+def gains_line(g: dict) -> str:
+    """One line on a gain run: the crosses' flux scale (first channel) against the autos', the phase gradients."""
+    f = g["flux_scale"][0]
+    lo, hi = f["ci95"]
+    text = f"  gains: {g['units']} units; flux scale {f['mean']:.4g} +- {f['sd']:.2g} (95 %: {lo:.4g}-{hi:.4g})"
+    if g.get("autos_flux_ratio") is not None:
+        text += f" against the autos' {g['autos_flux_ratio']:.4g}"
+    if g.get("flux_scale_ess") is not None:
+        text += f", ESS {g['flux_scale_ess']:.0f} of {g['ndraws']}"
+    for p in g.get("phase_gradients") or ():
+        text += f"; {p['direction']} phase gradient sd {p['ratio']:.2f} x prior"
+    return text
+
+
 def print_summary(summary, out: Path, written=None) -> None:
     """Print what a run did (a :class:`gcrsky.run.RunSummary`, or its ``summary.json`` dict)."""
     s = summary.to_json() if hasattr(summary, "to_json") else summary
@@ -149,6 +163,8 @@ def print_summary(summary, out: Path, written=None) -> None:
         lines.append(compile_line(s["compile"]))
     if s.get("goodness_of_fit"):
         lines.append(fit_line(s["goodness_of_fit"]))
+    if s.get("gains"):
+        lines.append(gains_line(s["gains"]))
     if written is None:
         written = ["results.h5", "summary.json", *s.get("figures", {}).values()]
     lines.append("  wrote " + (", ".join(written) if written else "nothing (every file was there)"))

@@ -199,6 +199,8 @@ def create_results_h5(
     wiener_info: SolveInfo | None = None,
     rank=None,
     attrs: dict | None = None,
+    per_draw: dict | None = None,
+    arrays: dict | None = None,
 ) -> Path:
     """Start a ``results.h5`` for ``nsamples`` draws in batches of ``batch`` (atomically; replaces ``path``).
 
@@ -212,6 +214,10 @@ def create_results_h5(
         wiener_info: the Wiener solve's :class:`~gcrsky.solvers.SolveInfo` over ``(Nf,)``.
         rank: ``(Nf,)`` rank kept by the eigen path, if it ran.
         attrs: further file attributes (strings or numbers).
+        per_draw: further datasets with one row per draw, ``{name: (tail shape, dtype, description)}``:
+            created empty with shape ``(0, *tail)`` (attribute ``shape``: the description), filled by
+            :func:`append_batch`'s ``extra`` (e.g. a gain run's ``gain_draws``).
+        arrays: further datasets written once, ``{path: array}`` (e.g. ``"gains/units"``).
 
     Returns:
         the path written.
@@ -253,6 +259,14 @@ def create_results_h5(
                 h[f"wiener_info/{k}"] = v
         if rank is not None:
             h["solver_rank"] = np.asarray(rank)
+        for name, (tail, dtype, what) in (per_draw or {}).items():
+            tail = tuple(int(k) for k in tail)
+            per = max(1, int(np.prod(tail)) * np.dtype(dtype).itemsize)
+            ds = h.create_dataset(name, shape=(0, *tail), maxshape=(None, *tail), dtype=dtype,
+                                  chunks=(max(1, min(batch, _CHUNK_BYTES // per)), *tail))
+            ds.attrs["shape"] = what
+        for name, value in (arrays or {}).items():
+            h[name] = np.asarray(value)
         h["prior_mean"] = np.asarray(problem.prior.mean)
         h["prior_inv_var"] = np.asarray(problem.prior.inv_var)
         modes = problem.modes
@@ -287,7 +301,7 @@ def _open_for_append(path, wait_s: float):
 
 
 def append_batch(path, b: int, draws, info: SolveInfo | None = None, *, seconds: float | None = None,
-                 wait_s: float = 120.0) -> int:
+                 wait_s: float = 120.0, extra: dict | None = None, replace: dict | None = None) -> int:
     """Append batch ``b`` (draws ``b * batch`` onwards) to a ``results.h5`` of :func:`create_results_h5`.
 
     ``b`` must be the file's ``batches_complete`` (batches are appended in order; rows a
@@ -302,6 +316,10 @@ def append_batch(path, b: int, draws, info: SolveInfo | None = None, *, seconds:
         seconds: the batch's wall-clock seconds (stored in ``batch_seconds``).
         wait_s: how long to wait while another process holds the file open (a reader
             between two batches), before raising ``OSError``.
+        extra: ``{name: (take, ...) array}``: the batch's rows of the ``per_draw`` datasets of
+            :func:`create_results_h5`.
+        replace: ``{path: array}`` written over (or created): e.g. a Markov chain's state after
+            the batch, so that a resumed run continues it; written before the count is raised.
 
     Returns:
         the number of complete batches now in the file (``b + 1``).
@@ -323,6 +341,17 @@ def append_batch(path, b: int, draws, info: SolveInfo | None = None, *, seconds:
                 d = h[f"draw_info/{k}"]
                 d.resize(stop, axis=1)
                 d[:, start:stop] = v
+        for name, value in (extra or {}).items():
+            value = np.asarray(value)
+            d = h[name]
+            if value.shape != (stop - start, *d.shape[1:]):
+                raise ValueError(f"batch {b} of {name} must have shape {(stop - start, *d.shape[1:])}, got {value.shape}")
+            d.resize(stop, axis=0)
+            d[start:stop] = value
+        for name, value in (replace or {}).items():
+            if name in h:
+                del h[name]
+            h[name] = np.asarray(value)
         bs = h["batch_seconds"]
         bs.resize(b + 1, axis=0)
         bs[b] = np.nan if seconds is None else float(seconds)

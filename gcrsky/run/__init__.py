@@ -12,6 +12,7 @@ and figures through report hooks (:class:`ReportHook`; the paper's are in
 - ``resume``: :class:`ResumeError`, :func:`settings_differences`, the recorded solver options;
 - ``stages``: :class:`StageTimer`, and :class:`Watch` (how a caller follows a run);
 - ``draws``: the joint run's set-up and its batches into ``results.h5`` (the documented key scheme);
+- ``gains``: a run that samples the gains with the sky: its chain, batches, gain products and summary;
 - ``channels``: independent channels (one at a time, over devices, over processes);
 - ``maps``: :class:`RunMaps`: truth, mean, std and Wiener maps, per-mode z-scores;
 - ``report``: :class:`ReportHook`, :class:`RunView`: what applications add after the draws;
@@ -39,7 +40,7 @@ from .products import write_products
 from .report import FigureReport, ReportHook, RunView
 from .resume import ResumeError, settings_differences
 from .runner import execute
-from .spec import CHANNEL_MODES, EXISTING, METHODS, Draws, Output, RunSpec, Solver, run_settings
+from .spec import CHANNEL_MODES, EXISTING, METHODS, Draws, GainSampling, Output, RunSpec, Solver, run_settings
 from .stages import StageTimer, Watch
 from .summary import RunProducts, RunSummary, info_stats, read_summary, solver_summary, versions
 
@@ -54,6 +55,7 @@ __all__ = [
     "SUMMARY_FILE",
     "Draws",
     "FigureReport",
+    "GainSampling",
     "Output",
     "ReportHook",
     "ResumeError",

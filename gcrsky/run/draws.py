@@ -85,14 +85,17 @@ def _results_attrs(prob, spec, settings, *, method, options, key_scheme) -> dict
     }
 
 
-def record_setup(prob, spec, run: OpenRun, a_wf, winfo, *, rank, method, options, key_scheme) -> None:
+def record_setup(prob, spec, run: OpenRun, a_wf, winfo, *, rank, method, options, key_scheme, per_draw=None,
+                 arrays=None) -> None:
     """A new run: create ``results.h5`` with the set-up (Wiener filter, settings, chosen path).
     A resumed one: compare the set-up's Wiener filter with the recorded one (logged if it differs:
-    the remaining draws will then not be bit-identical to an uninterrupted run's)."""
+    the remaining draws will then not be bit-identical to an uninterrupted run's).  ``per_draw``, ``arrays``:
+    further datasets of a new ``results.h5`` (:func:`gcrsky.io.create_results_h5`)."""
     if run.state is None:
         attrs = _results_attrs(prob, spec, run.settings, method=method, options=options, key_scheme=key_scheme)
         create_results_h5(run.h5, prob, a_wf, nsamples=spec.draws.nsamples, batch=spec.draws.batch,
-                          settings=run.settings, wiener_info=winfo, rank=rank, attrs=attrs)
+                          settings=run.settings, wiener_info=winfo, rank=rank, attrs=attrs, per_draw=per_draw,
+                          arrays=arrays)
         return
     recorded = read_draws(run.h5).wiener_filter
     if not np.array_equal(recorded, a_wf, equal_nan=True):

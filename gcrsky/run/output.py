@@ -21,6 +21,7 @@ from .summary import versions
 
 __all__ = [
     "FIGURE_FILES",
+    "GAIN_FILE",
     "PRODUCT_FILES",
     "RESULTS_FILE",
     "RUN_FILES",
@@ -58,8 +59,10 @@ FIGURE_FILES = {
     "fig7_correlation": "fig7_correlation.png",
     "fig7_corner": "fig7_corner.png",
 }
+#: The posterior-mean gains of a run that samples them (:func:`gcrsky.run.gains.write_gain_products`).
+GAIN_FILE = "gains.calh5"
 #: Every file a run writes into its directory (what :func:`existing_run_files` looks for).
-RUN_FILES = (RESULTS_FILE, SUMMARY_FILE, *PRODUCT_FILES.values(), *FIGURE_FILES.values())
+RUN_FILES = (RESULTS_FILE, SUMMARY_FILE, *PRODUCT_FILES.values(), *FIGURE_FILES.values(), GAIN_FILE)
 
 
 class RunExistsError(FileExistsError):

@@ -31,6 +31,7 @@ from ..parallel.runtime import CompileStats, compile_cache_dir, compile_stats
 from .channels import channel_draws, worker_channels
 from .draws import joint_draws
 from .fit import run_fit
+from .gains import gain_draws, gain_summary, gained_problem, stored_gain_factor, write_gain_products
 from .maps import RunMaps, parameter_frame, run_maps, stored_maps
 from .output import PRODUCT_FILES, RESULTS_FILE, SUMMARY_FILE, OpenRun, existing_run_files, open_run
 from .products import write_products
@@ -84,7 +85,7 @@ def execute(prob, spec: RunSpec, *, hooks: Sequence[ReportHook] = (), watch: Wat
     run = open_run(prob, spec)
     st = StageTimer(watch.on_stage)
     st.times["build"] = build_s
-    draw_stage = joint_draws if spec.channels is None else channel_draws
+    draw_stage = gain_draws if spec.gains is not None else joint_draws if spec.channels is None else channel_draws
     method = draw_stage(prob, spec, run, st, watch)  # leaves the "draws" stage running
     stored = read_draws(run.h5)
     st.stop()
@@ -93,13 +94,18 @@ def execute(prob, spec: RunSpec, *, hooks: Sequence[ReportHook] = (), watch: Wat
     if not np.isfinite(stored.draws).all():
         warnings.append(f"ERROR: {int((~np.isfinite(stored.draws)).sum())} non-finite values in the draws.")
     view, figures = _report(prob, spec, run, stored, hooks, st, warnings)
-    gof = None if (run.out / SUMMARY_FILE).exists() else run_fit(prob, stored.wiener_filter, warnings,
+    fit_prob = prob if spec.gains is None else gained_problem(prob, stored_gain_factor(run.h5))
+    gof = None if (run.out / SUMMARY_FILE).exists() else run_fit(fit_prob, stored.wiener_filter, warnings,
                                                                      rank=stored.rank)
     st.start("write")
     finalized = _write(prob, spec, run, stored, view.maps, method)
+    gains = None
+    if spec.gains is not None and not (run.out / SUMMARY_FILE).exists():
+        gains = gain_summary(prob, spec.gains, run.h5)
+        gains["calibration_file"] = write_gain_products(prob, run.out, run.h5)
     st.stop()
     timings, compiled = _timings(st, stored, compile0)
-    summary = _summary(prob, spec, run, view, solver, warnings, (timings, compiled), figures, method, gof)
+    summary = _summary(prob, spec, run, view, solver, warnings, (timings, compiled), figures, method, gof, gains)
     written = [f for f in existing_run_files(run.out)
                if f not in run.before or (f == RESULTS_FILE and finalized)]
     return summary, _products(prob, run, view, stored.draws, written)
@@ -153,7 +159,8 @@ def _timings(st: StageTimer, stored, compile0: CompileStats) -> tuple[dict, dict
 
 
 def _summary(prob, spec: RunSpec, run: OpenRun, view: RunView, solver: dict, warnings: list,
-             timings: tuple[dict, dict], figures: dict, method: str, gof: dict | None = None) -> RunSummary:
+             timings: tuple[dict, dict], figures: dict, method: str, gof: dict | None = None,
+             gains: dict | None = None) -> RunSummary:
     """The run's :class:`RunSummary`, written to ``summary.json`` (a resumed run keeps the one its run wrote)."""
     path = run.out / SUMMARY_FILE
     if path.exists():
@@ -177,6 +184,7 @@ def _summary(prob, spec: RunSpec, run: OpenRun, view: RunView, solver: dict, war
         exit_status=0 if view.finite else 1,
         data_checks=dict(getattr(cfg, "checks", None) or {}) or None,
         goodness_of_fit=gof,
+        gains=gains,
     )
     write_json(path, summary.to_json())
     return summary

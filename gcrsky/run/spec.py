@@ -24,7 +24,8 @@ from ..io.results import clean_json, json_default
 from ..parallel.channels import CHANNEL_KEY_SCHEME
 from ..solvers.options import DEFAULT_TOL
 
-__all__ = ["CHANNEL_MODES", "EXISTING", "METHODS", "Draws", "Output", "RunSpec", "Solver", "run_settings"]
+__all__ = ["CHANNEL_MODES", "EXISTING", "METHODS", "Draws", "GainSampling", "Output", "RunSpec", "Solver",
+           "run_settings"]
 
 #: The paths a run may ask for (``"auto"``: chosen by size, :func:`gcrsky.solvers.plan.choose_path`).
 METHODS = ("auto", "cg", "cholesky", "eigh", "mmode", "dataspace")
@@ -103,6 +104,55 @@ class Output:
 
 
 @dataclasses.dataclass(frozen=True)
+class GainSampling:
+    """Per-antenna gains sampled with the sky (:mod:`gcrsky.run.gains`; the model of :mod:`gcrsky.model.gains`).
+
+    The run's draws are then the states of a Markov chain over (sky, gains, overall amplitude)
+    (:func:`gcrsky.inference.joint_gain_step`), not independent draws: ``burn`` sweeps of burn-in
+    (re-centred on the current gains after each half), then one kept state every ``thin`` sweeps.
+
+    Attributes:
+        modes: ``(Kf, Kt)`` smooth modes per gain in frequency (delay) and time (fringe rate);
+            ``(1, 1)``: one complex gain per antenna (or feed) over the selection.
+        basis: ``"dpss"`` or ``"fourier"`` (:func:`gcrsky.model.mode_basis`).
+        sigma: prior standard deviation of each mode's coefficient (rms fractional gain error).
+        burn: burn-in sweeps (>= 2: the linearisation point moves after each half).
+        thin: sweeps per kept draw.
+        gauge_moves: Metropolis moves along the amplitude-sky gauge orbit per sweep
+            (:func:`gcrsky.inference.gauge_step`; 0 is plain Gibbs, which barely moves along it).
+        applied: the overall amplitude ``gbar`` the gains start from (e.g. the square root of
+            the autocorrelations' flux-scale ratio); the sampled amplitude is relative to it.
+    """
+
+    modes: tuple = (1, 1)
+    basis: str = "dpss"
+    sigma: float = 0.05
+    burn: int = 200
+    thin: int = 1
+    gauge_moves: int = 4
+    applied: float = 1.0
+
+    def __post_init__(self):
+        modes = tuple(self.modes)
+        if len(modes) != 2 or any(isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 1 for k in modes):
+            raise ValueError(f"gains.modes must be two integers >= 1 (Kf, Kt), got {self.modes!r}")
+        object.__setattr__(self, "modes", tuple(int(k) for k in modes))
+        _choice("gains.basis", self.basis, ("dpss", "fourier"))
+        for name in ("sigma", "applied"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not (v > 0 and math.isfinite(v)):
+                raise ValueError(f"gains.{name} must be a positive finite number, got {v!r}")
+            object.__setattr__(self, name, float(v))
+        _integer(self, "burn", "gains.burn", 2)
+        _integer(self, "thin", "gains.thin", 1)
+        _integer(self, "gauge_moves", "gains.gauge_moves", 0)
+
+    def to_dict(self) -> dict:
+        """The settings as a JSON-able dict (recorded with the run's settings)."""
+        return {**dataclasses.asdict(self), "modes": list(self.modes)}
+
+
+@dataclasses.dataclass(frozen=True)
 class RunSpec:
     """One run: draws, solver, output, and what else identifies it.
 
@@ -119,6 +169,8 @@ class RunSpec:
         argv: the command line (recorded in ``summary.json``), or None.
         extra: further settings that identify the run (e.g. the input file of a run on a
             file); JSON-able, no key of the standard settings.
+        gains: None (the data taken as calibrated) or :class:`GainSampling`: gains sampled
+            with the sky (a joint run only; recorded in the settings as ``gains``).
     """
 
     draws: Draws
@@ -128,6 +180,7 @@ class RunSpec:
     scenario: str | None = None
     argv: tuple[str, ...] | None = None
     extra: Mapping[str, Any] | None = None
+    gains: GainSampling | None = None
 
     def __post_init__(self):
         for name, kind in (("draws", Draws), ("output", Output), ("solver", Solver)):
@@ -143,11 +196,19 @@ class RunSpec:
             object.__setattr__(self, "argv", tuple(self.argv))
         if self.extra is not None:
             object.__setattr__(self, "extra", dict(self.extra))
+        if self.gains is not None:
+            if not isinstance(self.gains, GainSampling):
+                raise ValueError(f"gains must be a GainSampling or None, got {self.gains!r}")
+            if self.channels is not None:
+                raise ValueError("gains are sampled jointly over the channels (the amplitude's modes span them): "
+                                 "drop channels (--by-channel, --devices, --num-processes)")
         self.settings(None)  # the extra settings must not clash and must be JSON-able
 
     def all_extra(self) -> dict:
-        """``extra`` and, for an independent-channel run, its mode and key scheme."""
+        """``extra`` and, for an independent-channel run, its mode and key scheme; the gain sampling, if any."""
         extra = dict(self.extra or {})
+        if self.gains is not None:
+            extra["gains"] = self.gains.to_dict()
         if self.channels is not None:
             extra.update(channels=self.channels, channel_key_scheme=CHANNEL_KEY_SCHEME)
         return extra

@@ -73,6 +73,9 @@ class RunSummary:
             or None for a simulated run.
         goodness_of_fit: the posterior predictive check of the data against the model, or
             None where it was not computed.
+        gains: a run that samples the gains with the sky: their settings, the posterior flux
+            scale, the phase gradients against their prior (:func:`gcrsky.run.gains.gain_summary`);
+            None otherwise.
     """
 
     frac_diff_centre_median: float | None
@@ -96,6 +99,7 @@ class RunSummary:
     exit_status: int
     data_checks: dict | None = None
     goodness_of_fit: dict | None = None
+    gains: dict | None = None
 
     def to_json(self) -> dict:
         """The ``summary.json`` object: ``{field: value}`` in field order."""
