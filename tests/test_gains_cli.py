@@ -140,3 +140,33 @@ def test_gain_options_need_gains_sample_and_a_file(capsys):
 def test_gain_run_refuses_independent_channels(files, tmp_path, capsys):
     rc = cli.main(["run", "--data", str(files[0]), "--out", str(tmp_path / "c"), *SMALL, "--by-channel"])
     assert rc == 2 and "jointly over the channels" in capsys.readouterr().err
+
+
+def test_the_sky_above_lmax_goes_through_the_gains_the_radiometer_noise_does_not():
+    """marginalise_rows records the marginalised sky's std as ``sigma_sky``; a gain run's noise scales it by |D|,
+    and dividing the gains out of the data leaves it in sky units while the radiometer part is divided by |D|."""
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    from gcrsky.model.bandlimit import marginalise_rows
+    from gcrsky.run.gains import gained_problem, noise_at
+    from test_gains import _observation
+
+    prob, _ = _observation()
+    rng = np.random.default_rng(0)
+    nf, nbl, n = prob.response.shape
+    lmax_hi = 6
+    resp_hi = jnp.asarray(rng.standard_normal((nf, nbl, (lmax_hi + 1) ** 2)) * 0.1 + 0j)
+    marg, sig_hi = marginalise_rows(prob, resp_hi)
+    rad2, sky2 = np.asarray(prob.sigma) ** 2, np.broadcast_to(sig_hi[:, None, :] ** 2, prob.sigma.shape)
+    np.testing.assert_allclose(np.asarray(marg.sigma_sky) ** 2, sky2, rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(marg.sigma) ** 2, rad2 + sky2, rtol=1e-12)
+    D = 0.01 * np.exp(1j * rng.uniform(0, 2 * np.pi, prob.data.shape)) * (1 + 0.1 * rng.standard_normal(prob.data.shape))
+    np.testing.assert_allclose(np.asarray(noise_at(marg, D).sigma) ** 2, rad2 + np.abs(D) ** 2 * sky2, rtol=1e-10)
+    g = gained_problem(marg, D)
+    np.testing.assert_allclose(np.asarray(g.sigma) ** 2, rad2 / np.abs(D) ** 2 + sky2, rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(g.data), np.asarray(marg.data) / D, rtol=1e-12)
+    # without a sky part, the noise is all radiometer: divided by |D|
+    plain = dataclasses.replace(prob, sigma_sky=None)
+    np.testing.assert_allclose(np.asarray(gained_problem(plain, D).sigma), np.asarray(prob.sigma) / np.abs(D), rtol=1e-12)

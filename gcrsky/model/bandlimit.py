@@ -215,7 +215,8 @@ def _take_rows(problem, rows: np.ndarray):
         problem, antpairs=np.asarray(problem.antpairs)[rows],
         pols=None if problem.pols is None else tuple(problem.pols[int(r)] for r in rows),
         response=jnp.take(problem.response, idx, axis=1), data=jnp.take(problem.data, idx, axis=2),
-        sigma=jnp.take(problem.sigma, idx, axis=2), weights=jnp.take(problem.weights, idx, axis=2))
+        sigma=jnp.take(problem.sigma, idx, axis=2), weights=jnp.take(problem.weights, idx, axis=2),
+        sigma_sky=None if problem.sigma_sky is None else jnp.take(problem.sigma_sky, idx, axis=2))
 
 
 def cut_rows(problem, lmax: int, dish_diameter_m, *, baselines_m=None):
@@ -315,16 +316,20 @@ def marginalise_rows(problem, response_hi, cl_hi=None):
             law (:func:`extend_cl`).
 
     Returns:
-        ``(problem, sigma_hi)`` with ``sigma_hi`` (Nf, Nrow) the added per-component std (K sr).
+        ``(problem, sigma_hi)`` with ``sigma_hi`` (Nf, Nrow) the added per-component std (K sr); the
+        problem's ``sigma_sky`` records it (sky signal: it passes through the gains).
     """
     lmax_hi = int(round(math.sqrt(np.shape(response_hi)[-1]))) - 1
     if cl_hi is None:
         cl_hi = extend_cl(prior_cl(problem.prior, problem.lmax), lmax_hi)
     var = high_l_variance(response_hi, problem.lmax, cl_hi)
     sigma = jnp.sqrt(problem.sigma**2 + jnp.asarray(var)[:, None, :])
+    sky2 = jnp.broadcast_to(jnp.asarray(var)[:, None, :], sigma.shape)
+    if problem.sigma_sky is not None:
+        sky2 = sky2 + problem.sigma_sky**2
     log.info("band limit: marginalised l = %d..%d on the noise diagonal (added std / noise std: median %.3g)",
              problem.lmax + 1, lmax_hi, float(np.median(np.sqrt(var)[:, None, :] / np.asarray(problem.sigma))))
-    return dataclasses.replace(problem, sigma=sigma), np.sqrt(var)
+    return dataclasses.replace(problem, sigma=sigma, sigma_sky=jnp.sqrt(sky2)), np.sqrt(var)
 
 
 # ---------------------------------------------------------------- a file's problem

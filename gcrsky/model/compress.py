@@ -196,4 +196,5 @@ def compress_problem(
         data=data_g,
         sigma=jnp.asarray(sigma_g),
         weights=jnp.asarray(kept.astype(np.float64)),
+        sigma_sky=None,  # not tracked through the merge (only a gain run uses it, and it keeps every baseline)
     )

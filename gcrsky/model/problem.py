@@ -68,7 +68,10 @@ class Problem(eqx.Module):
         id share one beam object), or None when not recorded; pols: None (every row the
         unpolarised ``A_i A_j`` model of a simulation) or a tuple with the feed product
         each row of ``antpairs`` models (``"xx"``, ``"yy"``, ``"pI"``; I-equivalent
-        visibilities: :mod:`gcrsky.io.uvdata`).
+        visibilities: :mod:`gcrsky.io.uvdata`); sigma_sky: None, or (Nf, Nt, Nbl) the part of
+        ``sigma`` that is sky signal rather than radiometer noise (the sky above lmax marginalised as
+        noise, :func:`gcrsky.model.bandlimit.marginalise_rows`), which passes through the antenna
+        gains (:mod:`gcrsky.run.gains` scales it with them).
     """
 
     freqs_hz: jax.Array
@@ -90,6 +93,7 @@ class Problem(eqx.Module):
     antpos_enu_m: Optional[np.ndarray] = None
     beam_ids: Optional[np.ndarray] = None
     pols: Optional[tuple] = eqx.field(static=True, default=None)
+    sigma_sky: Optional[jax.Array] = None
 
     @property
     def n(self) -> int:

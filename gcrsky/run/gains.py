@@ -66,7 +66,7 @@ from .resume import options_json
 from .stages import StageTimer, Watch
 
 __all__ = ["GAIN_DENSE_MAX_N", "GAIN_KEY_SCHEME", "GainChain", "burn_in", "gain_chain_setup", "gain_draws",
-           "gain_summary", "gained_problem", "read_gain_chain", "stored_gain_factor", "write_gain_products"]
+           "gain_summary", "gained_problem", "noise_at", "read_gain_chain", "stored_gain_factor", "write_gain_products"]
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +97,7 @@ class GainChain(NamedTuple):
     state: object
 
 
-def gain_chain_setup(prob, gains, *, tol: float | None = None) -> GainChain:
+def gain_chain_setup(prob, gains, *, tol: float | None = None, factor=None) -> GainChain:
     """The gain layout, prior and the sky's data term of ``prob``; the chain at the prior mean, gains 1.
 
     Args:
@@ -105,6 +105,8 @@ def gain_chain_setup(prob, gains, *, tol: float | None = None) -> GainChain:
             redundant compression).
         gains: :class:`~gcrsky.run.GainSampling`.
         tol: the CG tolerance of the sky step where it runs matrix-free (posterior sigma).
+        factor: the gain factor (Nf, Nt, Nbl) at which the sky part of the noise is evaluated
+            (:func:`noise_at`); default ``applied^2``, the starting point.
 
     Raises:
         ValueError: rows that are redundant groups, or a layout the gains cannot have.
@@ -113,8 +115,7 @@ def gain_chain_setup(prob, gains, *, tol: float | None = None) -> GainChain:
     if getattr(cfg, "compressed", False):
         raise ValueError("gains are per antenna, but the problem's rows are redundant groups (averages of baselines "
                          "with different gains): read the file without compression (compress=False, --no-compress)")
-    system = prob.system()
-    nf, nt, _ = system.data.shape
+    nf, nt, _ = prob.data.shape
     model = gain_model(prob.antpairs, nf, nt, gains.modes, basis=gains.basis, pols=prob.pols)
     lin = np.full((nf, nt, model.units.shape[0]), gains.applied, complex)
     block = gain_setup(model, sigma=gains.sigma, gbar=lin)
@@ -122,8 +123,30 @@ def gain_chain_setup(prob, gains, *, tol: float | None = None) -> GainChain:
         options = CholeskyOptions()
     else:
         options = CGOptions(dense=False) if tol is None else CGOptions(dense=False, tol=tol)
+    system = noise_at(prob, gains.applied**2 if factor is None else factor).system()
     fixed = gibbs_setup(system, options=options)
     return GainChain(fixed, block, lin, gain_init(system.prior.mean, block))
+
+
+def noise_at(prob, factor):
+    """``prob`` with the sky part of its noise (``prob.sigma_sky``: the sky above lmax, marginalised) passed
+    through the gain factor ``D`` (Nf, Nt, Nbl) or a scalar: ``sigma^2 = sigma_rad^2 + |D|^2 sigma_sky^2``.
+
+    The unmodelled sky goes through the antennas' gains as the modelled one does; the radiometer noise
+    does not.  Evaluated at a fixed ``D`` (the linearisation point), so that the gains' conditionals stay
+    Gaussian: an approximation of the same order as the linearisation.  ``prob`` as it is without ``sigma_sky``.
+    """
+    if prob.sigma_sky is None:
+        return prob
+    s2, k2 = np.asarray(prob.sigma) ** 2, np.asarray(prob.sigma_sky) ** 2
+    rad2 = np.maximum(s2 - k2, 0.0)
+    return eqx.tree_at(lambda p: p.sigma, prob, jnp.asarray(np.sqrt(rad2 + np.abs(np.asarray(factor)) ** 2 * k2)))
+
+
+def _factor(chain: GainChain) -> np.ndarray:
+    """The model's gain factor ``q(nu) G`` (Nf, Nt, Nbl) at the chain's linearisation point (``theta = 0``)."""
+    block = chain.block
+    return np.asarray(scale_profile(block.model, chain.state.scale)[:, None, None] * block.pair_gains)
 
 
 @functools.partial(jax.jit, static_argnames=("n", "thin", "moves"))
@@ -140,25 +163,31 @@ def _segment(fixed, block, state, key, *, n: int, thin: int, moves: int):
     return jax.lax.scan(keep, state, jax.random.split(key, n))
 
 
-def burn_in(key: jax.Array, chain: GainChain, gains) -> GainChain:
-    """``gains.burn`` sweeps in two halves, re-centred after each (the linearisation point follows the chain)."""
+def burn_in(key: jax.Array, chain: GainChain, gains, prob=None) -> GainChain:
+    """``gains.burn`` sweeps in two halves, re-centred after each (the linearisation point follows the chain);
+    with ``prob`` given and its ``sigma_sky`` set, the sky part of the noise is re-evaluated there too."""
     half = gains.burn // 2
     fixed, block, lin, state = chain
     for fold, n in zip(_BURN, (half, gains.burn - half)):
         state, _ = _segment(fixed, block, state, jax.random.fold_in(key, fold), n=n, thin=1, moves=gains.gauge_moves)
         lin = np.asarray(lin * (1.0 + perturbations(block.model, state.theta)))
         block, state = recentre(block, state)
+        if prob is not None and prob.sigma_sky is not None:
+            D = _factor(GainChain(fixed, block, lin, state))
+            fixed = gibbs_setup(noise_at(prob, D).system(), options=fixed.options)
     return GainChain(fixed, block, lin, state)
 
 
 def gained_problem(prob, factor):
-    """``prob`` with the gain factor ``D`` (Nf, Nt, Nbl) divided out: data ``d / D``, sigma ``sigma / |D|``
-    (weight 0 where ``D = 0``): the sky's likelihood given those gains, for the Wiener filter and the fit."""
+    """``prob`` with the gain factor ``D`` (Nf, Nt, Nbl) divided out: data ``d / D``, noise
+    ``sigma_rad / |D|`` for the radiometer part and ``sigma_sky`` unchanged for the sky part
+    (:func:`noise_at`; weight 0 where ``D = 0``): the sky's likelihood given those gains, for the
+    Wiener filter and the fit."""
     D = np.asarray(factor, complex)
     zero = np.abs(D) == 0
     Ds = np.where(zero, 1.0, D)
     data = np.where(zero, 0.0, np.asarray(prob.data) / Ds)
-    sigma = np.asarray(prob.sigma) / np.abs(Ds)
+    sigma = np.asarray(noise_at(prob, Ds).sigma) / np.abs(Ds)
     weights = np.where(zero, 0.0, np.asarray(prob.weights))
     return eqx.tree_at(lambda p: (p.data, p.sigma, p.weights), prob,
                        (jnp.asarray(data), jnp.asarray(sigma), jnp.asarray(weights)))
@@ -192,7 +221,7 @@ def read_gain_chain(prob, gains, h5, *, tol: float | None = None) -> GainChain:
     """The chain of a ``results.h5`` written by a gain run: its linearisation point and last state."""
     import h5py
 
-    chain = gain_chain_setup(prob, gains, tol=tol)
+    chain = gain_chain_setup(prob, gains, tol=tol, factor=stored_gain_factor(h5))
     with h5py.File(h5, "r") as h:
         block = chain.block._replace(pair_gains=jnp.asarray(h["gains/pair_gains"][()]),
                                      prior_mean=jnp.asarray(h["gains/prior_mean"][()]))
@@ -206,8 +235,8 @@ def _setup(prob, spec, run: OpenRun, key) -> GainChain:
     gains, tol = spec.gains, spec.solver.tol
     if run.state is not None:
         return read_gain_chain(prob, gains, run.h5, tol=tol)
-    chain = burn_in(key, gain_chain_setup(prob, gains, tol=tol), gains)
-    D0 = np.asarray(scale_profile(chain.block.model, chain.state.scale)[:, None, None] * chain.block.pair_gains)
+    chain = burn_in(key, gain_chain_setup(prob, gains, tol=tol), gains, prob)
+    D0 = _factor(chain)
     prob_g = gained_problem(prob, D0)
     options = choose_path(prob_g.system(), spec.solver.method, tol=tol, ndraws=1)
     prepared = prepare(prob_g, options=options)
