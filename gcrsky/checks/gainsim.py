@@ -79,13 +79,16 @@ def smooth_gains(n_ant: int, freqs_hz, times_jd, *, n_feeds: int = 2, amp: float
 
 
 def _feed_index(uvd, jones_feeds):
-    """Per polarization of ``uvd``: (feed index on ant_1, feed index on ant_2) into ``jones_feeds`` ("x", "y")."""
+    """Per polarization of ``uvd``: (feed index on ant_1, feed index on ant_2) into ``jones_feeds`` ("x", "y").
+
+    By polarization number (-5..-8: xx, yy, xy, yx), as pyuvdata pairs them with the Jones terms -5 (Jxx)
+    and -6 (Jyy), whatever the x_orientation calls them (ee, nn).
+    """
     from pyuvdata import utils
 
     out = []
     for num in np.asarray(uvd.polarization_array):
-        name = utils.polnum2str(int(num), x_orientation=uvd.telescope.get_x_orientation_from_feeds())
-        name = name.lower().replace("e", "x").replace("n", "y") if name.lower()[:1] in "en" else name.lower()
+        name = utils.polnum2str(int(num)).lower()
         if len(name) != 2 or any(c not in jones_feeds for c in name):
             raise ValueError(f"corrupt_with_gains takes linear feed products (xx, yy, xy, yx), not {name!r}")
         out.append((jones_feeds.index(name[0]), jones_feeds.index(name[1])))
