@@ -2,10 +2,12 @@
 
 - ``matvis``: gcrsky's visibilities at real observing times against
   ``matvis.simulate_vis`` (the ``[validate]`` extra) for the same sky, array and beams;
+- ``uvsim``, ``gainsim``: matvis-simulated visibility files (pyuvdata ``UVData``) and known
+  smooth antenna gains applied to them, with their ``UVCal``;
 - ``sbc``: simulation-based calibration of any sampler with exact-size rank tests;
 - ``imports``: the package's import graph (layers, floors, circles), parsed with ``ast``.
 
 Submodules are imported on use (``from gcrsky.checks import sbc``).
 """
 
-__all__ = ["imports", "matvis", "sbc"]
+__all__ = ["gainsim", "imports", "matvis", "sbc", "uvsim"]
