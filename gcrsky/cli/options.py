@@ -254,7 +254,8 @@ def add_gain_options(g) -> None:
     g.add_argument("--gain-modes", type=_gain_modes, default=(1, 1), metavar="KF[,KT]",
                    help="smooth modes per gain in frequency (delay) and time (fringe rate); one number sets both "
                    "(default 1,1: one complex gain per antenna over the selection)")
-    g.add_argument("--gain-basis", choices=("dpss", "fourier"), default="dpss", help="the modes' basis")
+    g.add_argument("--gain-basis", choices=("dpss", "fourier", "legendre"), default="dpss",
+                   help="the modes' basis (legendre: polynomials, which hold a linear drift)")
     g.add_argument("--gain-sigma", type=positive_float("gain-sigma"), default=0.05, metavar="S",
                    help="prior sd of each mode's coefficient: the rms fractional gain error (default 0.05)")
     g.add_argument("--gain-burn", type=int_at_least(2, "gain-burn"), default=200, metavar="N",

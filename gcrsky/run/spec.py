@@ -21,6 +21,7 @@ from typing import Any, Mapping
 
 from ..inference.batches import KEY_SCHEME
 from ..io.results import clean_json, json_default
+from ..model.gains import BASES
 from ..parallel.channels import CHANNEL_KEY_SCHEME
 from ..solvers.options import DEFAULT_TOL
 
@@ -114,7 +115,7 @@ class GainSampling:
     Attributes:
         modes: ``(Kf, Kt)`` smooth modes per gain in frequency (delay) and time (fringe rate);
             ``(1, 1)``: one complex gain per antenna (or feed) over the selection.
-        basis: ``"dpss"`` or ``"fourier"`` (:func:`gcrsky.model.mode_basis`).
+        basis: ``"dpss"``, ``"fourier"`` or ``"legendre"`` (:func:`gcrsky.model.mode_basis`).
         sigma: prior standard deviation of each mode's coefficient (rms fractional gain error).
         burn: burn-in sweeps (>= 2: the linearisation point moves after each half).
         thin: sweeps per kept draw.
@@ -137,7 +138,7 @@ class GainSampling:
         if len(modes) != 2 or any(isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 1 for k in modes):
             raise ValueError(f"gains.modes must be two integers >= 1 (Kf, Kt), got {self.modes!r}")
         object.__setattr__(self, "modes", tuple(int(k) for k in modes))
-        _choice("gains.basis", self.basis, ("dpss", "fourier"))
+        _choice("gains.basis", self.basis, BASES)
         for name in ("sigma", "applied"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Real) or not (v > 0 and math.isfinite(v)):
