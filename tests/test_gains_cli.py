@@ -148,10 +148,10 @@ def test_the_sky_above_lmax_goes_through_the_gains_the_radiometer_noise_does_not
     import dataclasses
 
     import jax.numpy as jnp
+    from test_gains import _observation
 
     from gcrsky.model.bandlimit import marginalise_rows
     from gcrsky.run.gains import gained_problem, noise_at
-    from test_gains import _observation
 
     prob, _ = _observation()
     rng = np.random.default_rng(0)
