@@ -15,12 +15,14 @@ OVERRIDES = {
     "gibbs.ipynb": {"LMAX": 8, "NSIDE": 32, "STEPS": 1500, "NUTS_WARMUP": 150, "NUTS_SAMPLES": 300},
     "point_sources.ipynb": {"LMAX": 8, "NSIDE": 32, "STEPS": 1500},
     "real_data.ipynb": {"LMAX": 8, "BAND_LIMIT": "marginalise", "NSIDE": 32, "NSAMPLES": 20},
+    "calibration.ipynb": {"HEX_ROWS": (2, 3), "LMAX": 4, "NSIDE": 16, "STEPS": 1000, "BURN": 200,
+                          "H1C_LMAX": 8, "H1C_STEPS": 100, "H1C_BURN": 100},
 }
 
 #: Notebooks that read the real HERA files (skipped where ../shared/data/real is absent).
 from conftest import REAL  # noqa: E402
 
-NEEDS_REAL = {"real_data.ipynb"}
+NEEDS_REAL = {"real_data.ipynb", "calibration.ipynb"}
 
 
 def _check_quickstart(ns):
@@ -112,6 +114,40 @@ def _check_real_data(ns):
     assert ns["std_map"][ns["centre"]] < ns["std_map"][ns["far"]]  # the data constrain the zenith patch
 
 
+def _check_calibration(ns):
+    import numpy as np
+    from scipy import stats
+
+    # part 1: the true gains and the sky along its K most data-dominated directions, whitened by the joint
+    # chain's draws, give mean z^2 within the chi-square range of P (K) terms (two-sided 0.1 %), widened by
+    # 25 % for the chain's Monte-Carlo error (the bound of tests/test_gains.py)
+    def within(z2, k):
+        return stats.chi2.ppf(0.0005, k) / k < z2 < 1.25 * stats.chi2.ppf(0.9995, k) / k
+
+    P, K = ns["P"], ns["E"].shape[0]
+    assert within(ns["z2_gains"], P), (ns["z2_gains"], P)
+    assert within(ns["z2_sky"], K), (ns["z2_sky"], K)
+    # ignoring the gains biases the sky by far (hundreds; 10x the upper bound)
+    assert ns["z2_ignore"] > 10 * 1.25 * stats.chi2.ppf(0.9995, K) / K, ns["z2_ignore"]
+    # the gauge: plain Gibbs crawls along the overall amplitude (its spread far too small); the gauge move
+    # restores the spread and multiplies the ESS
+    assert ns["s0_gauge"].std() > 3 * ns["s0_plain"].std(), (ns["s0_gauge"].std(), ns["s0_plain"].std())
+    assert ns["ess_gauge"] > 3 * ns["ess_plain"], (ns["ess_gauge"], ns["ess_plain"])
+    # the east-west phase gradient is pinned by the sky's rotation, the north-south one less so
+    assert ns["grad_ratio_sim"][0] < 0.2 and ns["grad_ratio_sim"][0] < ns["grad_ratio_sim"][1] < 1.0, ns["grad_ratio_sim"]
+    # part 2 (H1C): the crosses' flux scale (q x the autos' ratio) is finite and positive, with a 95 % interval
+    # bounded on both sides under a flat prior on q (the GSM prior mean pins it) that reaches no higher than ~Jy
+    # (measured: 0.006-1.07 at lmax 8, 0.003-0.34 at lmax 16); the autos' ratio far below Jy
+    flux = ns["flux"]
+    assert np.all(np.isfinite(flux)) and np.all(flux > 0)
+    assert 0 < ns["flux_lo"] < np.median(flux) < ns["flux_hi"] < 2.0, (ns["flux_lo"], ns["flux_hi"])
+    assert ns["ratio"] < 0.01
+    assert ns["ess_flux"] > 20, ns["ess_flux"]
+    # the gains stay prior-dominated on this 1.6-minute snapshot: the phase gradients and the median direction
+    assert np.all(ns["grad_ratio_h1c"] > 0.8), ns["grad_ratio_h1c"]
+    assert np.median(ns["ratio_h1c"]) > 0.8, ns["ratio_h1c"]
+
+
 #: The notebooks' claims, checked on their own numbers (every notebook needs an entry).
 CHECKS = {
     "quickstart.ipynb": _check_quickstart,
@@ -120,6 +156,7 @@ CHECKS = {
     "gibbs.ipynb": _check_gibbs,
     "point_sources.ipynb": _check_point_sources,
     "real_data.ipynb": _check_real_data,
+    "calibration.ipynb": _check_calibration,
 }
 
 
