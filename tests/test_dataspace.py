@@ -317,3 +317,67 @@ def test_options_validate():
         DataSpaceOptions(stationary="yes")
     with pytest.raises(ValueError, match="materialize"):
         DataSpaceOptions(materialize=1)
+
+
+# ---------------------------------------------------------------- memory: the estimate, the chunk, the refusal
+
+
+@pytest.fixture(scope="module")
+def icrs_long():
+    """ICRS parameters, 6 observing times over 1 h, lmax 8: chunks of 1-6 times differ."""
+    import astropy.units as u
+    from astropy.time import Time
+
+    times = Time("2026-03-01T00:00:00") + np.linspace(0.0, 1.0, 6) * u.hour
+    return _problem(8, 6, times=times).system()
+
+
+@pytest.mark.parametrize("chunk", [1, 4])
+def test_rows_formed_by_chunks_give_the_same_set_up(icrs_long, chunk):
+    """Y materialised chunk by chunk into one buffer, D from it by row blocks: equal to the pairwise-block D
+    and to Y formed for all times at once; the factor and Wiener filter equal the non-materialised path's."""
+    from gcrsky.solvers.dataspace import _chunk_rows, _sqrt_w
+
+    ref = prepare_dataspace(icrs_long, DataSpaceOptions(materialize=False, time_chunk=6))
+    st = prepare_dataspace(icrs_long, DataSpaceOptions(materialize=True, time_chunk=chunk))
+    nt = icrs_long.data.shape[1]
+    rows_all = _chunk_rows(icrs_long.op, _sqrt_w(icrs_long), jnp.arange(nt))
+    np.testing.assert_allclose(np.asarray(st.rows), np.asarray(rows_all), rtol=0, atol=1e-14 * float(jnp.abs(rows_all).max()))
+    np.testing.assert_allclose(np.asarray(st.gram), np.asarray(ref.gram), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(st.a_wf), np.asarray(ref.a_wf), rtol=1e-10, atol=1e-12)
+    assert st.options.time_chunk == chunk and st.options.materialize
+
+
+@pytest.mark.parametrize("materialize", [False, True])
+@pytest.mark.parametrize("chunk", [1, 3, 6])
+def test_estimate_bounds_the_compiled_set_up(icrs_long, chunk, materialize):
+    """The planner's estimate bounds XLA's memory analysis of the compiled set-up (its temporaries plus its
+    outputs: D, the factor, Y, the Wiener filter) at every chunk; benchmarks/dataspace_memory.py does the
+    same at lmax 60-185 and against the process's peak."""
+    from gcrsky.solvers.dataspace import _prepare_dataspace, dataspace_memory_bytes
+
+    opts = DataSpaceOptions(time_chunk=chunk, materialize=materialize)
+    ma = _prepare_dataspace.lower(icrs_long, opts, None, materialize).compile().memory_analysis()
+    if ma is None:
+        pytest.skip("this backend gives no memory analysis")
+    used = ma.temp_size_in_bytes + ma.output_size_in_bytes
+    est = dataspace_memory_bytes(icrs_long, 1, materialize, chunk)
+    assert used <= est, (used, est)
+    assert est < 4 * used + 2e7  # a bound, not a refusal of everything (fixed overheads ~1e7 at this size)
+
+
+def test_chunk_follows_the_budget_and_what_cannot_fit_is_refused(icrs_long):
+    from gcrsky.base.memory import InsufficientMemoryError
+    from gcrsky.solvers.dataspace import choose_time_chunk, dataspace_memory_bytes
+    from gcrsky.solvers.path import AUTO_MEMORY_FRACTION
+
+    opts = DataSpaceOptions(materialize=False)
+    est = [dataspace_memory_bytes(icrs_long, 1, False, c) for c in range(1, 7)]
+    assert all(b > a for a, b in zip(est, est[1:]))  # more times at once, more memory
+    assert choose_time_chunk(icrs_long, opts, 1e15) == 6  # all times fit (6 <= MAX_TIME_CHUNK)
+    assert choose_time_chunk(icrs_long, opts, 1.01 * est[2] / AUTO_MEMORY_FRACTION) == 3
+    assert choose_time_chunk(icrs_long, DataSpaceOptions(time_chunk=2), 1.0) == 2  # given: kept
+    st = prepare_dataspace(icrs_long, opts, memory_budget=1.01 * est[1] / AUTO_MEMORY_FRACTION)
+    assert st.options.time_chunk == 2
+    with pytest.raises(InsufficientMemoryError, match="rows formed 1 time.*method='cg'"):
+        prepare_dataspace(icrs_long, opts, memory_budget=0.5 * est[0])

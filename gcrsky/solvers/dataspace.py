@@ -63,6 +63,7 @@ prior part (``delta``, (Nf, n)) and the noise part (``z``, (Nf, N_d)).  A flat p
 
 from __future__ import annotations
 
+import dataclasses
 from functools import partial
 from typing import ClassVar, NamedTuple
 
@@ -72,7 +73,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..base.dtypes import check_float64
-from ..base.memory import check_memory, format_bytes
+from ..base.memory import available_memory_bytes, check_memory, format_bytes
 from ..model.operator import adjoint, apply, response_at
 from ..model.system import LinearSystem, precision_apply, wiener_rhs
 from ..sphere.rotation import rotate
@@ -87,11 +88,14 @@ __all__ = [
     "DataSpaceState",
     "CHUNK_BYTES",
     "LAG_TOL",
+    "MAX_TIME_CHUNK",
+    "RESPONSE_TRANSIENT",
     "LagStructure",
     "ROWS_MAX_BYTES",
     "lag_structure",
     "materialize_rows",
     "check_proper_prior",
+    "choose_time_chunk",
     "data_size",
     "dataspace_evidence_parts",
     "dataspace_matrix",
@@ -152,20 +156,63 @@ def from_rows(u: jax.Array, nt: int, nbl: int) -> jax.Array:
     return u[..., 0, :] + 1j * u[..., 1, :]
 
 
-def dataspace_memory_bytes(system: LinearSystem, ndraws: int = 1, materialize: bool = False) -> float:
-    """Estimated peak bytes of the data-space path's large arrays (float64), beyond the system.
+#: Transient bytes of one time's rows while a chunk is formed, in units of ``8 Nf Nbl n_resp`` (one real
+#: copy of the response): the rotation and the frame map's Wigner steps hold complex (l, m) grids of the
+#: real and imaginary parts.  XLA's memory analysis says 17-18 with a frame map (lmax 30-185); the
+#: process's peak on this CPU grows by 39 per time of a chunk (lmax 100, 171 baselines; the runtime's
+#: matrix-product scratch is not in XLA's buffers): ``benchmarks/dataspace_memory.py``.
+RESPONSE_TRANSIENT = 40.0
+#: Copies of the frame map's Wigner blocks a chunk's rows hold (measured: ~3.4).
+WIGNER_COPIES = 4.0
 
-    D and its factor (``2 x 8 Nf N_d^2``), the transient copies of the block assembly
-    (``~2 x 8 Nf N_d^2``), two per-time responses (``2 x 16 Nf Nbl n``) and per draw the
-    operator's rotated copies (``2 x 8 Nf Nt n``) and vectors (``~6 x 8 Nf (N_d + n)``);
-    with ``materialize``, ``Y`` itself (``8 Nf N_d n``) and no per-draw rotated copies.
+
+def _wigner_bytes(system: LinearSystem) -> float:
+    frame = system.op.frame
+    u = getattr(getattr(frame, "blocks", None), "u", None)
+    return 0.0 if u is None else 8.0 * float(np.prod(u.shape))
+
+
+def dataspace_memory_bytes(system: LinearSystem, ndraws: int = 1, materialize: bool = False,
+                           chunk: int = 1) -> float:
+    """Estimated peak bytes of the data-space path (float64), beyond the system: a bound on the set-up's
+    measured peak (XLA's memory analysis of the set-up and the process's peak, ``benchmarks/dataspace_memory.py``,
+    ``tests/test_dataspace.py``) plus the draws'.
+
+    * D, its factor and the transient copies of its assembly: ``4 x 8 Nf N_d^2``;
+    * the rows of ``chunk`` times being formed: ``RESPONSE_TRANSIENT x 8 Nf Nbl n_resp`` each (twice: the
+      block assembly forms two chunks at once; once where ``materialize`` builds ``Y`` chunk by chunk),
+      and the frame map's Wigner blocks (``WIGNER_COPIES`` copies);
+    * with ``materialize``, ``Y`` itself (``8 Nf N_d n``);
+    * per draw the operator's rotated copies (``2 x 8 Nf Nt n``, not with ``materialize``) and vectors
+      (``~6 x 8 Nf (N_d + n)``).
     """
     nf, nt, nbl = (int(x) for x in system.data.shape)
     n = int(system.prior.mean.shape[-1])
+    n_resp = int(system.op.response.shape[-1])
     nd = 2 * nt * nbl
+    chunk = max(1, min(nt, int(chunk)))
+    per_time = RESPONSE_TRANSIENT * 8.0 * nf * nbl * n_resp
+    build = 4.0 * 8 * nf * nd * nd + WIGNER_COPIES * _wigner_bytes(system)
+    build += (8.0 * nf * nd * n + chunk * per_time) if materialize else 2.0 * chunk * per_time
     per_draw = 6.0 * 8 * nf * (nd + n) + (0.0 if materialize else 2.0 * 8 * nf * nt * n)
-    return (4.0 * 8 * nf * nd * nd + 2.0 * 16 * nf * nbl * n + (8.0 * nf * nd * n if materialize else 0.0)
-            + max(1, ndraws) * per_draw)
+    return build + max(1, ndraws) * per_draw
+
+
+def choose_time_chunk(system: LinearSystem, options: DataSpaceOptions, budget: float, ndraws: int = 1) -> int:
+    """Times per chunk for the set-up on concrete arrays: ``options.time_chunk`` if given; 1 where ``Y`` is
+    materialised (its rows are formed once whatever the chunk, and larger chunks only cost memory:
+    measured no faster); else the largest (at most :data:`MAX_TIME_CHUNK`) whose estimated peak
+    (:func:`dataspace_memory_bytes`) fits in ``AUTO_MEMORY_FRACTION x budget`` (fewer chunk pairs, each
+    forming its rows again: measured ~4x faster at 8 times than at 1), or 1 where none does (the memory
+    check then refuses)."""
+    nt = int(system.data.shape[1])
+    if options.time_chunk is not None:
+        return max(1, min(nt, int(options.time_chunk)))
+    if materialize_rows(system, options):
+        return 1
+    fits = [c for c in range(1, min(nt, MAX_TIME_CHUNK) + 1)
+            if dataspace_memory_bytes(system, ndraws, False, c) <= AUTO_MEMORY_FRACTION * budget]
+    return fits[-1] if fits else 1
 
 
 def _improper_prior(system: LinearSystem) -> str:
@@ -260,8 +307,12 @@ def _lag_matrix(system: LinearSystem, lagst: LagStructure) -> jax.Array:
     return D + jnp.eye(nt * B, dtype=D.dtype)
 
 
-#: Largest size of one chunk of whitened rows ``Y_c`` (all channels) formed at a time when D is built.
+#: Largest size of one chunk of whitened rows ``Y_c`` (all channels) formed at a time when D is built
+#: under a trace (on concrete arrays the chunk follows the free memory, :func:`choose_time_chunk`).
 CHUNK_BYTES = 512 * 2**20
+#: Most times per chunk :func:`choose_time_chunk` picks (beyond it the set-up is no faster, measured in
+#: ``benchmarks/dataspace_memory.py``).
+MAX_TIME_CHUNK = 8
 
 
 def time_chunk(system: LinearSystem, chunk: int | None = None) -> int:
@@ -374,12 +425,15 @@ def _posterior_cov_apply(system: LinearSystem, sqrt_w, D, L, v):
 ROWS_MAX_BYTES = 4 * 2**30
 
 
-def materialize_rows(system: LinearSystem, options: DataSpaceOptions) -> bool:
-    """Whether the draws use a materialised ``Y`` (``options.materialize``; None: ``8 Nf N_d n <= ROWS_MAX_BYTES``)."""
+def materialize_rows(system: LinearSystem, options: DataSpaceOptions, budget: float | None = None) -> bool:
+    """Whether the draws use a materialised ``Y`` (``options.materialize``; None: when ``8 Nf N_d n <=
+    ROWS_MAX_BYTES`` and, given a ``budget``, the set-up with it fits in ``AUTO_MEMORY_FRACTION x budget``)."""
     if options.materialize is not None:
         return bool(options.materialize)
     nf = int(system.data.shape[0])
-    return 8.0 * nf * data_size(system) * int(system.prior.mean.shape[-1]) <= ROWS_MAX_BYTES
+    if 8.0 * nf * data_size(system) * int(system.prior.mean.shape[-1]) > ROWS_MAX_BYTES:
+        return False
+    return budget is None or dataspace_memory_bytes(system, 1, True, 1) <= AUTO_MEMORY_FRACTION * budget
 
 
 def _dataspace_wiener(system: LinearSystem, D, L, options: DataSpaceOptions):
@@ -407,13 +461,48 @@ def _dataspace_wiener(system: LinearSystem, D, L, options: DataSpaceOptions):
 def _prepare_dataspace(system: LinearSystem, options: DataSpaceOptions = DataSpaceOptions(),
                        lags: LagStructure | None = None, materialize: bool = False) -> DataSpaceState:
     check_float64(system.op.response, system.inv_noise)
-    D, L = _factor(system, options.time_chunk, lags)
-    a_wf, info = _dataspace_wiener(system, D, L, options)
     rows = None
-    if materialize:
-        nt = system.data.shape[1]
-        rows = _chunk_rows(system.op, _sqrt_w(system), jnp.arange(nt))  # (Nf, N_d, n)
+    if materialize:  # Y chunk by chunk (a chunk's transient, not all times' at once), then D from it
+        rows = _rows_by_chunks(system, time_chunk(system, options.time_chunk))  # (Nf, N_d, n)
+        D = _lag_matrix(system, lags) if lags is not None else _gram_from_rows(system, rows)
+        L = jnp.linalg.cholesky(D)
+    else:
+        D, L = _factor(system, options.time_chunk, lags)
+    a_wf, info = _dataspace_wiener(system, D, L, options)
     return DataSpaceState(system, a_wf, info, D, L, rows, options)
+
+
+def _rows_by_chunks(system: LinearSystem, chunk: int) -> jax.Array:
+    """``Y = W^1/2 X`` realified (Nf, N_d, n), formed ``chunk`` times at a time into one buffer (a
+    ``fori_loop`` of in-place updates: the rows once, plus one chunk's transient)."""
+    nf, nt, nbl = system.data.shape
+    k = -(-nt // chunk)
+    B = 2 * nbl * chunk
+    n = system.prior.mean.shape[-1]
+    sqrt_w = _sqrt_w(system)
+    dtype = system.op.response.real.dtype
+
+    def fill(i, Y):
+        rows = _chunk_rows(system.op, sqrt_w, i * chunk + jnp.arange(chunk))  # (Nf, B, n); padding rows 0
+        return jax.lax.dynamic_update_slice_in_dim(Y, rows, i * B, axis=1)
+
+    Y = jax.lax.fori_loop(0, k, fill, jnp.zeros((nf, k * B, n), dtype))
+    return Y[:, : 2 * nt * nbl]
+
+
+def _gram_from_rows(system: LinearSystem, rows: jax.Array) -> jax.Array:
+    """``D = I + Y S Y^T`` from materialised rows, ``2 Nbl`` rows at a time into one buffer (no full-size
+    temporary of Y or D)."""
+    nf, nd, n = rows.shape
+    B = 2 * system.data.shape[2]
+    s = 1.0 / system.prior.inv_var
+
+    def fill(i, D):
+        blk = jnp.einsum("fak,fbk->fab", jax.lax.dynamic_slice_in_dim(rows, i * B, B, axis=1) * s[:, None, :], rows)
+        return jax.lax.dynamic_update_slice_in_dim(D, blk, i * B, axis=1)
+
+    D = jax.lax.fori_loop(0, nd // B, fill, jnp.zeros((nf, nd, nd), rows.dtype))
+    return D + jnp.eye(nd, dtype=D.dtype)
 
 
 @jax.jit
@@ -441,10 +530,13 @@ def prepare_dataspace(system: LinearSystem, options: DataSpaceOptions | None = N
     if not is_traced(system):
         check_proper_prior(system)
         nd, nf = data_size(system), int(system.data.shape[0])
-        check_memory(dataspace_memory_bytes(system, 1, materialize_rows(system, options)),
-                     f"the data-space path (D: {nf} x {nd} x {nd})",
-                     "use method='cg' with CGOptions(dense=False) (matrix-free) or method='auto'",
-                     budget=memory_budget)
+        budget = available_memory_bytes() if memory_budget is None else float(memory_budget)
+        options = dataclasses.replace(options, materialize=materialize_rows(system, options, budget))
+        options = dataclasses.replace(options, time_chunk=choose_time_chunk(system, options, budget))
+        check_memory(dataspace_memory_bytes(system, 1, materialize_rows(system, options), options.time_chunk),
+                     f"the data-space path (D: {nf} x {nd} x {nd}; rows formed {options.time_chunk} time(s) at once)",
+                     "use method='cg' with CGOptions(dense=False) (matrix-free), fewer times or baselines, or a "
+                     "lower lmax", budget=budget)
     lags = lag_structure(system) if options.stationary else None
     return _prepare_dataspace(system, options, lags, materialize_rows(system, options))
 
@@ -540,7 +632,12 @@ class DataSpacePath(SolverPath):
         return _improper_prior(system)
 
     def memory_bytes(self, system, options, ndraws=1):
-        return dataspace_memory_bytes(system, ndraws, materialize_rows(system, options))
+        """The set-up's estimated peak at its smallest chunk (1 time, or ``options.time_chunk``); without
+        ``options.materialize`` the smaller of with and without ``Y`` (:func:`prepare_dataspace` falls back)."""
+        chunk = options.time_chunk or 1
+        if options.materialize is not None:
+            return dataspace_memory_bytes(system, ndraws, options.materialize, chunk)
+        return min(dataspace_memory_bytes(system, ndraws, m, chunk) for m in (False, materialize_rows(system, options)))
 
     def cost_flop(self, system, options, ndraws):
         """D (``4 Nf N_d^2 n``, or ``8 Nf k (2 Nbl)^2 n`` for ``k`` distinct lags on the stationary

@@ -228,19 +228,22 @@ class DataSpaceOptions:
     at high lmax).  Needs a proper prior (``S^-1 > 0`` everywhere).
 
     Attributes:
-        time_chunk: times per block when D is built (blocks ``Y_c S Y_c'^T`` of
-            ``2 Nbl time_chunk`` rows); None: as many as keep a block's rows under
-            512 MiB (:func:`gcrsky.solvers.dataspace.time_chunk`).  Changes only speed
-            and memory.
+        time_chunk: times whose rows are formed at once when D (or Y) is built; None:
+            chosen from the free memory on concrete arrays
+            (:func:`gcrsky.solvers.dataspace.choose_time_chunk`: 1 where Y is materialised,
+            else the largest that fits, at most 8), under a trace as many as keep a chunk's
+            rows under 512 MiB.  Changes only speed and memory (each time of a chunk holds
+            ~40 copies of one channel-set of the response while it is formed).
         throw: raise (through ``equinox.error_if``) when the factor of ``D`` or the
             Wiener filter is not finite (e.g. a flat prior direction under a trace).
         stationary: build D by the stationary shortcut (one block per distinct lag
             between times; :func:`gcrsky.solvers.dataspace.lag_structure`) where it is
             exact, checked on concrete arrays; False: always the general construction.
-        materialize: keep ``Y = W^1/2 X`` (``8 Nf N_d n`` bytes) for the draws, whose
-            products with Y and ``Y^T`` become matrix products over the batch; None:
-            when it takes at most ``gcrsky.solvers.dataspace.ROWS_MAX_BYTES`` (4 GiB).
-            Changes only speed and memory.
+        materialize: keep ``Y = W^1/2 X`` (``8 Nf N_d n`` bytes), formed once time by time,
+            D then built from it and the draws' products with Y and ``Y^T`` matrix products
+            over the batch; None: when it takes at most
+            ``gcrsky.solvers.dataspace.ROWS_MAX_BYTES`` (4 GiB) and the set-up with it fits
+            the free memory.  Changes only speed and memory.
         tol: the accuracy the Wiener solve must reach (posterior sigma, from its true
             primal residual) to count as converged.
     """
