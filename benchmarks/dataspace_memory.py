@@ -13,6 +13,31 @@ baseline), each (case, times per chunk, Y materialised or not) runs in its own p
 * ``time``: the set-up's wall seconds (compilation included, a fresh process each);
 * ``chosen``: the chunk :func:`gcrsky.solvers.dataspace.choose_time_chunk` picks on this machine.
 
+The estimate bounds the process's peak at the sizes that matter (lmax 100 and 185 below) and XLA's
+analysis everywhere; at the small case the process's fixed cost of running a compiled program
+(0.1-0.2 GB: thread pools, code, allocator arenas, not counted for any path) shows above it.
+Measured (2026-12-03, this shared 2-core CPU; times under load)::
+
+    case      Nf,Nt,Nbl      n chunk   Y  estimate      xla     peak  time s
+    small       2,20,21   3721     1   y      0.24     0.15     0.30     5.5
+    small       2,20,21   3721     8   y      0.63     0.33     0.62     3.7
+    small       2,20,21   3721     1   n      0.20     0.12     0.42    46.1
+    small       2,20,21   3721     8   n      0.99     0.46     0.97    12.6
+    mid        2,20,171  10201     1   y      6.58     3.78     4.35    68.9
+    mid        2,20,171  10201     2   y      7.79     3.78     5.09    85.5
+    mid        2,20,171  10201     4   y     10.20     4.48     8.13    75.4
+    mid        2,20,171  10201     8   y     15.03     7.26    12.55    94.3
+    mid        2,20,171  10201     1   n                                > 13 min (stopped)
+    mid        2,20,171  10201     4   n     12.80     5.70     9.64   403.4
+    issue      2,20,171  34596     1   y     15.39     8.42    12.90   401.8
+
+With Y materialised the chunk changes only the memory (69-94 s at lmax 100 whatever the chunk), so
+the set-up takes 1 time at once; without it every pair of chunks forms its rows again (46 s at
+1 time against 13 s at 8 in the small case, and > 13 min at 1 time in the mid one), so it takes
+the largest chunk that fits.  The issue's case under ``method="auto"`` (``gcrsky.prepare`` then
+200 draws): data space, 1 time at once, Y materialised, set-up 330 s, 200 draws 10 s, process
+peak 15.2 GB (2.2 GB before the set-up).
+
 Run: ``PYTHONPATH=. .venv/bin/python benchmarks/dataspace_memory.py [--cases small,mid,issue]``
 (the ``issue`` case, lmax 185 x 171 baselines x 20 times, needs ~12 GB at its largest chunk here).
 """
@@ -26,7 +51,7 @@ import sys
 
 CASES = {  # name: (lmax, hexagon rows, times, chunks with Y materialised, chunks without)
     "small": (60, (2, 3, 2), 20, (1, 2, 4, 8), (1, 2, 4, 8)),
-    "mid": (100, (3, 4, 5, 4, 3), 20, (1, 2, 4, 8), (4, 8)),  # without Y at 1 time: > 13 min (210 chunk pairs)
+    "mid": (100, (3, 4, 5, 4, 3), 20, (1, 2, 4, 8), (4,)),  # without Y at 1 time: > 13 min (210 chunk pairs)
     "issue": (185, (3, 4, 5, 4, 3), 20, (1,), ()),
 }
 

@@ -363,7 +363,9 @@ def test_estimate_bounds_the_compiled_set_up(icrs_long, chunk, materialize):
     used = ma.temp_size_in_bytes + ma.output_size_in_bytes
     est = dataspace_memory_bytes(icrs_long, 1, materialize, chunk)
     assert used <= est, (used, est)
-    assert est < 4 * used + 2e7  # a bound, not a refusal of everything (fixed overheads ~1e7 at this size)
+    # a bound, not a refusal of everything: the rows' transient and Y are counted about twice over XLA's (the
+    # process's peak, benchmarks/dataspace_memory.py)
+    assert est < 4 * used + 2e7
 
 
 def test_chunk_follows_the_budget_and_what_cannot_fit_is_refused(icrs_long):

@@ -88,6 +88,7 @@ __all__ = [
     "DataSpaceState",
     "CHUNK_BYTES",
     "LAG_TOL",
+    "MATERIALIZE_MEMORY_FRACTION",
     "MAX_TIME_CHUNK",
     "RESPONSE_TRANSIENT",
     "LagStructure",
@@ -182,9 +183,14 @@ def dataspace_memory_bytes(system: LinearSystem, ndraws: int = 1, materialize: b
     * the rows of ``chunk`` times being formed: ``RESPONSE_TRANSIENT x 8 Nf Nbl n_resp`` each (twice: the
       block assembly forms two chunks at once; once where ``materialize`` builds ``Y`` chunk by chunk),
       and the frame map's Wigner blocks (``WIGNER_COPIES`` copies);
-    * with ``materialize``, ``Y`` itself (``8 Nf N_d n``);
+    * with ``materialize``, ``Y`` itself (``8 Nf N_d n``) twice: the process holds a second copy's worth
+      while D is formed from it, outside XLA's buffers (measured +0.5 Y at lmax 100, +1.2 Y at lmax 185);
     * per draw the operator's rotated copies (``2 x 8 Nf Nt n``, not with ``materialize``) and vectors
       (``~6 x 8 Nf (N_d + n)``).
+
+    Not counted, as for every path: the process's fixed cost of running a compiled program (thread
+    pools, code, allocator arenas; 0.1-0.2 GB measured), which the planner's memory fractions leave
+    room for.
     """
     nf, nt, nbl = (int(x) for x in system.data.shape)
     n = int(system.prior.mean.shape[-1])
@@ -193,7 +199,7 @@ def dataspace_memory_bytes(system: LinearSystem, ndraws: int = 1, materialize: b
     chunk = max(1, min(nt, int(chunk)))
     per_time = RESPONSE_TRANSIENT * 8.0 * nf * nbl * n_resp
     build = 4.0 * 8 * nf * nd * nd + WIGNER_COPIES * _wigner_bytes(system)
-    build += (8.0 * nf * nd * n + chunk * per_time) if materialize else 2.0 * chunk * per_time
+    build += (2.0 * 8 * nf * nd * n + chunk * per_time) if materialize else 2.0 * chunk * per_time
     per_draw = 6.0 * 8 * nf * (nd + n) + (0.0 if materialize else 2.0 * 8 * nf * nt * n)
     return build + max(1, ndraws) * per_draw
 
@@ -423,6 +429,9 @@ def _posterior_cov_apply(system: LinearSystem, sqrt_w, D, L, v):
 
 #: Largest ``Y = W^1/2 X`` (bytes, all channels) that ``materialize=None`` keeps for the draws.
 ROWS_MAX_BYTES = 4 * 2**30
+#: Fraction of the free memory the set-up with a materialised Y may take (its estimate bounds the measured
+#: peak; the alternative, forming the rows again per pair of chunks, is many times slower).
+MATERIALIZE_MEMORY_FRACTION = 0.9
 
 
 def materialize_rows(system: LinearSystem, options: DataSpaceOptions, budget: float | None = None) -> bool:
@@ -433,7 +442,7 @@ def materialize_rows(system: LinearSystem, options: DataSpaceOptions, budget: fl
     nf = int(system.data.shape[0])
     if 8.0 * nf * data_size(system) * int(system.prior.mean.shape[-1]) > ROWS_MAX_BYTES:
         return False
-    return budget is None or dataspace_memory_bytes(system, 1, True, 1) <= AUTO_MEMORY_FRACTION * budget
+    return budget is None or dataspace_memory_bytes(system, 1, True, 1) <= MATERIALIZE_MEMORY_FRACTION * budget
 
 
 def _dataspace_wiener(system: LinearSystem, D, L, options: DataSpaceOptions):
