@@ -349,7 +349,7 @@ def gain_summary(prob, gains, h5) -> dict:
 
 
 
-def write_gain_products(prob, out, h5) -> str | None:
+def write_gain_products(prob, gains, out, h5) -> str | None:
     """The posterior-mean gains as ``gains.calh5`` in ``out`` (atomically; pyuvdata reads it back), or None
     (with a log line) for a problem that does not record its antennas, times and site (a simulation).
 
@@ -366,7 +366,7 @@ def write_gain_products(prob, out, h5) -> str | None:
         return None
     g = _read_gain_draws(h5)
     nf, nt = g["basis_f"].shape[0], g["basis_t"].shape[0]
-    model = gain_model(prob.antpairs, nf, nt, (g["basis_f"].shape[1], g["basis_t"].shape[1]), pols=prob.pols)
+    model = gain_model(prob.antpairs, nf, nt, gains.modes, basis=gains.basis, pols=prob.pols)
     lat, lon, alt = conv["site_lat_lon_alt"]
     path = out / GAIN_FILE
     with atomic_path(path) as tmp:

@@ -102,7 +102,7 @@ def execute(prob, spec: RunSpec, *, hooks: Sequence[ReportHook] = (), watch: Wat
     gains = None
     if spec.gains is not None and not (run.out / SUMMARY_FILE).exists():
         gains = gain_summary(prob, spec.gains, run.h5)
-        gains["calibration_file"] = write_gain_products(prob, run.out, run.h5)
+        gains["calibration_file"] = write_gain_products(prob, spec.gains, run.out, run.h5)
     st.stop()
     timings, compiled = _timings(st, stored, compile0)
     summary = _summary(prob, spec, run, view, solver, warnings, (timings, compiled), figures, method, gof, gains)
