@@ -76,13 +76,15 @@ from ..base.dtypes import check_float64
 from ..base.memory import available_memory_bytes, check_memory, format_bytes
 from ..model.operator import adjoint, apply, response_at
 from ..model.system import LinearSystem, precision_apply, wiener_rhs
-from ..sphere.rotation import rotate
+from .blocked import triangular_solves
+from .dataspace_large import dataspace_large_bytes, factor_in_place, lag_blocks_by_m, logdet_no_grad
 from .dense import cholesky_logdet, cholesky_solve
 from .info import DrawInfo, SolveInfo, direct_info, exact_info
 from .options import DataSpaceOptions
 from .path import AUTO_MEMORY_FRACTION, EvidenceParts, SolverPath, is_traced
 
 __all__ = [
+    "DATASPACE_IN_PLACE_MAX_ND",
     "DATASPACE_MAX_ND",
     "DataSpacePath",
     "DataSpaceState",
@@ -118,7 +120,9 @@ class DataSpaceState(eqx.Module):
         wiener: SolveInfo of the Wiener filter, (Nf,) fields: ``err_sigma`` from the
             true primal residual ``b - P a_wf`` (matrix-free P) in posterior-sigma units,
             ``sqrt(r^T P^-1 r)`` with ``P^-1`` applied in data space (rounding only).
-        gram: ``D = I + W^1/2 X S X^T W^1/2``, (Nf, N_d, N_d).
+        gram: ``D = I + W^1/2 X S X^T W^1/2``, (Nf, N_d, N_d); None after the in-place set-up
+            (:mod:`gcrsky.solvers.dataspace_large`), whose solves differentiate against the
+            matrix-free ``D v`` instead.
         chol: lower Cholesky factor of D, (Nf, N_d, N_d).
         rows: ``Y = W^1/2 X`` realified, (Nf, N_d, n), when materialised
             (:class:`~gcrsky.solvers.DataSpaceOptions` ``materialize``): then the draws'
@@ -129,7 +133,7 @@ class DataSpaceState(eqx.Module):
     system: LinearSystem
     a_wf: jax.Array
     wiener: SolveInfo
-    gram: jax.Array
+    gram: jax.Array | None
     chol: jax.Array
     rows: jax.Array | None = None
     options: DataSpaceOptions = eqx.field(static=True, default=DataSpaceOptions())
@@ -292,17 +296,11 @@ def lag_structure(system: LinearSystem, tol: float = LAG_TOL) -> LagStructure | 
 
 
 def _lag_matrix(system: LinearSystem, lagst: LagStructure) -> jax.Array:
-    """``D`` by the stationary shortcut: one ``2 Nbl x 2 Nbl`` product per distinct lag."""
+    """``D`` by the stationary shortcut: one ``2 Nbl x 2 Nbl`` block per distinct lag, from per-order Grams
+    (:func:`gcrsky.solvers.dataspace_large.lag_blocks_by_m`; measured equal to the lag-by-lag products
+    ``R_r S Q(lag) R_r^T`` to 1e-15)."""
     nf, nt, nbl = system.data.shape
-    R = system.op.response
-    Rr = jnp.concatenate([R.real, R.imag], axis=1)  # (Nf, 2 Nbl, n): rows p * Nbl + b
-    Rs = Rr / system.prior.inv_var[:, None, :]
-
-    @jax.checkpoint
-    def one(lag):
-        return jnp.einsum("fak,fbk->fab", Rs, rotate(Rr, lag))
-
-    G = jax.lax.map(one, lagst.lags)  # (k, Nf, 2 Nbl, 2 Nbl)
+    G = lag_blocks_by_m(system, lagst.lags)  # (k, Nf, 2 Nbl, 2 Nbl), rows p * Nbl + b
     B = 2 * nbl
     core = jnp.moveaxis(G[lagst.index], 2, 0)  # (Nf, Nt, Nt, B, B)
     core = jnp.swapaxes(core, 2, 3).reshape(nf, nt * B, nt * B)
@@ -419,11 +417,26 @@ def _factor(system: LinearSystem, chunk: int | None = None, lags: LagStructure |
     return D, jnp.linalg.cholesky(D)
 
 
+def _d_matvec(system: LinearSystem, sqrt_w, u):
+    """Matrix-free ``D u = u + Y S Y^T u`` for rows u (Nf, N_d)."""
+    return u + _y_apply(system, sqrt_w, _y_adjoint(system, sqrt_w, u) / system.prior.inv_var)
+
+
+def _d_solve(system: LinearSystem, sqrt_w, D, L, b):
+    """``D^-1 b`` for rows b (Nf, N_d) by the factor L: differentiated implicitly against D where it is
+    kept, else against the matrix-free :func:`_d_matvec` (the in-place set-up)."""
+    if D is not None:
+        return cholesky_solve(D, L, b)
+    Lc = jax.lax.stop_gradient(L)
+    solve = lambda _, r: jax.vmap(triangular_solves)(Lc, r)  # noqa: E731
+    return jax.lax.custom_linear_solve(lambda u: _d_matvec(system, sqrt_w, u), b, solve, symmetric=True)
+
+
 def _posterior_cov_apply(system: LinearSystem, sqrt_w, D, L, v):
     """``P^-1 v = S v - S Y^T D^-1 Y S v`` for v (Nf, n)."""
     s = 1.0 / system.prior.inv_var
     sv = s * v
-    x = cholesky_solve(D, L, _y_apply(system, sqrt_w, sv))
+    x = _d_solve(system, sqrt_w, D, L, _y_apply(system, sqrt_w, sv))
     return sv - s * _y_adjoint(system, sqrt_w, x)
 
 
@@ -449,7 +462,7 @@ def _dataspace_wiener(system: LinearSystem, D, L, options: DataSpaceOptions):
     """``a_wf = a0 + S Y^T D^-1 r~`` and its info from the true (matrix-free) primal residual."""
     sqrt_w = _sqrt_w(system)
     s = 1.0 / system.prior.inv_var
-    x = cholesky_solve(D, L, _whitened_residual(system, sqrt_w))
+    x = _d_solve(system, sqrt_w, D, L, _whitened_residual(system, sqrt_w))
     a_wf = system.prior.mean + s * _y_adjoint(system, sqrt_w, x)
     # how good is it: the true (matrix-free) residual of P a = b, in posterior-sigma units
     sg = jax.lax.stop_gradient
@@ -527,6 +540,8 @@ def prepare_dataspace(system: LinearSystem, options: DataSpaceOptions | None = N
 
     On concrete arrays, first refuses a flat prior (``ValueError``) and checks that D
     and its factor fit (:func:`gcrsky.base.check_memory`, naming the alternative paths).
+    Where D and its factor do not fit together but D alone does (``options.in_place``
+    None), the in-place set-up of :mod:`gcrsky.solvers.dataspace_large` runs instead.
 
     Args:
         system: the linear system (every prior direction proper).
@@ -536,18 +551,62 @@ def prepare_dataspace(system: LinearSystem, options: DataSpaceOptions | None = N
     options = DataSpaceOptions() if options is None else options
     if not isinstance(options, DataSpaceOptions):
         raise TypeError(f"the data-space path takes DataSpaceOptions, got {type(options).__name__}")
-    if not is_traced(system):
-        check_proper_prior(system)
-        nd, nf = data_size(system), int(system.data.shape[0])
-        budget = available_memory_bytes() if memory_budget is None else float(memory_budget)
-        options = dataclasses.replace(options, materialize=materialize_rows(system, options, budget))
-        options = dataclasses.replace(options, time_chunk=choose_time_chunk(system, options, budget))
-        check_memory(dataspace_memory_bytes(system, 1, materialize_rows(system, options), options.time_chunk),
-                     f"the data-space path (D: {nf} x {nd} x {nd}; rows formed {options.time_chunk} time(s) at once)",
+    lags = lag_structure(system) if options.stationary else None
+    if is_traced(system):
+        if options.in_place:
+            raise ValueError("DataSpaceOptions(in_place=True) needs concrete arrays (its set-up runs on the host)")
+        return _prepare_dataspace(system, options, lags, bool(options.materialize))
+    check_proper_prior(system)
+    nd, nf = data_size(system), int(system.data.shape[0])
+    budget = available_memory_bytes() if memory_budget is None else float(memory_budget)
+    if use_in_place(system, options, lags, budget):
+        check_memory(dataspace_large_bytes(system, int(lags.lags.shape[0])),
+                     f"the in-place data-space set-up (D: {nf} x {nd} x {nd}, kept once)",
                      "use method='cg' with CGOptions(dense=False) (matrix-free), fewer times or baselines, or a "
                      "lower lmax", budget=budget)
-    lags = lag_structure(system) if options.stationary else None
+        return _prepare_in_place(system, dataclasses.replace(options, in_place=True, materialize=False), lags)
+    options = dataclasses.replace(options, in_place=False, materialize=materialize_rows(system, options, budget))
+    options = dataclasses.replace(options, time_chunk=choose_time_chunk(system, options, budget))
+    check_memory(dataspace_memory_bytes(system, 1, materialize_rows(system, options), options.time_chunk),
+                 f"the data-space path (D: {nf} x {nd} x {nd}; rows formed {options.time_chunk} time(s) at once)",
+                 "use method='cg' with CGOptions(dense=False) (matrix-free), fewer times or baselines, or a "
+                 "lower lmax", budget=budget)
     return _prepare_dataspace(system, options, lags, materialize_rows(system, options))
+
+
+def use_in_place(system: LinearSystem, options: DataSpaceOptions, lags: LagStructure | None, budget: float) -> bool:
+    """Whether :func:`prepare_dataspace` takes the in-place set-up: ``options.in_place`` if given (True
+    needs the stationary shortcut, else ``ValueError`` naming why), else where the shortcut applies and
+    the standard set-up at its smallest does not fit ``AUTO_MEMORY_FRACTION x budget``."""
+    if options.in_place is False:
+        return False
+    if lags is None:
+        if options.in_place:
+            raise ValueError("DataSpaceOptions(in_place=True) needs the stationary shortcut (no frame map, a prior "
+                             "with equal variances for the Re and Im parts of every a_lm, stationary=True)")
+        return False
+    if options.in_place:
+        return True
+    return dataspace_memory_bytes(system, 1, False, 1) > AUTO_MEMORY_FRACTION * budget
+
+
+@partial(jax.jit, static_argnames=("options",))
+def _in_place_wiener(system: LinearSystem, L: jax.Array, options: DataSpaceOptions):
+    return _dataspace_wiener(system, None, L, options)
+
+
+def _prepare_in_place(system: LinearSystem, options: DataSpaceOptions, lags: LagStructure) -> DataSpaceState:
+    """The in-place set-up (:mod:`gcrsky.solvers.dataspace_large`): lag blocks by m, D filled and factorised in
+    one host buffer, the Wiener filter through the factor."""
+    check_float64(system.op.response, system.inv_noise)
+    nf, nt, nbl = system.data.shape
+    G = lag_blocks_by_m(system, lags.lags)
+    sw = _sqrt_w(system)
+    rows = np.asarray(jnp.concatenate([sw, sw], axis=-1).reshape(nf, nt * 2 * nbl))
+    L = factor_in_place(system, G, np.asarray(lags.index), rows)
+    del G
+    a_wf, info = _in_place_wiener(system, L, options)
+    return DataSpaceState(system, a_wf, info, None, L, None, options)
 
 
 @partial(jax.jit, static_argnames=("ndraws",))
@@ -564,7 +623,7 @@ def draw_dataspace(key: jax.Array, state: DataSpaceState, ndraws: int):
     """
     system, a_wf, D, L = state.system, state.a_wf, state.gram, state.chol
     nf, n = a_wf.shape
-    nd = D.shape[-1]
+    nd = L.shape[-1]
     sqrt_w = _sqrt_w(system)
     s = 1.0 / system.prior.inv_var
     keep = to_rows(jnp.where(system.inv_noise > 0, 1.0 + 1.0j, 0.0)).astype(a_wf.dtype)  # 1 on unflagged rows
@@ -581,7 +640,7 @@ def draw_dataspace(key: jax.Array, state: DataSpaceState, ndraws: int):
         u = jax.vmap(lambda dd: _y_apply(system, sqrt_w, dd))(delta) + z
     else:
         u = jnp.einsum("fak,dfk->dfa", Y, delta) + z
-    x = jax.vmap(lambda uu: cholesky_solve(D, L, uu))(u)
+    x = jax.vmap(lambda uu: _d_solve(system, sqrt_w, D, L, uu))(u)
     if Y is None:
         corr = jax.vmap(lambda xx: s * _y_adjoint(system, sqrt_w, xx))(x)
     else:
@@ -619,6 +678,9 @@ def dataspace_evidence_parts(system: LinearSystem, chunk: int | None = None, lag
 #: Largest number of real data values per channel for which ``method="auto"`` forms and
 #: factorises the data-space matrix D (the same ~1 min factorisation bound as ``DENSE_MAX_N``).
 DATASPACE_MAX_ND = 12000
+#: The same bound for the in-place set-up (:mod:`gcrsky.solvers.dataspace_large`), where no other exact path
+#: fits (partial coverage of the HERA core at lmax 300: N_d = 37800, a factor of ~2e13 flop, minutes).
+DATASPACE_IN_PLACE_MAX_ND = 50000
 
 
 def _parts(system: LinearSystem, options: DataSpaceOptions, terms, q, logdet, finite) -> EvidenceParts:
@@ -642,22 +704,32 @@ class DataSpacePath(SolverPath):
 
     def memory_bytes(self, system, options, ndraws=1):
         """The set-up's estimated peak at its smallest chunk (1 time, or ``options.time_chunk``); without
-        ``options.materialize`` the smaller of with and without ``Y`` (:func:`prepare_dataspace` falls back)."""
+        ``options.materialize`` the smaller of with and without ``Y`` (:func:`prepare_dataspace` falls back);
+        with the in-place set-up where it applies (``options.in_place`` not False), the smaller of that too."""
         chunk = options.time_chunk or 1
         if options.materialize is not None:
-            return dataspace_memory_bytes(system, ndraws, options.materialize, chunk)
-        return min(dataspace_memory_bytes(system, ndraws, m, chunk) for m in (False, materialize_rows(system, options)))
+            std = dataspace_memory_bytes(system, ndraws, options.materialize, chunk)
+        else:
+            std = min(dataspace_memory_bytes(system, ndraws, m, chunk) for m in (False, materialize_rows(system, options)))
+        lags = lag_structure(system) if options.stationary and options.in_place is not False else None
+        if lags is None:
+            return std
+        big = dataspace_large_bytes(system, int(lags.lags.shape[0]), ndraws)
+        return big if options.in_place else min(std, big)
 
     def cost_flop(self, system, options, ndraws):
-        """D (``4 Nf N_d^2 n``, or ``8 Nf k (2 Nbl)^2 n`` for ``k`` distinct lags on the stationary
-        shortcut) and its factor (``Nf N_d^3 / 3``), then per draw the products with X and ``X^T``
-        (``16 Nf Nt Nbl n`` plus ``~8 Nf Nt (lmax+1)^3`` for the rotations; ``4 Nf N_d n`` with Y
-        materialised) and two triangular solves (``2 Nf N_d^2``)."""
+        """D (``4 Nf N_d^2 n``; on the stationary shortcut ``16 Nf (2 Nbl)^2 n`` for the per-order Grams plus
+        ``4 Nf k (2 Nbl)^2 (lmax + 1)`` for ``k`` distinct lags) and its factor (``Nf N_d^3 / 3``), then per
+        draw the products with X and ``X^T`` (``16 Nf Nt Nbl n`` plus ``~8 Nf Nt (lmax+1)^3`` for the
+        rotations; ``4 Nf N_d n`` with Y materialised) and two triangular solves (``2 Nf N_d^2``)."""
         nf, nt, nbl = (int(x) for x in system.data.shape)
         n = int(system.prior.mean.shape[-1])
         nd = 2.0 * nt * nbl
         lags = lag_structure(system) if options.stationary else None
-        build = 4.0 * nf * nd * nd * n if lags is None else 8.0 * nf * lags.lags.shape[0] * (2.0 * nbl) ** 2 * n
+        if lags is None:
+            build = 4.0 * nf * nd * nd * n
+        else:
+            build = 16.0 * nf * (2.0 * nbl) ** 2 * n + 4.0 * nf * lags.lags.shape[0] * (2.0 * nbl) ** 2 * np.sqrt(n)
         rot = 8.0 * nf * nt * np.sqrt(n) ** 3
         per_draw = 4.0 * nf * nd * n if materialize_rows(system, options) else 16.0 * nf * nt * nbl * n + rot
         return build + nf * nd**3 / 3.0 + ndraws * (per_draw + 2.0 * nf * nd * nd)
@@ -666,8 +738,10 @@ class DataSpacePath(SolverPath):
         nd, n = data_size(system), int(system.prior.mean.shape[-1])
         if nd >= n:
             return f"N_d = {nd} real data values per channel >= n = {n}"
-        if nd > DATASPACE_MAX_ND:
-            return f"N_d = {nd} > {DATASPACE_MAX_ND} (DATASPACE_MAX_ND)"
+        in_place = options.stationary and options.in_place is not False and lag_structure(system) is not None
+        cap = DATASPACE_IN_PLACE_MAX_ND if in_place else DATASPACE_MAX_ND
+        if nd > cap:
+            return f"N_d = {nd} > {cap} (DATASPACE_{'IN_PLACE_' if in_place else ''}MAX_ND)"
         mem = self.memory_bytes(system, options, ndraws)
         if mem > AUTO_MEMORY_FRACTION * budget:
             return f"D + factor would need {format_bytes(mem)}, more than {AUTO_MEMORY_FRACTION:.0%} of " \
@@ -693,7 +767,9 @@ class DataSpacePath(SolverPath):
         return _parts(system, options, terms, q, logdet, finite)
 
     def state_evidence_parts(self, state, terms, *, slq=None, key=None):
-        rt = _whitened_residual(state.system, _sqrt_w(state.system))
-        q = jnp.sum(rt * cholesky_solve(state.gram, state.chol, rt), axis=-1)
+        sqrt_w = _sqrt_w(state.system)
+        rt = _whitened_residual(state.system, sqrt_w)
+        q = jnp.sum(rt * _d_solve(state.system, sqrt_w, state.gram, state.chol, rt), axis=-1)
         finite = jnp.all(jnp.isfinite(jax.lax.stop_gradient(state.chol)), axis=(1, 2))
-        return _parts(state.system, state.options, terms, q, cholesky_logdet(state.gram, state.chol), finite)
+        logdet = logdet_no_grad(state.chol) if state.gram is None else cholesky_logdet(state.gram, state.chol)
+        return _parts(state.system, state.options, terms, q, logdet, finite)

@@ -246,6 +246,11 @@ class DataSpaceOptions:
             the free memory.  Changes only speed and memory.
         tol: the accuracy the Wiener solve must reach (posterior sigma, from its true
             primal residual) to count as converged.
+        in_place: build D by per-order Grams and factorise it in its own (host) buffer, keeping
+            only the factor (:mod:`gcrsky.solvers.dataspace_large`: ``8 Nf N_d^2`` bytes instead of
+            ``~4x`` that; needs the stationary shortcut and concrete arrays); None: where the
+            standard set-up does not fit the free memory and this one does.  Changes only speed
+            and memory, and that ``log det D`` from such a state has no derivative.
     """
 
     time_chunk: int | None = None
@@ -253,6 +258,7 @@ class DataSpaceOptions:
     stationary: bool = True
     materialize: bool | None = None
     tol: float = DEFAULT_TOL
+    in_place: bool | None = None
 
     method = "dataspace"
 
@@ -262,6 +268,8 @@ class DataSpaceOptions:
             raise ValueError(f"stationary must be True or False, got {self.stationary!r}")
         if self.materialize is not None and not isinstance(self.materialize, bool):
             raise ValueError(f"materialize must be None, True or False, got {self.materialize!r}")
+        if self.in_place is not None and not isinstance(self.in_place, bool):
+            raise ValueError(f"in_place must be None, True or False, got {self.in_place!r}")
         if self.time_chunk is not None:
             _positive("time_chunk", self.time_chunk, integer=True)
 
