@@ -35,8 +35,8 @@ import scipy.linalg as sla
 
 __all__ = ["BLOCK", "blocked_cholesky", "blocked_cholesky_bytes", "factor_solve", "triangular_solves"]
 
-#: Default panel width (columns): a step's temporaries are ~3 x 8 x BLOCK x N bytes (~1.9 GB at N = 37800).
-BLOCK = 2048
+#: Default panel width (columns): a step's temporaries are ~3 x 8 x BLOCK x N bytes (~0.9 GB at N = 37800).
+BLOCK = 1024
 
 
 def blocked_cholesky_bytes(n: int, block: int = BLOCK) -> float:

@@ -600,11 +600,9 @@ def _prepare_in_place(system: LinearSystem, options: DataSpaceOptions, lags: Lag
     one host buffer, the Wiener filter through the factor."""
     check_float64(system.op.response, system.inv_noise)
     nf, nt, nbl = system.data.shape
-    G = lag_blocks_by_m(system, lags.lags)
     sw = _sqrt_w(system)
     rows = np.asarray(jnp.concatenate([sw, sw], axis=-1).reshape(nf, nt * 2 * nbl))
-    L = factor_in_place(system, G, np.asarray(lags.index), rows)
-    del G
+    L = factor_in_place(system, lag_blocks_by_m(system, lags.lags), np.asarray(lags.index), rows)
     a_wf, info = _in_place_wiener(system, L, options)
     return DataSpaceState(system, a_wf, info, None, L, None, options)
 

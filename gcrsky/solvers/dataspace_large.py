@@ -157,21 +157,24 @@ def fill_lower(G: np.ndarray, index: np.ndarray, sqrt_w_rows: np.ndarray, out: n
 
 
 def dataspace_large_bytes(system: LinearSystem, nlags: int, ndraws: int = 1, block: int = BLOCK) -> float:
-    """Estimated peak bytes of the in-place data-space set-up and ``ndraws`` draws (float64).
+    """Estimated peak bytes of the in-place data-space set-up and ``ndraws`` draws (float64), beyond the system.
 
-    D once per channel and the blocked factorisation's temporaries
-    (:func:`gcrsky.solvers.blocked.blocked_cholesky_bytes`), the lag blocks twice (on the device and
-    on the host, ``8 k Nf (2 Nbl)^2`` each), the per-order Gram chunk (``2 M_CHUNK`` of them), the
-    response's padded copies (``4 x 8 Nf 2 Nbl n``), and per draw ``~6`` vectors of ``N_d + n``.
+    The larger of its two phases, plus per draw ``~6`` vectors of ``N_d + n``:
+
+    * building: the lag blocks on the device and their host copy (``2 x 8 k Nf (2 Nbl)^2``), the per-order
+      Gram chunk (``4 M_CHUNK`` blocks), the response's two padded real copies (``4 x 8 Nf 2 Nbl n``) while
+      the blocks form, and D filled (``8 Nf N_d^2``);
+    * factorising: D and the blocked factorisation's temporaries
+      (:func:`gcrsky.solvers.blocked.blocked_cholesky_bytes`).
     """
     nf, nt, nbl = (int(x) for x in system.data.shape)
     n = int(system.prior.mean.shape[-1])
     nd = 2 * nt * nbl
     B2 = 8.0 * (2 * nbl) ** 2
-    factor = nf * 8.0 * nd * nd + (blocked_cholesky_bytes(nd, block) - 8.0 * nd * nd)
-    lagb = 2.0 * nlags * nf * B2 + 2.0 * M_CHUNK * nf * B2 * 2
-    resp = 4.0 * 8 * nf * 2 * nbl * (n + np.sqrt(n))
-    return factor + lagb + resp + max(1, ndraws) * 6.0 * 8 * nf * (nd + n)
+    D = nf * 8.0 * nd * nd
+    build = D + 2.0 * nlags * nf * B2 + max(4.0 * M_CHUNK * nf * B2, 4.0 * 8 * nf * 2 * nbl * (n + np.sqrt(n)))
+    factor = D + (blocked_cholesky_bytes(nd, block) - 8.0 * nd * nd)
+    return max(build, factor) + max(1, ndraws) * 6.0 * 8 * nf * (nd + n)
 
 
 @jax.custom_jvp
@@ -190,19 +193,25 @@ def _logdet_no_grad_jvp(primals, tangents):
 
 def factor_in_place(system: LinearSystem, G: jax.Array, index: np.ndarray, sqrt_w_rows: np.ndarray,
                     block: int = BLOCK) -> jax.Array:
-    """D filled and factorised channel by channel in one aligned host buffer; the factor (Nf, N_d, N_d)
-    as a JAX array sharing that buffer.  Raises ``ValueError`` naming the channel if D is not positive
-    definite (it is ``I +`` a PSD matrix, so only non-finite or negative inputs do that)."""
+    """D filled for every channel into one aligned host buffer, the lag blocks dropped, then factorised
+    channel by channel in place; the factor (Nf, N_d, N_d) as a JAX array sharing that buffer.
+
+    ``G`` is consumed: pass it as a temporary (the caller's reference keeps its memory alive).  Raises
+    ``ValueError`` naming the channel if D is not positive definite (it is ``I +`` a PSD matrix, so only
+    non-finite or negative inputs do that).
+    """
     check_float64(system.op.response, system.inv_noise)
     nf = G.shape[1]
     nd = sqrt_w_rows.shape[-1]
     out = aligned_empty((nf, nd, nd))
     Gh = np.asarray(G)
+    del G
     for f in range(nf):
         fill_lower(Gh[:, f], index, sqrt_w_rows[f], out[f])
+    del Gh
+    for f in range(nf):
         try:
             blocked_cholesky(out[f], block)
         except ValueError as err:
             raise ValueError(f"data space, channel {f}: {err}") from None
-    del Gh
     return jax.device_put(out)
