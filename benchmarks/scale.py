@@ -278,7 +278,7 @@ QUICK_GRID = [(20, 10, 10, 8, 1, 5), (20, 10, 48, 24, 1, 5)]
 
 # The issue rows (``--hera``): redundancy-compressed (name suffix ``-red``), each with the
 # paths it measures.  spec keys: paths (run as ds, then CG, then mmode; no flop budget),
-# ndraws per path (CG: "a few"; 0: Wiener solve only), cg_tol (None: CGOptions' default),
+# ndraws per path (CG: "a few"; 0: Wiener solve only), cg_tol (None: CGOptions' default), cg_maxiter,
 # ds_chunks (DataSpaceOptions.time_chunk of the timed set-up + draws, then set-up only for
 # the others), resp_compare (unique rows for the rings vs SHT check), nd_estimate_only
 # (report D's size / cost, do not build it), timeout (s, per configuration).
@@ -288,6 +288,7 @@ HERA_GRID = [
     (200, 37, 60, 8, 1, 200),
     (300, 331, 601, 24, 1, 200),  # (B) HERA core, full day, lmax 300, m-mode
     (150, 331, 30, 8, 1, 0),  # (C) HERA core, 8 h: CG iterations per preconditioner
+    (300, 331, 30, 8, 1, 200),  # (D) issue 24 item 2: HERA core, 8 h, lmax 300 (in-place data space)
 ]
 HERA_SPEC = {
     "l150-a37-t10-8h-f1-red": dict(paths=["ds", "cgMF-ny"], ndraws={"ds": 200, "cgMF-ny": 3}, timeout=900),
@@ -298,6 +299,8 @@ HERA_SPEC = {
     "l150-a331-t30-8h-f1-red": dict(paths=["chol", "cgD-mb", "cgD-ny", "cgMF-ny", "cgMF-mb"],
                                     ndraws={"chol": 200, "cgD-mb": 0, "cgD-ny": 0, "cgMF-ny": 0, "cgMF-mb": 0},
                                     cg_tol=1e-6, nd_estimate_only=True, timeout=1500),
+    "l300-a331-t30-8h-f1-red": dict(paths=["ds", "cgMF-ny"], ndraws={"ds": 200, "cgMF-ny": 0}, cg_tol=1e-6,
+                                    cg_maxiter=300, timeout=2400),
 }
 
 DENSE_FLOP_MAX = 4e11
@@ -381,7 +384,15 @@ def run_one(c) -> dict:
     )
     from gcrsky.model import LinearSystem, VisOperator, apply, build_problem, compress_system, isotropic_prior
     from gcrsky.solvers import CGOptions, DataSpaceOptions, draw_dataspace, draw_mmode, mmode_check, pcg, plan_sampler
-    from gcrsky.solvers.dataspace import _prepare_dataspace, dataspace_memory_bytes, lag_structure, materialize_rows
+    from gcrsky.base.memory import available_memory_bytes
+    from gcrsky.solvers import prepare_dataspace
+    from gcrsky.solvers.dataspace import (
+        _prepare_dataspace,
+        dataspace_memory_bytes,
+        lag_structure,
+        materialize_rows,
+        use_in_place,
+    )
     from gcrsky.solvers.dense import CHOLESKY_INVERSE_MAX_N
     from gcrsky.solvers.mmode import _prepare as _prep_mm
     from gcrsky.sphere import n_params
@@ -526,7 +537,8 @@ def run_one(c) -> dict:
     if cg_tol is not None:
         for k in ("cgD-ny", "cgD-mb", "cgMF-ny", "cgMF-mb"):
             o = all_paths[k]["options"]
-            all_paths[k] = dict(options=CGOptions(dense=o.dense, preconditioner=o.preconditioner, tol=cg_tol))
+            all_paths[k] = dict(options=CGOptions(dense=o.dense, preconditioner=o.preconditioner, tol=cg_tol,
+                                                  maxiter=spec.get("cg_maxiter", CGOptions.maxiter)))
     wanted = spec.get("paths", ["chol", "cgD-ny", "cgD-mb", "cgMF-ny", "mmode", "ds"])
     # data space: exact, through the N_d x N_d matrix D = I + W^1/2 X S X^T W^1/2 (only where N_d < n)
     if "ds" in wanted or spec.get("nd_estimate_only"):
@@ -546,12 +558,20 @@ def run_one(c) -> dict:
             lags = lag_structure(system)  # the stationary shortcut, as prepare_dataspace takes it (None: general)
             t_lags = time.perf_counter() - t0
             dso = DataSpaceOptions(time_chunk=chunks[0])
-            mat = materialize_rows(system, dso)  # as prepare_dataspace decides it
-            prep, tc, tr = timed(_prepare_dataspace, (system,), dict(options=dso, materialize=mat), dict(lags=lags))
+            in_place = use_in_place(system, dso, lags, available_memory_bytes())
+            if in_place:  # host-orchestrated (not one jit): time it as a user calls it, compile included
+                t0 = time.perf_counter()
+                prep = jax.block_until_ready(prepare_dataspace(system, dso))
+                tc, tr, mat = 0.0, time.perf_counter() - t0, False
+                rec["setup_note"] = "in place (gcrsky.solvers.dataspace_large): compile included in the set-up time"
+            else:
+                mat = materialize_rows(system, dso)  # as prepare_dataspace decides it
+                prep, tc, tr = timed(_prepare_dataspace, (system,), dict(options=dso, materialize=mat),
+                                     dict(lags=lags))
             tr += t_lags
             rec.update(setup_compile=tc, setup=tr, time_chunk=str(chunks[0]), load_setup_end=load_now(),
                        stationary=lags is not None, n_lags=None if lags is None else int(lags.lags.shape[0]),
-                       materialized=mat)
+                       materialized=mat, in_place=in_place, peak_MB_setup=peak_mb())
             out["paths"]["ds"] = rec
             partial(out)
             (dr, info), tc2, tr2 = timed(draw_dataspace, (key, prep), dict(ndraws=nd_p))
