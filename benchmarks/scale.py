@@ -371,6 +371,7 @@ def run_one(c) -> dict:
     import numpy as np
 
     import gcrsky
+    from gcrsky.base.memory import available_memory_bytes
     from gcrsky.inference import draw, prepare_system
     from gcrsky.instrument import (
         HERA_LATITUDE_DEG,
@@ -383,9 +384,16 @@ def run_one(c) -> dict:
         response_matrix,
     )
     from gcrsky.model import LinearSystem, VisOperator, apply, build_problem, compress_system, isotropic_prior
-    from gcrsky.solvers import CGOptions, DataSpaceOptions, draw_dataspace, draw_mmode, mmode_check, pcg, plan_sampler
-    from gcrsky.base.memory import available_memory_bytes
-    from gcrsky.solvers import prepare_dataspace
+    from gcrsky.solvers import (
+        CGOptions,
+        DataSpaceOptions,
+        draw_dataspace,
+        draw_mmode,
+        mmode_check,
+        pcg,
+        plan_sampler,
+        prepare_dataspace,
+    )
     from gcrsky.solvers.dataspace import (
         _prepare_dataspace,
         dataspace_memory_bytes,
