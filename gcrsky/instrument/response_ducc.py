@@ -1,0 +1,252 @@
+"""Response matrix by ducc0's adjoint spherical-harmonic synthesis over the beam's rings only.
+
+:func:`response_matrix_ducc` computes the sum of
+:func:`gcrsky.instrument.response_sht.response_matrix_sht` (and of
+:func:`gcrsky.instrument.response_matrix`),
+
+``R[f, b, k] = sum_p  w_p K_b(p) exp(+2 pi i b_ij . s_p nu_f / c) f_k(p)``,
+
+with the same pixels (HEALPix RING order, strictly above the horizon, Up > 0, at
+``lst_ref_rad``; :func:`gcrsky.instrument.sky_grid`), the same weight ``w_p = 4 pi / Npix``
+(steradians), the same kernels ``K_b`` (:func:`gcrsky.instrument.baseline_kernels`:
+``A_i A_j`` or the polarisation products ``pols``), the same baseline sign
+(``b_ij = x_j - x_i``) and the same realified basis ``f_k`` (:mod:`gcrsky.sphere.modes`).
+
+Method.  For each frequency and row the real maps ``Re M`` and ``Im M`` of
+``M_p = K_b(p) exp(+2 pi i b.s_p / lambda)`` (zero below the horizon) go through
+``ducc0.sht.experimental.adjoint_synthesis`` (spin 0), which returns
+``a_lm = sum_p M_p conj(Y_lm(p))`` in healpy's m-major order; times ``w = 4 pi / Npix`` that
+is healpy's ``map2alm(iter=0, use_weights=False)``, and the realified projection is the
+one of :func:`gcrsky.instrument.response_sht.realified_projection` (``Re a`` for ``m = 0``,
+``2 Re a`` and ``2 Im a`` for ``m > 0``; see that module for the derivation), written
+straight into the result.  The transform runs on the HEALPix ring geometry restricted to
+the rings that hold a kept pixel (above the horizon and, with ``beam_floor > 0``, a kernel
+above ``beam_floor`` times its peak): on every other ring each term of the pixel sum is zero
+(below the horizon) or at most ``beam_floor x peak`` (the bound of ``response_matrix``'s
+floor: below float64 rounding of the result at the default 1e-16), so skipping those
+rings is exact to rounding.  Inside a kept ring every pixel above the horizon is kept, as in
+the healpy route.  The transform's cost is ``O(Nrings_kept lmax^2)`` per map; a
+zenith-pointing 14 m dish at 100 MHz at HERA's latitude keeps about half of the rings.
+
+Measured (2 shared cores; ``python benchmarks/response_routes.py --hera650``): see the
+table in :mod:`benchmarks.response_routes` and below (filled in from that run).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import jax
+import numpy as np
+
+from ..base.units import SPEED_OF_LIGHT
+from ..sphere.modes import n_alm, n_params
+from .antennas import AntennaArray, baseline_vectors
+from .polarization import baseline_kernels, normalise_pols
+from .skygrid import sky_grid
+
+__all__ = ["response_matrix_ducc", "ducc_available"]
+
+log = logging.getLogger(__name__)
+
+
+def ducc_available() -> bool:
+    """Whether ``ducc0`` (with ``ducc0.sht.experimental.adjoint_synthesis``) can be imported."""
+    try:
+        _ducc()
+    except ImportError:
+        return False
+    return True
+
+
+def _ducc():
+    """The ``ducc0`` module, imported lazily; an :class:`ImportError` naming the package if missing."""
+    try:
+        import ducc0
+        from ducc0.sht.experimental import adjoint_synthesis  # noqa: F401
+    except ImportError as err:
+        raise ImportError(
+            "response_matrix(method='ducc') needs the package ducc0 (>= 0.34; `pip install ducc0`); "
+            "method='sht' (healpy) or 'rings' computes the same response without it"
+        ) from err
+    return ducc0
+
+
+def _ring_subset(ducc0, nside: int, pix: np.ndarray, keep: np.ndarray):
+    """The ring geometry of the rings holding a kept pixel, and where each pixel lies in it.
+
+    Args:
+        ducc0: the module.
+        nside: HEALPix nside.
+        pix: (Np,) RING indices of the pixels above the horizon.
+        keep: (Np,) bool, the pixels that must be summed (kernel above the floor).
+
+    Returns:
+        ``(geom, sel, cidx)``: ``geom`` the keyword arguments ``theta, phi0, nphi, ringstart``
+        of the kept rings (``ringstart`` into the compact map of those rings only, length
+        ``npix_sub``); ``sel`` (Np,) bool, the pixels above the horizon on a kept ring (every
+        one of them enters the sum); ``cidx`` (sel.sum(),) their index in the compact map.
+    """
+    info = ducc0.healpix.Healpix_Base(int(nside), "RING").sht_info()
+    start = info["ringstart"].astype(np.int64)
+    ring = np.searchsorted(start, pix, side="right") - 1  # (Np,) ring of each pixel
+    rings = np.unique(ring[keep])
+    nphi = info["nphi"][rings]
+    newstart = np.concatenate([[0], np.cumsum(nphi.astype(np.int64))[:-1]])
+    geom = dict(
+        theta=np.ascontiguousarray(info["theta"][rings]),
+        phi0=np.ascontiguousarray(info["phi0"][rings]),
+        nphi=np.ascontiguousarray(nphi),
+        ringstart=newstart.astype(info["ringstart"].dtype),
+    )
+    slot = np.full(start.size, -1, np.int64)
+    slot[rings] = np.arange(rings.size)
+    sel = slot[ring] >= 0
+    cidx = newstart[slot[ring[sel]]] + (pix[sel] - start[ring[sel]])
+    return geom, sel, cidx
+
+
+def _aligned_empty(shape, dtype, align: int = 64) -> np.ndarray:
+    """An uninitialised C-contiguous array whose data start at a multiple of ``align`` bytes.
+
+    JAX's CPU client adopts such a buffer without a copy (``device_put(..., may_alias=True)``),
+    so the (possibly several GB) result is never held twice.
+    """
+    nbytes = int(np.prod(shape)) * np.dtype(dtype).itemsize
+    buf = np.empty(nbytes + align, np.uint8)
+    off = (-buf.ctypes.data) % align
+    return buf[off : off + nbytes].view(dtype).reshape(shape)
+
+
+def _write_projection(out_rows: np.ndarray, alm: np.ndarray, nb: int, lmax: int, w: float) -> None:
+    """``out_rows = P[Re M] + i P[Im M]`` in place, ``P`` the realified projection of ``w a_lm``.
+
+    Args:
+        out_rows: (nb, (lmax+1)**2) complex view of the result.
+        alm: (2 nb, 1, nalm) complex ``a_lm`` of the maps ``Re M`` (first ``nb``) and ``Im M``.
+        nb: rows in this batch.
+        lmax: maximum degree.
+        w: the pixel weight ``4 pi / Npix``.
+    """
+    nalm = n_alm(lmax)
+    a_re, a_im = alm[:nb, 0], alm[nb:, 0]
+    re, im = out_rows.real, out_rows.imag  # views: written in place
+    # entries 0..nalm-1: Re a_lm, times 1 (m = 0: the first lmax+1) or 2 (m > 0)
+    np.multiply(a_re.real, 2 * w, out=re[:, :nalm])
+    np.multiply(a_im.real, 2 * w, out=im[:, :nalm])
+    re[:, : lmax + 1] *= 0.5
+    im[:, : lmax + 1] *= 0.5
+    # entries nalm..: 2 Im a_lm for m > 0
+    np.multiply(a_re.imag[:, lmax + 1 :], 2 * w, out=re[:, nalm:])
+    np.multiply(a_im.imag[:, lmax + 1 :], 2 * w, out=im[:, nalm:])
+
+
+def _check_args(array: AntennaArray, pairs, freqs_hz, lmax, nside, chunk):
+    """``(freqs (Nf,), pairs (Nbl, 2), lmax, nside, chunk)`` checked (as ``response_matrix_sht``)."""
+    import healpy as hp
+
+    freqs = np.atleast_1d(np.asarray(freqs_hz, np.float64))
+    if freqs.ndim != 1 or not np.all(freqs > 0):
+        raise ValueError("freqs_hz must be a 1-D array of positive frequencies")
+    if int(lmax) != lmax or lmax < 0:
+        raise ValueError(f"lmax must be a non-negative integer, got {lmax!r}")
+    if not hp.isnsideok(nside):
+        raise ValueError(f"nside must be a valid HEALPix nside, got {nside}")
+    if lmax > 3 * nside - 1:
+        raise ValueError(
+            f"lmax={lmax} exceeds 3*nside-1={3 * nside - 1} for nside={nside}: "
+            "the HEALPix quadrature cannot resolve these modes; raise nside"
+        )
+    if int(chunk) != chunk or chunk < 1:
+        raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
+    pairs = np.asarray(pairs, np.int64)
+    nant = array.positions_enu_m.shape[0]
+    if pairs.ndim != 2 or pairs.shape[1] != 2 or pairs.min() < 0 or pairs.max() >= nant:
+        raise ValueError(f"pairs must be (Nbl, 2) antenna indices in [0, {nant}), got shape {pairs.shape}")
+    return freqs, pairs, int(lmax), int(nside), int(chunk)
+
+
+def response_matrix_ducc(
+    array: AntennaArray,
+    pairs: np.ndarray,
+    freqs_hz,
+    lmax: int,
+    nside: int,
+    lst_ref_rad: float = 0.0,
+    *,
+    beam_floor: float = 1e-16,
+    chunk: int = 8,
+    nthreads: int | None = None,
+    pols=None,
+) -> jax.Array:
+    """Same response as :func:`gcrsky.instrument.response_matrix`, built with ducc0 transforms.
+
+    Args:
+        array: the :class:`~gcrsky.instrument.AntennaArray` (positions, latitude, beams).
+        pairs: (Nbl, 2) antenna index pairs (i, j); autos (i, i) allowed.
+        freqs_hz: (Nf,) frequencies, Hz.
+        lmax: maximum degree, ``<= 3 nside - 1``.
+        nside: HEALPix nside of the quadrature grid (a power of 2).
+        lst_ref_rad: local sidereal angle of the reference grid, radians.
+        beam_floor: rings whose every pixel has every kernel ``|K|`` (all frequencies and
+            rows) at most ``beam_floor`` times the peak are skipped (0: only the rings wholly
+            below the horizon).  Inside a kept ring every pixel above the horizon is summed.
+        chunk: rows transformed per ducc0 call (``2 chunk`` real maps); the maps take
+            ``2 chunk Npix_rings 8`` bytes (250 MB at nside 512, chunk 8).
+        nthreads: ducc0 threads; default the CPUs this process may use.
+        pols: the visibility product of each row (``None``: the unpolarised ``A_i A_j``),
+            as for :func:`gcrsky.instrument.response_matrix`.
+
+    Returns:
+        (Nf, Nbl, (lmax+1)**2) complex128 response in K sr per unit coefficient (K), a JAX
+        array that adopts the NumPy buffer it was built in (no second full-size copy).
+    """
+    ducc0 = _ducc()
+    from ducc0.sht.experimental import adjoint_synthesis
+
+    freqs, pairs, lmax, nside, chunk = _check_args(array, pairs, freqs_hz, lmax, nside, chunk)
+    if not (0.0 <= beam_floor < 1.0):
+        raise ValueError(f"beam_floor must be in [0, 1), got {beam_floor!r}")
+    nthreads = len(os.sched_getaffinity(0)) if nthreads is None else int(nthreads)
+    pols = normalise_pols(pols, pairs.shape[0])
+    grid = sky_grid(nside, array.latitude_rad, lst_ref_rad)
+    w = float(grid.weight_sr)
+
+    kern = baseline_kernels(array.beams, pairs, grid.az_uvbeam, grid.za, freqs, pols)  # (Nf, Nk, Np)
+    peak = np.max(np.abs(kern.kernels), axis=(0, 1))  # (Np,)
+    keep = peak > beam_floor * peak.max() if beam_floor > 0 else np.ones(peak.size, bool)
+    geom, sel, cidx = _ring_subset(ducc0, nside, grid.pix, keep)
+    K = kern.kernels[:, :, sel]  # (Nf, Nk, Nsel)
+    enu = grid.enu[sel]
+    npix_sub = int(geom["ringstart"][-1] + geom["nphi"][-1]) if geom["nphi"].size else 0
+    log.info(
+        "ducc response: %d of %d rings, %d map pixels, %d summed pixels (of %d above the horizon)",
+        geom["nphi"].size, 4 * nside - 1, npix_sub, cidx.size, grid.pix.size,
+    )  # fmt: skip
+    bvec = baseline_vectors(np.asarray(array.positions_enu_m, np.float64), pairs)  # (Nbl, 3) m
+
+    nbl = pairs.shape[0]
+    out = _aligned_empty((freqs.size, nbl, n_params(lmax)), np.complex128)
+    if npix_sub == 0:
+        out[...] = 0
+        return jax.device_put(out, may_alias=True)
+    maps = np.zeros((2 * min(chunk, nbl), 1, npix_sub), np.float64)
+    alm = np.empty((2 * min(chunk, nbl), 1, n_alm(lmax)), np.complex128)
+    for f, nu in enumerate(freqs):
+        for b0 in range(0, nbl, chunk):
+            sl = slice(b0, min(b0 + chunk, nbl))
+            nb = sl.stop - sl.start
+            beam = K[f, kern.index[sl]]  # (nb, Nsel)
+            phase = (2 * np.pi * nu / SPEED_OF_LIGHT) * (bvec[sl] @ enu.T)  # +: matvis/pyuvdata sign
+            c, s = np.cos(phase), np.sin(phase)
+            m = maps[: 2 * nb]
+            if np.isrealobj(beam):
+                m[:nb, 0, cidx] = beam * c
+                m[nb:, 0, cidx] = beam * s
+            else:
+                m[:nb, 0, cidx] = beam.real * c - beam.imag * s
+                m[nb:, 0, cidx] = beam.real * s + beam.imag * c
+            a = adjoint_synthesis(map=m, lmax=lmax, spin=0, nthreads=nthreads, alm=alm[: 2 * nb], **geom)
+            _write_projection(out[f, sl], a, nb, lmax, w)
+    return jax.device_put(out, may_alias=True)
