@@ -157,8 +157,9 @@ def _ring_quadrature(lmax, ring_theta, phi, enu, weight, kern_r, kern_i, kidx, b
 RESPONSE_SHT_MIN_LMAX = 200
 
 #: ``response_matrix(method="auto")`` builds by ducc0 transforms over the beam's rings
-#: (:mod:`gcrsky.instrument.response_ducc`) from this lmax on when ducc0 imports (the
-#: fastest route there: ``benchmarks/response_routes.py``).
+#: (:mod:`gcrsky.instrument.response_ducc`) from this lmax on when ducc0 imports: it was
+#: the fastest route at every size measured (lmax 20..650; ``benchmarks/response_routes.py``),
+#: so 0; the other routes remain by name (and "auto" falls back to them without ducc0).
 RESPONSE_DUCC_MIN_LMAX = 0
 
 
@@ -186,17 +187,24 @@ def response_matrix(
         lst_ref_rad: local sidereal angle of the reference grid, radians.
         chunk: pixels per batch of the direct method; memory is
             O(chunk * (lmax+1)**2 + Nf*Nbl*chunk).
-        method: ``"auto"`` (default): ``"sht"`` for ``lmax >=`` :data:`RESPONSE_SHT_MIN_LMAX`,
-            else ``"rings"``; ``"rings"``: the sum factored through HEALPix rings,
+        method: ``"auto"`` (default): ``"ducc"`` for ``lmax >=`` :data:`RESPONSE_DUCC_MIN_LMAX`
+            (every lmax) when ducc0 imports, else ``"sht"`` for ``lmax >=``
+            :data:`RESPONSE_SHT_MIN_LMAX`, else ``"rings"``; ``"ducc"``: ducc0's adjoint
+            synthesis of each row's kernel map over only the HEALPix rings that hold a pixel
+            above ``beam_floor`` (:func:`gcrsky.instrument.response_ducc.response_matrix_ducc`;
+            inside those rings every visible pixel is summed; ``chunk`` does not apply);
+            ``"rings"``: the sum factored through HEALPix rings,
             O(Nf Nbl Npix lmax + Nf Nbl Nrings lmax^2); ``"direct"``: every basis map
             on every pixel, O(Nf Nbl Npix lmax^2); ``"sht"``: healpy's transform of
             each baseline's kernel map
             (:func:`gcrsky.instrument.response_sht.response_matrix_sht`, which keeps
             every visible pixel: ``beam_floor`` and ``chunk`` do not apply).  The same
             terms summed in another order (they agree to ~1e-14 relative;
-            ``tests/test_response.py``, ``tests/test_response_sht.py``).
+            ``tests/test_response.py``, ``tests/test_response_sht.py``,
+            ``tests/test_response_ducc.py``).
         beam_floor: pixels where every beam kernel ``|K|`` (all frequencies and
-            rows) is at most ``beam_floor`` times its peak are left out of the sum.
+            rows) is at most ``beam_floor`` times its peak are left out of the sum
+            (``"ducc"``: the rings made only of such pixels).
             The default 1e-16 drops only terms below float64 rounding of the result
             (a 14 m Gaussian dish at 100 MHz keeps the 45 degrees around zenith:
             29% of the visible pixels); 0 keeps every pixel above the horizon.

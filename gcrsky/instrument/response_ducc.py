@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 
 import jax
 import numpy as np
@@ -142,6 +143,55 @@ def _write_projection(out_rows: np.ndarray, alm: np.ndarray, nb: int, lmax: int,
     np.multiply(a_im.imag[:, lmax + 1 :], 2 * w, out=im[:, nalm:])
 
 
+class _MapFiller:
+    """Writes ``Re M`` and ``Im M`` of a batch of rows into the compact ring maps, on threads.
+
+    ``M_p = K_b(p) exp(+2 pi i b.s_p / lambda)`` on the summed pixels (the others stay 0).
+    One row at a time per thread, through per-thread buffers of one row (no full-batch
+    temporaries); NumPy's ufuncs release the GIL, so ``nthreads`` rows proceed at once.
+
+    Args:
+        K: (Nf, Nk, Nsel) kernels on the summed pixels, real or complex.
+        kidx: (Nbl,) kernel of each row.
+        enu_t: (3, Nsel) ENU unit vectors of the summed pixels.
+        cidx: (Nsel,) their index in the compact map.
+        nthreads: worker threads.
+    """
+
+    def __init__(self, K, kidx, enu_t, cidx, nthreads: int):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.K, self.kidx, self.enu_t, self.cidx = K, kidx, enu_t, cidx
+        self.pool = ThreadPoolExecutor(max(1, nthreads))
+        self.local = threading.local()
+
+    def _row(self, maps, nb: int, f: int, b: int, row: int, b_wl) -> None:
+        loc = self.local
+        if not hasattr(loc, "ph"):
+            loc.ph, loc.c, loc.s = (np.empty(self.cidx.size) for _ in range(3))
+        ph, c, s = loc.ph, loc.c, loc.s
+        np.matmul((2 * np.pi) * b_wl, self.enu_t, out=ph)  # +: matvis/pyuvdata sign
+        np.cos(ph, out=c)
+        np.sin(ph, out=s)
+        beam = self.K[f, self.kidx[b]]
+        if np.isrealobj(beam):
+            maps[row, 0, self.cidx] = np.multiply(beam, c, out=ph)
+            maps[nb + row, 0, self.cidx] = np.multiply(beam, s, out=ph)
+        else:  # (K_r + i K_i)(c + i s)
+            maps[row, 0, self.cidx] = beam.real * c - beam.imag * s
+            maps[nb + row, 0, self.cidx] = beam.real * s + beam.imag * c
+
+    def __call__(self, maps: np.ndarray, f: int, sl: slice, bvec_wl: np.ndarray) -> None:
+        """Fill ``maps[:nb]`` (Re) and ``maps[nb:2nb]`` (Im) for rows ``sl`` at channel ``f``."""
+        nb = sl.stop - sl.start
+        jobs = [self.pool.submit(self._row, maps, nb, f, sl.start + r, r, bvec_wl[r]) for r in range(nb)]
+        for j in jobs:
+            j.result()
+
+    def close(self) -> None:
+        self.pool.shutdown()
+
+
 def _check_args(array: AntennaArray, pairs, freqs_hz, lmax, nside, chunk):
     """``(freqs (Nf,), pairs (Nbl, 2), lmax, nside, chunk)`` checked (as ``response_matrix_sht``)."""
     import healpy as hp
@@ -233,20 +283,16 @@ def response_matrix_ducc(
         return jax.device_put(out, may_alias=True)
     maps = np.zeros((2 * min(chunk, nbl), 1, npix_sub), np.float64)
     alm = np.empty((2 * min(chunk, nbl), 1, n_alm(lmax)), np.complex128)
-    for f, nu in enumerate(freqs):
-        for b0 in range(0, nbl, chunk):
-            sl = slice(b0, min(b0 + chunk, nbl))
-            nb = sl.stop - sl.start
-            beam = K[f, kern.index[sl]]  # (nb, Nsel)
-            phase = (2 * np.pi * nu / SPEED_OF_LIGHT) * (bvec[sl] @ enu.T)  # +: matvis/pyuvdata sign
-            c, s = np.cos(phase), np.sin(phase)
-            m = maps[: 2 * nb]
-            if np.isrealobj(beam):
-                m[:nb, 0, cidx] = beam * c
-                m[nb:, 0, cidx] = beam * s
-            else:
-                m[:nb, 0, cidx] = beam.real * c - beam.imag * s
-                m[nb:, 0, cidx] = beam.real * s + beam.imag * c
-            a = adjoint_synthesis(map=m, lmax=lmax, spin=0, nthreads=nthreads, alm=alm[: 2 * nb], **geom)
-            _write_projection(out[f, sl], a, nb, lmax, w)
+    fill = _MapFiller(K, kern.index, np.ascontiguousarray(enu.T), cidx, nthreads)
+    try:
+        for f, nu in enumerate(freqs):
+            bvec_wl = bvec * (nu / SPEED_OF_LIGHT)  # (Nbl, 3) wavelengths
+            for b0 in range(0, nbl, chunk):
+                sl = slice(b0, min(b0 + chunk, nbl))
+                nb = sl.stop - sl.start
+                fill(maps[: 2 * nb], f, sl, bvec_wl[sl])
+                a = adjoint_synthesis(map=maps[: 2 * nb], lmax=lmax, spin=0, nthreads=nthreads, alm=alm[: 2 * nb], **geom)
+                _write_projection(out[f, sl], a, nb, lmax, w)
+    finally:
+        fill.close()
     return jax.device_put(out, may_alias=True)
