@@ -120,6 +120,14 @@ def _aligned_empty(shape, dtype, align: int = 64) -> np.ndarray:
     return buf[off : off + nbytes].view(dtype).reshape(shape)
 
 
+def _adopt(out: np.ndarray) -> jax.Array:
+    """``out`` as a JAX array, without a copy where this JAX's ``device_put`` takes ``may_alias``."""
+    try:
+        return jax.device_put(out, may_alias=True)
+    except TypeError:  # older JAX: no may_alias (one transient copy)
+        return jax.numpy.asarray(out)
+
+
 def _write_projection(out_rows: np.ndarray, alm: np.ndarray, nb: int, lmax: int, w: float) -> None:
     """``out_rows = P[Re M] + i P[Im M]`` in place, ``P`` the realified projection of ``w a_lm``.
 
@@ -280,7 +288,7 @@ def response_matrix_ducc(
     out = _aligned_empty((freqs.size, nbl, n_params(lmax)), np.complex128)
     if npix_sub == 0:
         out[...] = 0
-        return jax.device_put(out, may_alias=True)
+        return _adopt(out)
     maps = np.zeros((2 * min(chunk, nbl), 1, npix_sub), np.float64)
     alm = np.empty((2 * min(chunk, nbl), 1, n_alm(lmax)), np.complex128)
     fill = _MapFiller(K, kern.index, np.ascontiguousarray(enu.T), cidx, nthreads)
@@ -295,4 +303,4 @@ def response_matrix_ducc(
                 _write_projection(out[f, sl], a, nb, lmax, w)
     finally:
         fill.close()
-    return jax.device_put(out, may_alias=True)
+    return _adopt(out)
