@@ -85,27 +85,42 @@ def hera650(nsub: int = 32) -> int:
     r, dt = _timed(arr, reps, 650, 512, "ducc")
     shape = r.shape
     del r
-    print(f"lmax 650 nside 512, all {len(reps)} rows, ducc: {dt:.1f} s ({dt / len(reps):.3f} s/row), "
-          f"result {shape} complex128 = {16 * np.prod(shape) / 1e9:.2f} GB; peak {_peak_gb():.2f} GB; "
-          f"load {_load()}", flush=True)
+    print(
+        f"lmax 650 nside 512, all {len(reps)} rows, ducc: {dt:.1f} s ({dt / len(reps):.3f} s/row), "
+        f"result {shape} complex128 = {16 * np.prod(shape) / 1e9:.2f} GB; peak {_peak_gb():.2f} GB; "
+        f"load {_load()}",
+        flush=True,
+    )
     sub = reps[np.linspace(0, len(reps) - 1, nsub).astype(int)]
     for lmax, nside in ((650, 512), (300, 256)):
         out, times = {}, {}
         for how in ("ducc", "sht", "rings"):
             out[how], times[how] = _timed(arr, sub, lmax, nside, how)
-            print(f"lmax {lmax} nside {nside}, {nsub} rows, {how}: {times[how]:.1f} s "
-                  f"({times[how] / nsub:.3f} s/row); load {_load()}", flush=True)
+            print(
+                f"lmax {lmax} nside {nside}, {nsub} rows, {how}: {times[how]:.1f} s "
+                f"({times[how] / nsub:.3f} s/row); load {_load()}",
+                flush=True,
+            )
         big = float(np.abs(out["sht"]).max())
-        agree = ", ".join(f"{a}-{b} {np.abs(out[a] - out[b]).max() / big:.1e}"
-                          for a, b in (("ducc", "sht"), ("ducc", "rings"), ("sht", "rings")))
-        print(f"  per row: " + ", ".join(f"{h} {times[h] / nsub:.3f} s" for h in times)
-              + f"; sht/ducc {times['sht'] / times['ducc']:.1f}x, rings/ducc {times['rings'] / times['ducc']:.1f}x; "
-              f"max |diff| / max |R|: {agree}", flush=True)
+        agree = ", ".join(
+            f"{a}-{b} {np.abs(out[a] - out[b]).max() / big:.1e}"
+            for a, b in (("ducc", "sht"), ("ducc", "rings"), ("sht", "rings"))
+        )
+        print(
+            "  per row: "
+            + ", ".join(f"{h} {times[h] / nsub:.3f} s" for h in times)
+            + f"; sht/ducc {times['sht'] / times['ducc']:.1f}x, rings/ducc {times['rings'] / times['ducc']:.1f}x; "
+            f"max |diff| / max |R|: {agree}",
+            flush=True,
+        )
         del out
     r, dt = _timed(arr, reps, 300, 256, "ducc")
     del r
-    print(f"lmax 300 nside 256, all {len(reps)} rows, ducc: {dt:.1f} s ({dt / len(reps):.3f} s/row); "
-          f"peak {_peak_gb():.2f} GB; load {_load()}", flush=True)
+    print(
+        f"lmax 300 nside 256, all {len(reps)} rows, ducc: {dt:.1f} s ({dt / len(reps):.3f} s/row); "
+        f"peak {_peak_gb():.2f} GB; load {_load()}",
+        flush=True,
+    )
     return 0
 
 
@@ -155,12 +170,16 @@ def main(argv=None) -> int:
     rowrel = np.linalg.norm(rr - rs, axis=-1) / norms
     big = norms > 1e-6 * norms.max()
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
-    print(f"lmax {lmax}, nside {nside}, {nants} antennas ({len(reps)} rows): rings {times['rings']:.1f} s, "
-          f"sht {times['sht']:.1f} s ({times['rings'] / times['sht']:.2f}x); max rel {rel:.1e}; rows above 1e-6 "
-          f"of the largest: {rowrel[big].max():.1e} ({int(big.sum())} rows); peak {peak:.1f} GB")
+    print(
+        f"lmax {lmax}, nside {nside}, {nants} antennas ({len(reps)} rows): rings {times['rings']:.1f} s, "
+        f"sht {times['sht']:.1f} s ({times['rings'] / times['sht']:.2f}x); max rel {rel:.1e}; rows above 1e-6 "
+        f"of the largest: {rowrel[big].max():.1e} ({int(big.sum())} rows); peak {peak:.1f} GB"
+    )
     reld = float(np.max(np.abs(rd - rs)) / np.max(np.abs(rr)))
-    print(f"ducc {times['ducc']:.1f} s ({times['sht'] / times['ducc']:.2f}x faster than sht, "
-          f"{times['rings'] / times['ducc']:.2f}x than rings); ducc-sht max rel {reld:.1e}")
+    print(
+        f"ducc {times['ducc']:.1f} s ({times['sht'] / times['ducc']:.2f}x faster than sht, "
+        f"{times['rings'] / times['ducc']:.2f}x than rings); ducc-sht max rel {reld:.1e}"
+    )
     return 0
 
 

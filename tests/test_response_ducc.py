@@ -68,7 +68,7 @@ def test_polarised_kernels(pols):
     beams = [ShortDipoleBeam() if k % 2 else gaussian_beam(14.0) for k in range(10)]
     arr = make_array(hex_array(), HERA_LATITUDE_DEG, beams)
     pairs = antpairs(10)[:12]
-    kw = dict(lst_ref_rad=0.7, pols=pols)
+    kw = {"lst_ref_rad": 0.7, "pols": pols}
     ducc = response_matrix(arr, pairs, FREQS, 8, 16, method="ducc", **kw)
     assert _rel_err(ducc, response_matrix(arr, pairs, FREQS, 8, 16, method="sht", **kw)) < RTOL
     assert _rel_err(ducc, response_matrix(arr, pairs, FREQS, 8, 16, method="rings", **kw)) < RTOL
@@ -111,4 +111,6 @@ def test_missing_ducc0_is_named(hexagon, monkeypatch):
         response_matrix(hexagon, pairs, FREQS, 6, 16, method="ducc")
     auto = response_matrix(hexagon, pairs, FREQS, 6, 16)
     monkeypatch.setattr(builtins, "__import__", real_import)
-    np.testing.assert_array_equal(np.asarray(auto), np.asarray(response_matrix(hexagon, pairs, FREQS, 6, 16, method="rings")))
+    np.testing.assert_array_equal(
+        np.asarray(auto), np.asarray(response_matrix(hexagon, pairs, FREQS, 6, 16, method="rings"))
+    )

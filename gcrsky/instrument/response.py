@@ -44,7 +44,15 @@ from .beams import unique_beams
 from .polarization import baseline_kernels, normalise_pols
 from .skygrid import SkyGrid, equatorial_to_enu, sky_grid
 
-__all__ = ["RESPONSE_DUCC_MIN_LMAX", "RESPONSE_SHT_MIN_LMAX", "SkyGrid", "analytic_response", "equatorial_to_enu", "response_matrix", "sky_grid"]
+__all__ = [
+    "RESPONSE_DUCC_MIN_LMAX",
+    "RESPONSE_SHT_MIN_LMAX",
+    "SkyGrid",
+    "analytic_response",
+    "equatorial_to_enu",
+    "response_matrix",
+    "sky_grid",
+]
 
 
 def _fringe_kernel(kern_r, kern_i, kidx, w, phase):
@@ -192,7 +200,7 @@ def response_matrix(
             :data:`RESPONSE_SHT_MIN_LMAX`, else ``"rings"``; ``"ducc"``: ducc0's adjoint
             synthesis of each row's kernel map over only the HEALPix rings that hold a pixel
             above ``beam_floor`` (:func:`gcrsky.instrument.response_ducc.response_matrix_ducc`;
-            inside those rings every visible pixel is summed; ``chunk`` does not apply);
+            the same pixels as ``"rings"``; ``chunk`` does not apply);
             ``"rings"``: the sum factored through HEALPix rings,
             O(Nf Nbl Npix lmax + Nf Nbl Nrings lmax^2); ``"direct"``: every basis map
             on every pixel, O(Nf Nbl Npix lmax^2); ``"sht"``: healpy's transform of
@@ -203,8 +211,7 @@ def response_matrix(
             ``tests/test_response.py``, ``tests/test_response_sht.py``,
             ``tests/test_response_ducc.py``).
         beam_floor: pixels where every beam kernel ``|K|`` (all frequencies and
-            rows) is at most ``beam_floor`` times its peak are left out of the sum
-            (``"ducc"``: the rings made only of such pixels).
+            rows) is at most ``beam_floor`` times its peak are left out of the sum.
             The default 1e-16 drops only terms below float64 rounding of the result
             (a 14 m Gaussian dish at 100 MHz keeps the 45 degrees around zenith:
             29% of the visible pixels); 0 keeps every pixel above the horizon.
@@ -229,9 +236,7 @@ def response_matrix(
     if method == "ducc":
         from .response_ducc import response_matrix_ducc
 
-        return response_matrix_ducc(
-            array, pairs, freqs, lmax, nside, lst_ref_rad, beam_floor=beam_floor, pols=pols
-        )
+        return response_matrix_ducc(array, pairs, freqs, lmax, nside, lst_ref_rad, beam_floor=beam_floor, pols=pols)
     if method == "sht":
         from .response_sht import response_matrix_sht
 

@@ -7,7 +7,8 @@
 ``R[f, b, k] = sum_p  w_p K_b(p) exp(+2 pi i b_ij . s_p nu_f / c) f_k(p)``,
 
 with the same pixels (HEALPix RING order, strictly above the horizon, Up > 0, at
-``lst_ref_rad``; :func:`gcrsky.instrument.sky_grid`), the same weight ``w_p = 4 pi / Npix``
+``lst_ref_rad``; :func:`gcrsky.instrument.sky_grid`; less the ``beam_floor`` cut of
+``response_matrix``, see below), the same weight ``w_p = 4 pi / Npix``
 (steradians), the same kernels ``K_b`` (:func:`gcrsky.instrument.baseline_kernels`:
 ``A_i A_j`` or the polarisation products ``pols``), the same baseline sign
 (``b_ij = x_j - x_i``) and the same realified basis ``f_k`` (:mod:`gcrsky.sphere.modes`).
@@ -19,14 +20,18 @@ Method.  For each frequency and row the real maps ``Re M`` and ``Im M`` of
 is healpy's ``map2alm(iter=0, use_weights=False)``, and the realified projection is the
 one of :func:`gcrsky.instrument.response_sht.realified_projection` (``Re a`` for ``m = 0``,
 ``2 Re a`` and ``2 Im a`` for ``m > 0``; see that module for the derivation), written
-straight into the result.  The transform runs on the HEALPix ring geometry restricted to
-the rings that hold a kept pixel (above the horizon and, with ``beam_floor > 0``, a kernel
-above ``beam_floor`` times its peak): on every other ring each term of the pixel sum is zero
-(below the horizon) or at most ``beam_floor x peak`` (the bound of ``response_matrix``'s
-floor: below float64 rounding of the result at the default 1e-16), so skipping those
-rings is exact to rounding.  Inside a kept ring every pixel above the horizon is kept, as in
-the healpy route.  The transform's cost is ``O(Nrings_kept lmax^2)`` per map; a
-zenith-pointing 14 m dish at 100 MHz at HERA's latitude keeps about half of the rings.
+straight into the result.
+
+Pixels and rings.  The summed pixels are those of ``response_matrix``'s ring quadrature:
+above the horizon and, with ``beam_floor > 0``, with some kernel above ``beam_floor`` times
+the peak (the dropped terms are each at most ``beam_floor x peak``: below float64 rounding of
+the result at the default 1e-16; with ``beam_floor=0`` every pixel above the horizon, the
+healpy route's sum term for term).  The maps are zero on every other pixel, so the transform
+runs on the HEALPix ring geometry restricted to the rings that hold a summed pixel (on the
+other rings the pixel sum is zero: skipping them is exact), and only the summed pixels'
+fringes are evaluated.  The transform costs ``O(Nrings_kept lmax^2)`` per map and the fill
+``O(Nsummed)``: a zenith-pointing 14 m dish at 100 MHz at HERA's latitude (nside 512)
+keeps 1052 of 2047 rings and 456101 of the 1572864 pixels above the horizon.
 
 Measured (2 shared cores; ``python benchmarks/response_routes.py --hera650``): see the
 table in :mod:`benchmarks.response_routes` and below (filled in from that run).
@@ -47,7 +52,7 @@ from .antennas import AntennaArray, baseline_vectors
 from .polarization import baseline_kernels, normalise_pols
 from .skygrid import sky_grid
 
-__all__ = ["response_matrix_ducc", "ducc_available"]
+__all__ = ["ducc_available", "response_matrix_ducc"]
 
 log = logging.getLogger(__name__)
 
@@ -74,38 +79,35 @@ def _ducc():
     return ducc0
 
 
-def _ring_subset(ducc0, nside: int, pix: np.ndarray, keep: np.ndarray):
-    """The ring geometry of the rings holding a kept pixel, and where each pixel lies in it.
+def _ring_subset(ducc0, nside: int, pix: np.ndarray):
+    """The ring geometry of the rings holding any of the pixels ``pix``, and where they lie in it.
 
     Args:
         ducc0: the module.
         nside: HEALPix nside.
-        pix: (Np,) RING indices of the pixels above the horizon.
-        keep: (Np,) bool, the pixels that must be summed (kernel above the floor).
+        pix: (Ns,) RING indices of the summed pixels (above the horizon and the floor).
 
     Returns:
-        ``(geom, sel, cidx)``: ``geom`` the keyword arguments ``theta, phi0, nphi, ringstart``
-        of the kept rings (``ringstart`` into the compact map of those rings only, length
-        ``npix_sub``); ``sel`` (Np,) bool, the pixels above the horizon on a kept ring (every
-        one of them enters the sum); ``cidx`` (sel.sum(),) their index in the compact map.
+        ``(geom, cidx)``: ``geom`` the keyword arguments ``theta, phi0, nphi, ringstart`` of
+        the rings holding a summed pixel (``ringstart`` into the compact map of those rings
+        only, ``npix_sub = sum(nphi)`` values); ``cidx`` (Ns,) each pixel's index in that map.
     """
     info = ducc0.healpix.Healpix_Base(int(nside), "RING").sht_info()
     start = info["ringstart"].astype(np.int64)
     ring = np.searchsorted(start, pix, side="right") - 1  # (Np,) ring of each pixel
-    rings = np.unique(ring[keep])
+    rings = np.unique(ring)
     nphi = info["nphi"][rings]
     newstart = np.concatenate([[0], np.cumsum(nphi.astype(np.int64))[:-1]])
-    geom = dict(
-        theta=np.ascontiguousarray(info["theta"][rings]),
-        phi0=np.ascontiguousarray(info["phi0"][rings]),
-        nphi=np.ascontiguousarray(nphi),
-        ringstart=newstart.astype(info["ringstart"].dtype),
-    )
+    geom = {
+        "theta": np.ascontiguousarray(info["theta"][rings]),
+        "phi0": np.ascontiguousarray(info["phi0"][rings]),
+        "nphi": np.ascontiguousarray(nphi),
+        "ringstart": newstart.astype(info["ringstart"].dtype),
+    }
     slot = np.full(start.size, -1, np.int64)
     slot[rings] = np.arange(rings.size)
-    sel = slot[ring] >= 0
-    cidx = newstart[slot[ring[sel]]] + (pix[sel] - start[ring[sel]])
-    return geom, sel, cidx
+    cidx = newstart[slot[ring]] + (pix - start[ring])
+    return geom, cidx
 
 
 def _aligned_empty(shape, dtype, align: int = 64) -> np.ndarray:
@@ -159,10 +161,10 @@ class _MapFiller:
     temporaries); NumPy's ufuncs release the GIL, so ``nthreads`` rows proceed at once.
 
     Args:
-        K: (Nf, Nk, Nsel) kernels on the summed pixels, real or complex.
+        K: (Nf, Nk, Ns) kernels on the summed pixels, real or complex.
         kidx: (Nbl,) kernel of each row.
-        enu_t: (3, Nsel) ENU unit vectors of the summed pixels.
-        cidx: (Nsel,) their index in the compact map.
+        enu_t: (3, Ns) ENU unit vectors of the summed pixels.
+        cidx: (Ns,) their index in the compact map.
         nthreads: worker threads.
     """
 
@@ -247,11 +249,12 @@ def response_matrix_ducc(
         lmax: maximum degree, ``<= 3 nside - 1``.
         nside: HEALPix nside of the quadrature grid (a power of 2).
         lst_ref_rad: local sidereal angle of the reference grid, radians.
-        beam_floor: rings whose every pixel has every kernel ``|K|`` (all frequencies and
-            rows) at most ``beam_floor`` times the peak are skipped (0: only the rings wholly
-            below the horizon).  Inside a kept ring every pixel above the horizon is summed.
+        beam_floor: pixels where every kernel ``|K|`` (all frequencies and rows) is at
+            most ``beam_floor`` times the peak are left out, as in ``response_matrix``, and
+            the rings holding none of the others are skipped (0: every pixel above the
+            horizon, the healpy route's sum).
         chunk: rows transformed per ducc0 call (``2 chunk`` real maps); the maps take
-            ``2 chunk Npix_rings 8`` bytes (250 MB at nside 512, chunk 8).
+            ``2 chunk Npix_rings 8`` bytes (244 MB at nside 512, chunk 8, for the dish above).
         nthreads: ducc0 threads; default the CPUs this process may use.
         pols: the visibility product of each row (``None``: the unpolarised ``A_i A_j``),
             as for :func:`gcrsky.instrument.response_matrix`.
@@ -274,9 +277,9 @@ def response_matrix_ducc(
     kern = baseline_kernels(array.beams, pairs, grid.az_uvbeam, grid.za, freqs, pols)  # (Nf, Nk, Np)
     peak = np.max(np.abs(kern.kernels), axis=(0, 1))  # (Np,)
     keep = peak > beam_floor * peak.max() if beam_floor > 0 else np.ones(peak.size, bool)
-    geom, sel, cidx = _ring_subset(ducc0, nside, grid.pix, keep)
-    K = kern.kernels[:, :, sel]  # (Nf, Nk, Nsel)
-    enu = grid.enu[sel]
+    geom, cidx = _ring_subset(ducc0, nside, grid.pix[keep])
+    K = kern.kernels[:, :, keep]  # (Nf, Nk, Ns)
+    enu = grid.enu[keep]
     npix_sub = int(geom["ringstart"][-1] + geom["nphi"][-1]) if geom["nphi"].size else 0
     log.info(
         "ducc response: %d of %d rings, %d map pixels, %d summed pixels (of %d above the horizon)",
@@ -299,7 +302,9 @@ def response_matrix_ducc(
                 sl = slice(b0, min(b0 + chunk, nbl))
                 nb = sl.stop - sl.start
                 fill(maps[: 2 * nb], f, sl, bvec_wl[sl])
-                a = adjoint_synthesis(map=maps[: 2 * nb], lmax=lmax, spin=0, nthreads=nthreads, alm=alm[: 2 * nb], **geom)
+                a = adjoint_synthesis(
+                    map=maps[: 2 * nb], lmax=lmax, spin=0, nthreads=nthreads, alm=alm[: 2 * nb], **geom
+                )
                 _write_projection(out[f, sl], a, nb, lmax, w)
     finally:
         fill.close()
