@@ -26,6 +26,15 @@ Measured 2026-12-02 (2 shared cores, load 0.4-2; ``benchmarks/scale.py`` section
         rows above 1e-6 of the largest: 9.2e-09 (423 rows); peak 4.2 GB
     lmax 150, nside 256, 331 antennas (630 rows): rings 27.0 s, sht 24.6 s (1.10x); max rel 2.3e-14
 
+``--hera650``, 2026-12-03 05:31 UTC, load 12.75 8.61 4.77 at the start and 16-22 throughout
+(other jobs on the 2 cores; every time inflated)::
+
+    lmax 650, nside 512, all 630 rows, ducc: 135.0 s (0.214 s/row); peak 5.10 GB (result 4.27 GB)
+    lmax 650, nside 512, 32 rows: ducc 0.248 s/row, sht 0.834 s/row, rings 4.917 s/row (3.4x, 19.8x);
+        max |diff| / max |R|: ducc-sht 1.6e-14, ducc-rings 4.5e-14, sht-rings 4.3e-14
+    lmax 300, nside 256, 32 rows: ducc 0.020 s/row, sht 0.051 s/row, rings 0.141 s/row (2.6x, 7.1x)
+    lmax 300, nside 256, all 630 rows, ducc: 13.0 s
+
 So ``response_matrix(method="auto")`` built by the SHT from lmax 200 on
 (``gcrsky.instrument.response.RESPONSE_SHT_MIN_LMAX``); with ducc0 it builds by ducc at every
 lmax (``RESPONSE_DUCC_MIN_LMAX`` = 0; table of ``--hera650`` in

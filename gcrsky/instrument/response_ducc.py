@@ -33,8 +33,30 @@ fringes are evaluated.  The transform costs ``O(Nrings_kept lmax^2)`` per map an
 ``O(Nsummed)``: a zenith-pointing 14 m dish at 100 MHz at HERA's latitude (nside 512)
 keeps 1052 of 2047 rings and 456101 of the 1572864 pixels above the horizon.
 
-Measured (2 shared cores; ``python benchmarks/response_routes.py --hera650``): see the
-table in :mod:`benchmarks.response_routes` and below (filled in from that run).
+Measured 2026-12-03 05:31-05:41 UTC, ``python benchmarks/response_routes.py --hera650`` (one run;
+2 shared cores under heavy load from other jobs: ``/proc/loadavg`` 12.75 8.61 4.77 at the start,
+16-22 throughout, so every time is inflated, the ratios less so; the 331-antenna HERA core,
+630 unique rows, one channel at 100 MHz, 14 m Gaussian dish)::
+
+    lmax 650, nside 512, all 630 rows, ducc: 135.0 s (0.214 s/row); result (630, 423801)
+        complex128 = 4.27 GB, process peak (ru_maxrss) 5.10 GB
+    lmax 650, nside 512, 32 rows: ducc 0.248 s/row, sht 0.834 s/row, rings 4.917 s/row
+        (sht/ducc 3.4x, rings/ducc 19.8x); max |diff| / max |R|: ducc-sht 1.6e-14,
+        ducc-rings 4.5e-14, sht-rings 4.3e-14
+    lmax 300, nside 256, 32 rows: ducc 0.020 s/row, sht 0.051 s/row, rings 0.141 s/row
+        (2.6x, 7.1x); ducc-sht 1.1e-14, ducc-rings 2.9e-14
+    lmax 300, nside 256, all 630 rows, ducc: 13.0 s (healpy: 41.5 s, rings 115.6 s on
+        2026-12-02 at load 0.4-2, ``benchmarks/scale.py`` (B'))
+
+An earlier run (load ~6, before the fill was restricted to the pixels above the floor) gave
+108.7 s for the 630 rows at lmax 650 (peak 5.20 GB) and 2.9x / 16.1x per row.  Smaller cases
+(63 rows of the 37-antenna hexagon, 2 channels; 165 rows of 91 antennas at lmax 150, nside 128:
+ducc 0.75 s, rings 9.2 s, sht 9.3 s) put ducc first at every size tried, hence
+``RESPONSE_DUCC_MIN_LMAX = 0``.  The peak is the result plus ~0.8 GB (the sky grid at nside
+512, the kernels, 2 chunk maps and their a_lm, JAX and healpy themselves): the result is
+built in place in a 64-byte-aligned buffer that JAX adopts without a copy.  Where the time
+goes (profile, 32 rows at lmax 650, load ~2): ~45% the transforms, the rest filling the maps
+(one sin and cos per summed pixel and row, on ``nthreads`` threads) and the projection.
 """
 
 from __future__ import annotations
