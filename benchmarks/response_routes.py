@@ -35,6 +35,10 @@ Measured 2026-12-02 (2 shared cores, load 0.4-2; ``benchmarks/scale.py`` section
     lmax 300, nside 256, 32 rows: ducc 0.020 s/row, sht 0.051 s/row, rings 0.141 s/row (2.6x, 7.1x)
     lmax 300, nside 256, all 630 rows, ducc: 13.0 s
 
+again at 06:01 UTC (load 8.9-12): 630 rows at lmax 650 by ducc 178.7 s, peak 5.10 GB; per row at
+lmax 650 ducc 0.258 / sht 0.856 / rings 6.155 s (3.3x, 23.9x); lmax 300: 0.051 / 0.156 / 0.500 s;
+630 rows at lmax 300 by ducc 31.7 s.
+
 So ``response_matrix(method="auto")`` built by the SHT from lmax 200 on
 (``gcrsky.instrument.response.RESPONSE_SHT_MIN_LMAX``); with ducc0 it builds by ducc at every
 lmax (``RESPONSE_DUCC_MIN_LMAX`` = 0; table of ``--hera650`` in

@@ -48,14 +48,20 @@ Measured 2026-12-03 05:31-05:41 UTC, ``python benchmarks/response_routes.py --he
     lmax 300, nside 256, all 630 rows, ducc: 13.0 s (healpy: 41.5 s, rings 115.6 s on
         2026-12-02 at load 0.4-2, ``benchmarks/scale.py`` (B'))
 
-An earlier run (load ~6, before the fill was restricted to the pixels above the floor) gave
+A second run (06:01-06:12 UTC, load 8.85 9.35 10.17 at the start, 10-12 throughout): 630 rows at
+lmax 650 by ducc 178.7 s (0.284 s/row), peak 5.10 GB; 32 rows at lmax 650: ducc 0.258, sht 0.856,
+rings 6.155 s/row (3.3x, 23.9x); at lmax 300: 0.051, 0.156, 0.500 s/row (3.1x, 9.8x); 630 rows
+at lmax 300 by ducc 31.7 s; the same agreement.  The absolute times follow the other jobs'
+load (135 s vs 179 s for the same build); the per-row ratios hold at ~3x healpy, 16-24x rings.
+
+An earlier run (load 2.2 at the start, 6.3 after the build; before the fill was restricted to the pixels above the floor) gave
 108.7 s for the 630 rows at lmax 650 (peak 5.20 GB) and 2.9x / 16.1x per row.  Smaller cases
 (63 rows of the 37-antenna hexagon, 2 channels; 165 rows of 91 antennas at lmax 150, nside 128:
 ducc 0.75 s, rings 9.2 s, sht 9.3 s) put ducc first at every size tried, hence
 ``RESPONSE_DUCC_MIN_LMAX = 0``.  The peak is the result plus ~0.8 GB (the sky grid at nside
 512, the kernels, 2 chunk maps and their a_lm, JAX and healpy themselves): the result is
 built in place in a 64-byte-aligned buffer that JAX adopts without a copy.  Where the time
-goes (profile, 32 rows at lmax 650, load ~2): ~45% the transforms, the rest filling the maps
+goes (profile, 32 rows at lmax 650, load ~2, before that restriction): ~45% the transforms, the rest filling the maps
 (one sin and cos per summed pixel and row, on ``nthreads`` threads) and the projection.
 """
 
