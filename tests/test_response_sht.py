@@ -115,15 +115,20 @@ def test_bad_inputs(hexagon):
 
 
 def test_auto_builds_by_transforms_from_the_threshold(hexagon, monkeypatch):
-    """``response_matrix(method="auto")`` (the default) is the rings sum below
+    """``response_matrix(method="auto")`` (the default) is ducc0's route from
+    ``RESPONSE_DUCC_MIN_LMAX`` on (every lmax) when ducc0 imports; otherwise the rings sum below
     ``RESPONSE_SHT_MIN_LMAX`` and this module's transforms from it on, bit for bit what
-    each route gives when asked by name; the two agree to RTOL (polarised rows too)."""
+    each route gives when asked by name; the routes agree to RTOL (polarised rows too)."""
     import gcrsky.instrument.response as resp_mod
 
     pairs = antpairs(10)[::4]
     rings = np.asarray(response_matrix(hexagon, pairs, FREQS, 8, 16, method="rings", pols="xx"))
     sht = np.asarray(response_matrix(hexagon, pairs, FREQS, 8, 16, method="sht", pols="xx"))
     assert _rel_err(sht, rings) < RTOL
+    if resp_mod.RESPONSE_DUCC_MIN_LMAX <= 8 and resp_mod._auto_method(8) == "ducc":
+        ducc = np.asarray(response_matrix(hexagon, pairs, FREQS, 8, 16, method="ducc", pols="xx"))
+        np.testing.assert_array_equal(np.asarray(response_matrix(hexagon, pairs, FREQS, 8, 16, pols="xx")), ducc)
+    monkeypatch.setattr(resp_mod, "RESPONSE_DUCC_MIN_LMAX", 10**9)  # as without ducc0
     np.testing.assert_array_equal(np.asarray(response_matrix(hexagon, pairs, FREQS, 8, 16, pols="xx")), rings)
     monkeypatch.setattr(resp_mod, "RESPONSE_SHT_MIN_LMAX", 8)
     np.testing.assert_array_equal(np.asarray(response_matrix(hexagon, pairs, FREQS, 8, 16, pols="xx")), sht)

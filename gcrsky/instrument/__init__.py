@@ -5,6 +5,7 @@
 - ``polarization``: the cross power beam of each visibility product (``"xx"``, ``"yy"``, ``"pI"``, ...) on each pair of beams
 - ``response``: the response of every baseline and frequency to every mode at the reference angle: a quadrature over HEALPix rings
 - ``response_sht``: the same by healpy transforms (an independent cross-check)
+- ``response_ducc``: the same by ducc0 transforms over the beam's rings only (the default where ducc0 imports)
 - ``redundancy``: groups of identical baselines, verified; unique-row responses
 - ``sources``: the model visibilities of unit-flux point sources at known positions (idealised LSTs or real times)
 """
@@ -57,6 +58,7 @@ from .response import (
     response_matrix,
     sky_grid,
 )
+from .response_ducc import response_matrix_ducc
 from .response_sht import (
     realified_projection,
     response_matrix_sht,
@@ -109,6 +111,7 @@ __all__ = [
     "redundant_groups",
     "redundant_responses",
     "response_matrix",
+    "response_matrix_ducc",
     "response_matrix_sht",
     "sky_grid",
     "source_enu",

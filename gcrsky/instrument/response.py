@@ -44,7 +44,15 @@ from .beams import unique_beams
 from .polarization import baseline_kernels, normalise_pols
 from .skygrid import SkyGrid, equatorial_to_enu, sky_grid
 
-__all__ = ["RESPONSE_SHT_MIN_LMAX", "SkyGrid", "analytic_response", "equatorial_to_enu", "response_matrix", "sky_grid"]
+__all__ = [
+    "RESPONSE_DUCC_MIN_LMAX",
+    "RESPONSE_SHT_MIN_LMAX",
+    "SkyGrid",
+    "analytic_response",
+    "equatorial_to_enu",
+    "response_matrix",
+    "sky_grid",
+]
 
 
 def _fringe_kernel(kern_r, kern_i, kidx, w, phase):
@@ -156,6 +164,12 @@ def _ring_quadrature(lmax, ring_theta, phi, enu, weight, kern_r, kern_i, kidx, b
 #: faster route there: ``benchmarks/scale.py``, section (B)), by rings below it.
 RESPONSE_SHT_MIN_LMAX = 200
 
+#: ``response_matrix(method="auto")`` builds by ducc0 transforms over the beam's rings
+#: (:mod:`gcrsky.instrument.response_ducc`) from this lmax on when ducc0 imports: it was
+#: the fastest route at every size measured (lmax 20..650; ``benchmarks/response_routes.py``),
+#: so 0; the other routes remain by name (and "auto" falls back to them without ducc0).
+RESPONSE_DUCC_MIN_LMAX = 0
+
 
 def response_matrix(
     array: AntennaArray,
@@ -181,15 +195,21 @@ def response_matrix(
         lst_ref_rad: local sidereal angle of the reference grid, radians.
         chunk: pixels per batch of the direct method; memory is
             O(chunk * (lmax+1)**2 + Nf*Nbl*chunk).
-        method: ``"auto"`` (default): ``"sht"`` for ``lmax >=`` :data:`RESPONSE_SHT_MIN_LMAX`,
-            else ``"rings"``; ``"rings"``: the sum factored through HEALPix rings,
+        method: ``"auto"`` (default): ``"ducc"`` for ``lmax >=`` :data:`RESPONSE_DUCC_MIN_LMAX`
+            (every lmax) when ducc0 imports, else ``"sht"`` for ``lmax >=``
+            :data:`RESPONSE_SHT_MIN_LMAX`, else ``"rings"``; ``"ducc"``: ducc0's adjoint
+            synthesis of each row's kernel map over only the HEALPix rings that hold a pixel
+            above ``beam_floor`` (:func:`gcrsky.instrument.response_ducc.response_matrix_ducc`;
+            the same pixels as ``"rings"``; ``chunk`` does not apply);
+            ``"rings"``: the sum factored through HEALPix rings,
             O(Nf Nbl Npix lmax + Nf Nbl Nrings lmax^2); ``"direct"``: every basis map
             on every pixel, O(Nf Nbl Npix lmax^2); ``"sht"``: healpy's transform of
             each baseline's kernel map
             (:func:`gcrsky.instrument.response_sht.response_matrix_sht`, which keeps
             every visible pixel: ``beam_floor`` and ``chunk`` do not apply).  The same
             terms summed in another order (they agree to ~1e-14 relative;
-            ``tests/test_response.py``, ``tests/test_response_sht.py``).
+            ``tests/test_response.py``, ``tests/test_response_sht.py``,
+            ``tests/test_response_ducc.py``).
         beam_floor: pixels where every beam kernel ``|K|`` (all frequencies and
             rows) is at most ``beam_floor`` times its peak are left out of the sum.
             The default 1e-16 drops only terms below float64 rounding of the result
@@ -212,7 +232,11 @@ def response_matrix(
     freqs, pairs, method = _checked_inputs(array, pairs, freqs_hz, lmax, method, beam_floor)
     pols = normalise_pols(pols, pairs.shape[0])
     grid = sky_grid(nside, array.latitude_rad, lst_ref_rad)
-    _check_response_memory(array, pairs, freqs, lmax, grid, pols)
+    _check_response_memory(array, pairs, freqs, lmax, grid, pols, copies=1 if method == "ducc" else 2)
+    if method == "ducc":
+        from .response_ducc import response_matrix_ducc
+
+        return response_matrix_ducc(array, pairs, freqs, lmax, nside, lst_ref_rad, beam_floor=beam_floor, pols=pols)
     if method == "sht":
         from .response_sht import response_matrix_sht
 
@@ -227,6 +251,17 @@ def response_matrix(
     return _direct(int(lmax), int(chunk), grid, kern_r, kern_i, kidx, bvec_wl, weight_pix)
 
 
+def _auto_method(lmax: int) -> str:
+    """``response_matrix(method="auto")``'s route: ``"ducc"`` from :data:`RESPONSE_DUCC_MIN_LMAX`
+    on where ducc0 imports, else ``"sht"`` from :data:`RESPONSE_SHT_MIN_LMAX` on, else ``"rings"``."""
+    if lmax >= RESPONSE_DUCC_MIN_LMAX:
+        from .response_ducc import ducc_available
+
+        if ducc_available():
+            return "ducc"
+    return "sht" if lmax >= RESPONSE_SHT_MIN_LMAX else "rings"
+
+
 def _checked_inputs(array: AntennaArray, pairs, freqs_hz, lmax: int, method: str, beam_floor: float):
     """``(freqs (Nf,), pairs (Nbl, 2), method)`` of :func:`response_matrix`, checked; ``"auto"`` resolved."""
     freqs = np.atleast_1d(np.asarray(freqs_hz, np.float64))
@@ -236,22 +271,26 @@ def _checked_inputs(array: AntennaArray, pairs, freqs_hz, lmax: int, method: str
     nant = array.positions_enu_m.shape[0]
     if pairs.ndim != 2 or pairs.shape[1] != 2 or pairs.min() < 0 or pairs.max() >= nant:
         raise ValueError(f"pairs must be (Nbl, 2) antenna indices in [0, {nant}), got shape {pairs.shape}")
-    if method not in ("auto", "rings", "direct", "sht"):
-        raise ValueError(f"method must be 'auto', 'rings', 'direct' or 'sht', got {method!r}")
+    if method not in ("auto", "rings", "direct", "sht", "ducc"):
+        raise ValueError(f"method must be 'auto', 'rings', 'direct', 'sht' or 'ducc', got {method!r}")
     if method == "auto":
-        method = "sht" if int(lmax) >= RESPONSE_SHT_MIN_LMAX else "rings"
+        method = _auto_method(int(lmax))
     if not (0.0 <= beam_floor < 1.0):
         raise ValueError(f"beam_floor must be in [0, 1), got {beam_floor!r}")
     return freqs, pairs, method
 
 
-def _check_response_memory(array: AntennaArray, pairs, freqs, lmax: int, grid: SkyGrid, pols) -> None:
-    """Refuse a response (result, accumulator, chunk, kernels) larger than the free memory."""
+def _check_response_memory(array: AntennaArray, pairs, freqs, lmax: int, grid: SkyGrid, pols, copies: int = 2) -> None:
+    """Refuse a response (result, accumulator, chunk, kernels) larger than the free memory.
+
+    ``copies``: full-size results held at once (2: the result and the accumulator or the
+    NumPy buffer JAX copies; 1: the ducc route, whose buffer JAX adopts).
+    """
     out_bytes = 16.0 * freqs.size * pairs.shape[0] * n_params(lmax)
     bidx = unique_beams(array.beams)[1]
     nkern = len(set(zip(bidx[pairs[:, 0]].tolist(), bidx[pairs[:, 1]].tolist(), pols or (None,) * len(pairs))))
     check_memory(
-        2 * out_bytes + 16e6 + 32.0 * freqs.size * nkern * grid.theta.size,  # result, accumulator, chunk, kernels
+        copies * out_bytes + 16e6 + 32.0 * freqs.size * nkern * grid.theta.size,  # result, accumulator, chunk, kernels
         f"the response ({freqs.size} freqs x {pairs.shape[0]} baselines x {n_params(lmax)} modes, complex128)",
         "build only the distinct baselines of a redundant array (gcrsky.redundant_responses) or fewer "
         "frequencies per call",
