@@ -40,8 +40,7 @@ hundred orders.
 
 Only ``op.frame is None`` is the m-factorised product itself; with a frame map ``M``
 the frame is applied first (``X a = R rot_t(M a)``, the frame acts before the
-rotation: :func:`~gcrsky.model.operator.to_response_frame` before, and
-:func:`~gcrsky.model.operator.from_response_frame` after the adjoint), exactly as the
+rotation: :func:`to_response_frame` before, :func:`from_response_frame` after the adjoint), exactly as the
 per-time route does.
 
 Everything is traced (angles, response, coefficients): ``jit``, ``vmap``, ``grad`` and
@@ -58,9 +57,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..sphere.frames import FrameMap, apply_frame, transpose_frame
 from ..sphere.modes import lmax_from_nparams, n_alm
 
-__all__ = ["N_LOOPS", "Layout", "adjoint", "apply", "layout", "order_sums", "order_sums_transpose"]
+__all__ = ["N_LOOPS", "Layout", "adjoint", "apply", "from_response_frame", "layout", "order_sums",
+           "order_sums_transpose", "to_response_frame"]
 
 #: Loops over the orders m >= 1, each with its own fixed window (the widest run of its
 #: range): the flops are ``<= (1 + 1/N_LOOPS)`` the minimum; N_LOOPS compiled bodies.
@@ -138,14 +139,14 @@ def order_sums(R: jax.Array, X: jax.Array, lmax: int) -> jax.Array:
     order = jnp.asarray(lay.order)
     X = X.astype(R.real.dtype)
 
+    def part(s, width: int, m):
+        Xw = _masked(X, order, s, width, m)
+        Rw = jax.lax.dynamic_slice_in_dim(R, s, width, axis=-1)
+        return jnp.einsum("fbj,fjc->fbc", Rw.real, Xw) + 1j * jnp.einsum("fbj,fjc->fbc", Rw.imag, Xw)
+
     def one(m, width: int, with_im: bool):
         s_re, s_im = _windows(lay, m, width)
-        Rw = jax.lax.dynamic_slice_in_dim(R, s_re, width, axis=-1)
-        Xw = _masked(X, order, s_re, width, m)
-        if with_im:
-            Rw = jnp.concatenate([Rw, jax.lax.dynamic_slice_in_dim(R, s_im, width, axis=-1)], axis=-1)
-            Xw = jnp.concatenate([Xw, _masked(X, order, s_im, width, m)], axis=-2)
-        return jnp.einsum("fbj,fjc->fbc", Rw.real, Xw) + 1j * jnp.einsum("fbj,fjc->fbc", Rw.imag, Xw)
+        return part(s_re, width, m) + part(s_im, width, m) if with_im else part(s_re, width, m)
 
     outs = [one(0, lmax + 1, False)[None]]
     for lo, hi in lay.ranges:
@@ -195,6 +196,21 @@ def _phases(angles: jax.Array, lmax: int, dtype) -> jax.Array:
     return jnp.stack([jnp.cos(ph), jnp.sin(ph)], axis=-1)
 
 
+def to_response_frame(op, a: jax.Array) -> jax.Array:
+    """``M a`` (``a`` without a frame map), (..., n) -> (..., n_resp); as :func:`gcrsky.model.to_response_frame`
+    (repeated here: :mod:`gcrsky.model.operator` imports this module, not the other way round)."""
+    if op.frame is None:
+        return a
+    return apply_frame(op.frame, a) if isinstance(op.frame, FrameMap) else a @ op.frame.T
+
+
+def from_response_frame(op, b: jax.Array) -> jax.Array:
+    """``M^T b`` (``b`` without a frame map): the transpose of :func:`to_response_frame`."""
+    if op.frame is None:
+        return b
+    return transpose_frame(op.frame, b) if isinstance(op.frame, FrameMap) else b @ op.frame
+
+
 def _flatten(x: jax.Array, tail: int):
     """(..., *tail) -> ((K, *tail), leading shape), K the product of the leading axes (1 if none)."""
     lead = x.shape[: x.ndim - tail]
@@ -209,8 +225,6 @@ def apply(op, a: jax.Array) -> jax.Array:
     ``a`` are a batch of draws: one pass over the response for all of them.  Equal to
     the per-time formula to rounding (``tests/test_mfactor.py``).
     """
-    from .operator import to_response_frame
-
     R = op.response
     nf, nbl, n_resp = R.shape
     a = to_response_frame(op, a)
@@ -232,8 +246,6 @@ def adjoint(op, v: jax.Array) -> jax.Array:
 
     Leading axes are a batch, as in :func:`apply`; a frame map's transpose is applied last.
     """
-    from .operator import from_response_frame
-
     R = op.response
     nf, nbl, n_resp = R.shape
     nt = op.angles.shape[0]
