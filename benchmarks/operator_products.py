@@ -16,14 +16,48 @@ layouts of the per-order sums over l that were tried (see :mod:`gcrsky.model.mfa
 call).
 
 Run: ``GCRSKY_COMPILE_CACHE=off PYTHONPATH=. .venv/bin/python benchmarks/operator_products.py
-[--cases tiny,l100,l300,nt1000] [--variants]`` (about 4 minutes; lmax 300 holds a 0.9 GB
-response, the process peaks at ~3 GB).
+[--cases tiny,l100,l300,nt1000] [--variants]`` (12 minutes here under load, most of it the
+per-time batches at lmax 300; lmax 300 holds a 0.9 GB response, and with ``--variants`` the
+grid layout's 2x R copy took the process to a 6.7 GB peak: leave ``l300`` out of
+``--variants`` runs on a shared machine).
 
-Measured (2026-12-03, this shared 2-core CPU, jax 0.10.2; ms; load average before / after
-in the header: other engineers' jobs were running, so the absolute times are noisy, the
-ratios less so)::
+Measured in one run (2026-12-03 ~05:42-05:54 UTC, this shared 2-core CPU, jax 0.10.2; ms,
+median of 5; the load average (``/proc/loadavg``) before / after is in the header: other
+engineers' jobs were running, so the absolute times are inflated and noisy, the ratios less
+so).  ``old 1`` / ``mfac 1``: one vector; ``old 16`` / ``mfac 16``: 16 draws (old: vmapped;
+mfac: one call); the variants' rows give their one-vector and 16-draw times of ``X a``::
 
-    (filled in below by the run recorded in the commit)
+    load average before 16.61 15.91 10.56, after 8.18 11.16 10.93; jax 0.10.2
+    case    lmax  Nbl    Nt prod        old 1     mfac 1  ratio      old 16     mfac 16  ratio
+    tiny       8    3     5 X a          0.04       0.08   0.53        0.15        0.08   1.78
+    tiny       8    3     5 X^T v        0.04       0.05   0.77        0.15        0.08   1.97
+    tiny       8    3     5 X a          grid       0.04                           2.81        (rel. err 4e-16)
+    tiny       8    3     5 X a           tri       0.05                           0.07        (rel. err 4e-16)
+            m-factorised X a vs per time: max rel. difference 4.5e-16
+    l100     100  630    30 X a         67.14      37.47   1.79      928.69       99.98   9.29
+    l100     100  630    30 X^T v      185.21      46.82   3.96     1127.98      160.02   7.05
+    l100     100  630    30 X a          grid     266.71                         343.38        (rel. err 1e-15)
+    l100     100  630    30 X a           tri     179.98                         197.20        (rel. err 1e-15)
+            m-factorised X a vs per time: max rel. difference 1.3e-15
+    l300     300  630    30 X a        920.82     350.50   2.63    13247.82     1046.88  12.65
+    l300     300  630    30 X^T v     1909.15     484.78   3.94    20770.11     1731.97  11.99
+    l300     300  630    30 X a          grid    4420.22                        5404.06        (rel. err 2e-15)
+    l300     300  630    30 X a           tri    2663.37                        3939.97        (rel. err 2e-15)
+            m-factorised X a vs per time: max rel. difference 1.5e-15
+    nt1000   100   45  1000 X a        724.96      15.83  45.80    10774.41       48.18 223.61
+    nt1000   100   45  1000 X^T v      595.20      12.79  46.54    12467.87       50.69 245.94
+    nt1000   100   45  1000 X a          grid      14.36                          54.93        (rel. err 2e-15)
+    nt1000   100   45  1000 X a           tri      24.22                         105.45        (rel. err 2e-15)
+            m-factorised X a vs per time: max rel. difference 1.5e-15
+
+So the m-factorised products are faster in every case that matters, 1.8-4x for one vector
+at Nt = 30, 7-13x for 16 draws and ~46x (one vector) / ~230x (16 draws) at Nt = 1000;
+the gathered grid and the triangle packing lose to them everywhere except the grid at
+Nt = 1000 (a tie with one vector), because each call writes an R-sized copy.  In the tiny
+case (lmax 8, 3 baselines, 5 times) the m-factorised single product costs ~0.08 ms
+against ~0.04 ms (the loops' fixed overhead), so ``gcrsky.model.apply`` / ``adjoint`` keep
+the per-time formulas unless ``Nt >= 4`` and ``Nt Nbl n >= 2^15``
+(:func:`gcrsky.model.operator.uses_mfactor`).
 """
 
 from __future__ import annotations
