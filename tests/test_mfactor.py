@@ -72,6 +72,22 @@ def test_frame_map_applied_before_rotation():
     assert rel(m_adjoint(op, v), _adjoint_by_time(op, v)) < ALG
 
 
+def test_matrix_free_frame_map():
+    """A :class:`~gcrsky.sphere.FrameMap` (Wigner rotations around random per-m blocks; lmax 4 -> 6)."""
+    from gcrsky.sphere import wigner_blocks
+    from gcrsky.sphere.frames import FrameMap
+
+    rng = np.random.default_rng(30)
+    fm = FrameMap(wigner_blocks(6), jnp.asarray(rng.uniform(0, 3, 3)), jnp.asarray(rng.standard_normal((7, 7, 5))),
+                  jnp.asarray(rng.uniform(0, 3, 3)))
+    base = make_op(31, 6, 4, 7)
+    op = base._replace(frame=fm)
+    a = jnp.asarray(rng.standard_normal((2, 25)))
+    v = rand_v(op, 32)
+    assert rel(m_apply(op, a), _apply_by_time(op, a)) < ALG
+    assert rel(m_adjoint(op, v), _adjoint_by_time(op, v)) < ALG
+
+
 def test_dot_product_identity():
     op = make_op(6, 9, 6, 11)
     a, v = rand_a(op, 7), rand_v(op, 8)
