@@ -5,7 +5,11 @@
 never materialised per time; :func:`dense_matrix` builds it for small problems
 and tests.  The adjoint is the realified transpose: for complex ``v``,
 ``X^T v = sum_t rotate(Re(R^H v_t), -angle_t)`` so that
-``<X a, v> = Re sum conj(v) X a = a . X^T v``.
+``<X a, v> = Re sum conj(v) X a = a . X^T v``.  Both are computed m-factorised
+(:mod:`gcrsky.model.mfactor`: a rotation about the pole is a phase per order m, so the
+sums over l are done once and only the Fourier sums over m per time) except for tiny
+problems (:func:`uses_mfactor`); the per-time formulas stay as ``_apply_by_time`` /
+``_adjoint_by_time``, the tests' reference.
 
 With an optional fixed ``frame`` map ``M`` from the parameters' frame (e.g. ICRS,
 :mod:`gcrsky.sphere.frames`) to the co-rotating one, ``X a = R rotate(M a)`` and the
@@ -23,8 +27,10 @@ import jax.numpy as jnp
 
 from ..sphere.frames import FrameMap, apply_frame, frame_lmax, transpose_frame
 from ..sphere.rotation import rotate
+from . import mfactor
 
-__all__ = ["VisOperator", "apply", "adjoint", "dense_matrix", "response_at", "n_in", "to_response_frame", "from_response_frame", "frame_shape"]
+__all__ = ["VisOperator", "apply", "adjoint", "dense_matrix", "response_at", "n_in", "to_response_frame", "from_response_frame", "frame_shape", "uses_mfactor",
+           "MFACTOR_MIN_TIMES", "MFACTOR_MIN_WORK"]
 
 
 class VisOperator(NamedTuple):
@@ -81,9 +87,64 @@ def from_response_frame(op: VisOperator, b: jax.Array) -> jax.Array:
     return transpose_frame(op.frame, b) if isinstance(op.frame, FrameMap) else b @ op.frame
 
 
+#: The m-factorised products (:mod:`gcrsky.model.mfactor`) are used from this many
+#: times up (and from :data:`MFACTOR_MIN_WORK` up); below, the per-time formulas.
+MFACTOR_MIN_TIMES = 4
+#: ... and from this product ``Nt * Nbl * n`` up (tiny problems are overhead-bound: the
+#: per-time route's one einsum beats the m-factorised loops there).
+MFACTOR_MIN_WORK = 2**15
+
+
+def uses_mfactor(op: VisOperator) -> bool:
+    """Whether :func:`apply` / :func:`adjoint` take the m-factorised route for ``op`` (static shapes).
+
+    The rule (measured in ``benchmarks/operator_products.py``): m-factorised when
+    ``Nt >= MFACTOR_MIN_TIMES`` and ``Nt * Nbl * n_resp >= MFACTOR_MIN_WORK``.
+    """
+    nf, nbl, n = op.response.shape
+    nt = op.angles.shape[0]
+    return nt >= MFACTOR_MIN_TIMES and nt * nbl * n >= MFACTOR_MIN_WORK
+
+
+def _batched(fn, x, tail: int):
+    """``fn`` on (..., *tail) by vmapping over the leading axes (none: ``fn(x)``)."""
+    for _ in range(x.ndim - tail):
+        fn = jax.vmap(fn)
+    return fn(x)
+
+
 @jax.jit
 def apply(op: VisOperator, a: jax.Array) -> jax.Array:
-    """Model visibilities ``X a``: (Nf, n) real -> (Nf, Nt, Nbl) complex."""
+    """Model visibilities ``X a``: (..., Nf, n) real -> (..., Nf, Nt, Nbl) complex.
+
+    Leading axes are a batch of draws.  m-factorised (:func:`gcrsky.model.mfactor.apply`,
+    one pass over the response for the whole batch) when :func:`uses_mfactor`, else the
+    per-time formula (:func:`_apply_by_time`); the two agree to rounding.
+    """
+    _check(op, a)
+    if uses_mfactor(op):
+        return mfactor.apply(op, a)
+    return _batched(lambda x: _apply_by_time(op, x), a, 2)
+
+
+@jax.jit
+def adjoint(op: VisOperator, v: jax.Array) -> jax.Array:
+    """Realified adjoint ``X^T v``: (..., Nf, Nt, Nbl) complex -> (..., Nf, n) real (same routes as :func:`apply`)."""
+    nf, nbl, n = op.response.shape
+    if v.shape[-3:] != (nf, op.angles.shape[0], nbl):
+        raise ValueError(f"visibilities have shape {v.shape}, expected (..., {(nf, op.angles.shape[0], nbl)})")
+    if uses_mfactor(op):
+        return mfactor.adjoint(op, v)
+    return _batched(lambda x: _adjoint_by_time(op, x), v, 3)
+
+
+@jax.jit
+def _apply_by_time(op: VisOperator, a: jax.Array) -> jax.Array:
+    """Reference ``X a`` by rotating ``a`` once per time: (Nf, n) -> (Nf, Nt, Nbl).
+
+    Cost ``~8 Nf Nt Nbl n`` flop, memory Nf Nt n; kept for small problems and as the
+    tests' reference for the m-factorised route.
+    """
     _check(op, a)
     a = to_response_frame(op, a)
     arot = jax.vmap(lambda t: rotate(a, t), out_axes=1)(op.angles)  # (Nf, Nt, n)
@@ -91,8 +152,8 @@ def apply(op: VisOperator, a: jax.Array) -> jax.Array:
 
 
 @jax.jit
-def adjoint(op: VisOperator, v: jax.Array) -> jax.Array:
-    """Realified adjoint ``X^T v``: (Nf, Nt, Nbl) complex -> (Nf, n) real."""
+def _adjoint_by_time(op: VisOperator, v: jax.Array) -> jax.Array:
+    """Reference ``X^T v`` per time: (Nf, Nt, Nbl) -> (Nf, n), ``sum_t rotate(Re(R^H v_t), -t)``."""
     nf, nbl, n = op.response.shape
     if v.shape != (nf, op.angles.shape[0], nbl):
         raise ValueError(f"visibilities have shape {v.shape}, expected {(nf, op.angles.shape[0], nbl)}")
