@@ -31,15 +31,23 @@ its sum over times: exact along changes that keep the noise stationary (a noise 
 any prior or response change), and the m-mode path does not apply anyway once the
 noise varies in time.
 
-Block layout: block m has size ``B = 2 (lmax+1)``; position ``p < lmax+1`` holds
-``Re a_{l=p, m}``, ``p >= lmax+1`` holds ``Im a_{l=p-lmax-1, m}``.  Entries with
-``l < m`` and the Im half of ``m = 0`` are padding: identity rows/columns, decoupled,
-so one batched Cholesky factorises every block.
+Block layout (:func:`mmode_buckets`): block m has ``s_m`` real rows, ``lmax+1`` at m = 0
+(``Re a_l0``) and ``2 (lmax-m+1)`` for m > 0 (``Re``, then ``Im a_lm``, l = m..lmax): all
+blocks together hold ``~(4/3) lmax^3`` entries (2.9 GB at lmax 650).  Consecutive orders
+whose half-size rounds up to the same multiple of ``MModeOptions.bucket`` (at most lmax+1)
+form a bucket, one array (Nf, G, 2H, 2H): the blocks are padded only to their bucket's
+size, with identity rows and columns (decoupled), so one batched Cholesky factorises a
+bucket, and the shapes (one compile each) are as many as the buckets (21 at lmax 650 with
+the default 32, padding 7.5 % of the entries).  Each bucket is built from its own columns
+of R (never the whole padded response) and factorised before the next is built
+(:func:`mmode_factor`); the draws and solves go bucket by bucket.  Memory and its estimate
+before anything is built: :func:`mmode_memory`; measured in ``benchmarks/mmode_scale.py``.
 """
 
 from __future__ import annotations
 
 import functools
+import itertools
 from functools import lru_cache, partial
 from typing import ClassVar, NamedTuple
 
@@ -50,15 +58,16 @@ import numpy as np
 
 from ..base.dtypes import check_float64
 from ..base.memory import format_bytes
-from ..model.operator import n_in
-from ..model.system import LinearSystem, precision_apply, wiener_rhs
-from ..sphere.modes import lmax_from_nparams, mode_table, n_alm
+from ..model.operator import adjoint, n_in
+from ..model.system import LinearSystem, data_apply, precision_apply, wiener_rhs
+from ..sphere.modes import lmax_from_nparams, n_alm
 from .info import DrawInfo, SolveInfo, direct_info, exact_info
 from .options import MModeOptions
 from .path import EvidenceParts, SolverPath, has_flat_prior, is_traced, quadratic_from_state
 
 __all__ = [
     "PRODUCT_BYTES_PER_TIME_MODE",
+    "PRODUCT_CHUNK_BYTES",
     "MModeBlocks",
     "MModeBuckets",
     "MModeCheck",
@@ -76,6 +85,7 @@ __all__ = [
     "mmode_memory",
     "mmode_wiener_and_draws",
     "prepare_mmode",
+    "product_time_chunk",
 ]
 
 
@@ -208,7 +218,7 @@ def mmode_buckets(lmax: int, quantum: int = MModeOptions.bucket) -> MModeBuckets
     H = np.minimum(quantum * -(-K // quantum), M)
     edges = [0] + [m for m in range(1, M) if H[m] != H[m - 1]] + [M]
     out = {k: [] for k in ("orders", "gather", "mask", "scale", "src", "dst")}
-    for m0, m1 in zip(edges[:-1], edges[1:]):
+    for m0, m1 in itertools.pairwise(edges):
         h = int(H[m0])
         gather = np.zeros((m1 - m0, 2 * h), np.int64)
         mask = np.zeros((m1 - m0, 2 * h), bool)
@@ -361,8 +371,17 @@ class MModeState(eqx.Module):
 
 
 def _tri(L, b, trans: bool):
-    """Batched ``L^-1 b`` (``L^-T b`` if ``trans``): L (..., S, S) lower, b (..., S, k)."""
-    return jax.lax.linalg.triangular_solve(L, b, left_side=True, lower=True, transpose_a=trans)
+    """Batched ``L^-1 b`` (``L^-T b`` if ``trans``): L (..., S, S) lower, b (..., S, k).
+
+    One LAPACK ``trsm`` per block (``lax.map`` over the batch): XLA's CPU lowering of a
+    *batched* triangular solve is its own blocked expansion, measured 5x slower to run and
+    slower to compile (32 blocks of 576, 200 right-hand sides: 1.0 s against 0.19 s).
+    """
+    batch = L.shape[:-2]
+    flat = jax.lax.map(lambda lb: jax.lax.linalg.triangular_solve(lb[0], lb[1], left_side=True, lower=True,
+                                                                   transpose_a=trans),
+                       (L.reshape((-1,) + L.shape[-2:]), b.reshape((-1,) + b.shape[len(batch):])))
+    return flat.reshape(b.shape)
 
 
 def block_solve(chol: MModeBlocks, b: jax.Array) -> jax.Array:
@@ -377,16 +396,63 @@ def _all_finite(blocks: MModeBlocks) -> jax.Array:
     return functools.reduce(jnp.logical_and, [jnp.all(jnp.isfinite(a), axis=(1, 2, 3)) for a in blocks.arrays])
 
 
-def _mmode_wiener(system: LinearSystem, L: MModeBlocks, options: MModeOptions):
-    """``a_wf`` through the block factors, with its info from the *true* (matrix-free) residual."""
-    b = wiener_rhs(system)  # (Nf, n), matrix-free O(Nt Nbl n)
+#: Bytes of the matrix-free products (per chunk of times) the Wiener filter may hold at once:
+#: the products run over chunks of :func:`product_time_chunk` times (a sum over times, exact).
+PRODUCT_CHUNK_BYTES = 2**30
+
+
+def product_time_chunk(nf: int, nt: int, n: int, budget: float | None = None) -> int:
+    """Times per chunk of the Wiener filter's products: ``Nt`` if all fit in ``budget`` bytes
+    (default :data:`PRODUCT_CHUNK_BYTES`) at :data:`PRODUCT_BYTES_PER_TIME_MODE` per time and mode."""
+    budget = PRODUCT_CHUNK_BYTES if budget is None else budget
+    return int(max(1, min(nt, budget // (PRODUCT_BYTES_PER_TIME_MODE * nf * n))))
+
+
+def _by_time_chunks(system: LinearSystem, fn, chunk: int) -> jax.Array:
+    """``sum_c fn(system restricted to chunk c of times)`` (Nf, n), by ``lax.scan`` over chunks.
+
+    Exact for any ``fn`` that is a sum over times (``X^T W d``, ``X^T W X a``): the last chunk
+    is padded with zero weight, zero data and angle 0, which add nothing.  ``chunk >= Nt``:
+    ``fn(system)`` itself.
+    """
+    nt = system.op.angles.shape[0]
+    if chunk >= nt:
+        return fn(system)
+    nc = -(-nt // chunk)
+
+    def split(x, axis):  # (..., Nt, ...) -> (nc, ..., chunk, ...), zero-padded
+        x = jnp.pad(x, [(0, nc * chunk - nt) if i == axis else (0, 0) for i in range(x.ndim)])
+        return jnp.moveaxis(x.reshape(x.shape[:axis] + (nc, chunk) + x.shape[axis + 1:]), axis, 0)
+
+    def body(acc, c):
+        ang, d, w = c
+        return acc + fn(system._replace(op=system.op._replace(angles=ang), data=d, inv_noise=w)), None
+
+    xs = (split(system.op.angles, 0), split(system.data, 1), split(system.inv_noise, 1))
+    return jax.lax.scan(body, jnp.zeros(system.prior.inv_var.shape, system.prior.inv_var.dtype), xs)[0]
+
+
+def _mmode_wiener(system: LinearSystem, L: MModeBlocks, options: MModeOptions, chunk: int):
+    """``a_wf`` through the block factors, with its info from the *true* (matrix-free) residual.
+
+    ``b`` and ``P x`` are the matrix-free :func:`~gcrsky.model.wiener_rhs` and
+    :func:`~gcrsky.model.precision_apply` (``O(Nf Nt Nbl n)`` flop); where ``chunk < Nt``, their
+    data parts are summed over chunks of ``chunk`` times (:func:`_by_time_chunks`) so that they
+    hold ``O(Nf chunk n)`` memory.
+    """
+    prior = system.prior
+    if chunk >= system.op.angles.shape[0]:
+        b, P = wiener_rhs(system), partial(precision_apply, system)
+    else:
+        b = _by_time_chunks(system, lambda s: adjoint(s.op, s.inv_noise * s.data), chunk) + prior.inv_var * prior.mean
+        P = lambda x: _by_time_chunks(system, lambda s: data_apply(s, x), chunk) + prior.inv_var * x
     Lc = jax.lax.stop_gradient(L)
     # Implicit differentiation against the true (matrix-free) P: the derivative is that of
     # the true posterior mean, for any change of the system (the blocks' own derivative
     # would miss what a time-varying noise change adds off the block diagonal).
-    solve = lambda mv, rhs: block_solve(Lc, rhs)  # noqa: E731
-    a_wf = jax.lax.custom_linear_solve(lambda x: precision_apply(system, x), b, solve, symmetric=True)
-    r = jax.lax.stop_gradient(b - precision_apply(system, a_wf))
+    solve = lambda mv, rhs: block_solve(Lc, rhs)
+    a_wf = jax.lax.custom_linear_solve(P, b, solve, symmetric=True)
+    r = jax.lax.stop_gradient(b - P(a_wf))
     err = jnp.sqrt(jnp.abs(jnp.sum(r * block_solve(Lc, r), axis=-1)))
     rel = jnp.linalg.norm(r, axis=-1) / jnp.linalg.norm(jax.lax.stop_gradient(b), axis=-1)
     info = direct_info(err, rel, _all_finite(Lc), options.tol)
@@ -396,19 +462,24 @@ def _mmode_wiener(system: LinearSystem, L: MModeBlocks, options: MModeOptions):
     return a_wf, info
 
 
-_mmode_wiener_jit = partial(jax.jit, static_argnames=("options",))(_mmode_wiener)
+def _chunk_of(system: LinearSystem) -> int:
+    nf, nt, _ = system.data.shape
+    return product_time_chunk(int(nf), int(nt), int(system.prior.inv_var.shape[1]))
+
+
+_mmode_wiener_jit = partial(jax.jit, static_argnames=("options", "chunk"))(_mmode_wiener)
 
 
 def _prepare(system: LinearSystem, options: MModeOptions) -> MModeState:
     L = mmode_factor(system, options.bucket)  # bucket by bucket (one bucket's transients at a time)
-    a_wf, info = _mmode_wiener_jit(system, L, options)
+    a_wf, info = _mmode_wiener_jit(system, L, options, _chunk_of(system))
     return MModeState(system, a_wf, info, L, options)
 
 
 @jax.jit
 def _condition(state: MModeState, data: jax.Array) -> MModeState:
     system = state.system._replace(data=jnp.asarray(data, state.system.data.dtype))
-    a_wf, info = _mmode_wiener(system, state.chol, state.options)
+    a_wf, info = _mmode_wiener(system, state.chol, state.options, _chunk_of(system))
     return MModeState(system, a_wf, info, state.chol, state.options)
 
 
@@ -438,8 +509,9 @@ def prepare_mmode(system: LinearSystem, options: MModeOptions | None = None, *, 
 def draw_mmode(key: jax.Array, prepared: MModeState, ndraws: int):
     """``ndraws`` exact posterior draws ``a_wf + L_m^-T z`` bucket by bucket (batched triangular solves).
 
-    Bucket b's normals come from ``fold_in(key, b)``; each bucket's (Nf, G, 2H, ndraws) solve is
-    added into the output in turn, so the transients beyond the output are one bucket's.
+    The normals are one (Nf, sum_b G_b 2H_b, ndraws) array from ``key``, bucket b taking its
+    ``G_b 2H_b`` rows in turn (one random-number program: one per bucket took most of the
+    compile); each bucket's solve is added into the output in turn.
 
     Returns:
         draws (Nf, ndraws, n) in the realified layout; a :class:`~gcrsky.solvers.DrawInfo`
@@ -448,10 +520,12 @@ def draw_mmode(key: jax.Array, prepared: MModeState, ndraws: int):
     L, a_wf = prepared.chol, prepared.a_wf
     nf, n = a_wf.shape
     lay = L.layout
+    rows = [Lb.shape[1] * Lb.shape[2] for Lb in L.arrays]
+    z = jax.random.normal(key, (nf, sum(rows), ndraws), a_wf.dtype)
     out = jnp.broadcast_to(a_wf[:, None, :], (nf, ndraws, n))
-    for b, (Lb, src, dst) in enumerate(zip(L.arrays, lay.src, lay.dst)):
-        z = jax.random.normal(jax.random.fold_in(key, b), Lb.shape[:3] + (ndraws,), a_wf.dtype)
-        delta = jnp.moveaxis(_tri(Lb, z, True), -1, 1)  # (Nf, ndraws, G, 2H)
+    for Lb, start, size, src, dst in zip(L.arrays, np.cumsum([0, *rows]), rows, lay.src, lay.dst):
+        zb = jax.lax.slice_in_dim(z, int(start), int(start) + size, axis=1).reshape(Lb.shape[:3] + (ndraws,))
+        delta = jnp.moveaxis(_tri(Lb, zb, True), -1, 1)  # (Nf, ndraws, G, 2H)
         out = out.at[..., dst].add(delta.reshape(nf, ndraws, -1)[..., src])
     finite = jnp.all(jnp.isfinite(out), axis=-1)
     return out, DrawInfo(prepared.wiener, exact_info(prepared.wiener, finite, (nf, ndraws)), a_wf)
@@ -465,10 +539,11 @@ def mmode_wiener_and_draws(key: jax.Array, system: LinearSystem, ndraws: int, op
 # ---------------------------------------------------------------- memory
 
 
-#: Bytes per entry of today's matrix-free products (``wiener_rhs``, ``precision_apply``):
-#: measured 6.2 times ``8 Nf Nt n`` at lmax 300, Nt 601, 630 baselines (the rotated copies
-#: ``(Nf, Nt, n)`` of :func:`gcrsky.model.operator.apply` / ``adjoint`` and their complex casts).
-PRODUCT_BYTES_PER_TIME_MODE = 7 * 8
+#: Bytes per time and mode of today's matrix-free products (``wiener_rhs``, ``precision_apply``):
+#: measured 6.2 x 8 for one right-hand side over all times (lmax 300, Nt 601, 630 baselines) and
+#: 9.9 x 8 for the Wiener step over chunks of 211 times (lmax 300, 165 baselines): the rotated
+#: copies (Nf, Nt, n) of :func:`gcrsky.model.operator.apply` / ``adjoint``, their complex casts.
+PRODUCT_BYTES_PER_TIME_MODE = 12 * 8
 
 
 class MModeMemory(NamedTuple):
@@ -478,9 +553,11 @@ class MModeMemory(NamedTuple):
         factors: the Cholesky factors of all buckets (kept in the state).
         build: the largest bucket's transients while it is built and factorised (its
             columns of R, real and imaginary parts, their weighted copies, the blocks).
-        products: the matrix-free ``wiener_rhs`` / ``precision_apply`` of the Wiener filter
-            and its residual check (:data:`PRODUCT_BYTES_PER_TIME_MODE` per time and mode).
-        draws: ``ndraws`` draws: the output (Nf, ndraws, n), its update and one bucket's normals.
+        products: the matrix-free products of the Wiener filter and its residual check
+            (:data:`PRODUCT_BYTES_PER_TIME_MODE` per time and mode, over chunks of
+            :func:`product_time_chunk` times).
+        draws: ``ndraws`` draws: the output (Nf, ndraws, n) and its update, all normals, one
+            bucket's solve.
     """
 
     factors: float
@@ -506,9 +583,9 @@ def mmode_memory(nf: int, nbl: int, nt: int, lmax: int, ndraws: int = 1,
     n = (lmax + 1) ** 2
     factors = 8.0 * nf * lay.padded_entries
     build = max(8.0 * nf * (8 * nbl * g * s + 5 * g * s * s) for g, s in lay.shapes)
-    products = float(PRODUCT_BYTES_PER_TIME_MODE) * nf * nt * n
+    products = float(PRODUCT_BYTES_PER_TIME_MODE) * nf * product_time_chunk(nf, nt, n) * n
     gs = max(g * s for g, s in lay.shapes)
-    draws = 8.0 * nf * max(1, ndraws) * (2 * n + 3 * gs)
+    draws = 8.0 * nf * max(1, ndraws) * (2 * n + sum(g * s for g, s in lay.shapes) + 3 * gs)
     return MModeMemory(factors, build, products, draws)
 
 
