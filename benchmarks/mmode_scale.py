@@ -23,7 +23,29 @@ response is built) over the set-up and the draws; ``est_GB`` the estimate made b
 building anything: the resident memory then (runtime and system) plus
 :func:`gcrsky.solvers.mmode.mmode_memory` (``MModePath.memory_bytes``).
 
-Measured: see the tables at the end of this docstring (filled in by hand from the runs).
+Measured 2026-12-03 on this repository's machine (2 shared cores, CPU JAX float64, one
+OpenBLAS thread, XLA's safe threading), with other engineers' jobs loading it heavily
+(``cat /proc/loadavg`` at the start / end: ``6.87 11.27 10.96`` / ``11.73 11.53 11.11``)::
+
+    lmax  n       Nbl  Nt    response_s  setup_s (blocks + wiener)  draws200_s  peak_GB  est_GB  buckets  waste  chunk
+    300   90601   165  601   4.5            57.6 (19.0 + 38.6)         9.4         2.13     3.10    10       0.160  123
+    400   160801  165  801   5.3            97.0 (14.7 + 82.3)         19.2        3.68     4.81    13       0.120  69
+
+    stage peaks (resident before 0.54 / 1.05 GB): blocks 1.04 / 1.92, wiener 1.83 / 2.86, draws 2.13 / 3.68 GB
+
+(random 165-row responses, ``python benchmarks/mmode_scale.py``; ``est_GB`` is the final
+formula, the stages summed, on the same run's resident size: the run itself printed 1.95 /
+2.89 GB from an earlier formula, factors plus the largest stage, which the peaks exceeded.)
+The Wiener step is the three matrix-free products (``O(Nt Nbl n)`` each); the blocks at
+lmax 400 (14.7 s) are mostly compiles (13 buckets) and LAPACK.
+
+lmax 650, ``--real``: the 630 unique rows (nside 512, SHT route) took 578.7 s with a process
+peak of 13.40 GB during the response build (load ~8-10, another engineer's lmax-650 response
+build running alongside); the set-up that followed was killed by the kernel's OOM killer
+at 12.8 GB resident when another job on the machine reached 16.4 GB (24 GB shared, no swap).
+The estimate for that case (``--estimate 650 630 1301``): R 4.27 GB; factors 3.16 GB (21
+buckets, padding 7.5 %), build 3.75, products 1.06 (chunks of 26 times), draws 2.26 GB:
+10.23 GB beyond the system and the runtime.
 """
 
 from __future__ import annotations
@@ -171,6 +193,7 @@ def main(argv=None) -> int:
     ap.add_argument("--lmax", type=int, nargs="*", default=None)
     ap.add_argument("--nbl", type=int, default=165, help="rows of the random response (small cases)")
     ap.add_argument("--nside", type=int, default=512)
+    ap.add_argument("--random", action="store_true", help="with --real: a random response of the same shape")
     ap.add_argument("--estimate", type=int, nargs=3, metavar=("LMAX", "NBL", "NT"))
     args = ap.parse_args(argv)
     use_safe_cpu_threading()
@@ -190,7 +213,10 @@ def main(argv=None) -> int:
     print(f"load {loadavg()}", flush=True)
     lmaxes = args.lmax or ([650] if args.real else [300, 400])
     for i, lmax in enumerate(lmaxes):
-        R, rs = real_response(lmax, args.nside) if args.real else random_response(lmax, args.nbl)
+        if args.real and not args.random:
+            R, rs = real_response(lmax, args.nside)
+        else:
+            R, rs = random_response(lmax, 630 if args.real else args.nbl)
         print(f"lmax {lmax}: response {rs:.1f} s, peak so far {hwm_bytes() / GB:.2f} GB", flush=True)
         print_row(run_case(R, rs), header=i == 0)
         del R
