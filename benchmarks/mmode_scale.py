@@ -43,6 +43,14 @@ lmax 650, ``--real``: the 630 unique rows (nside 512, SHT route) took 578.7 s wi
 peak of 13.40 GB during the response build (load ~8-10, another engineer's lmax-650 response
 build running alongside); the set-up that followed was killed by the kernel's OOM killer
 at 12.8 GB resident when another job on the machine reached 16.4 GB (24 GB shared, no swap).
+A second try on a random response of the same shape (``--real --random``, 06:17 UTC, load
+``5.13 7.74 9.38``; the response 18.7 s, 9.9 GB peak for the random generation) was
+OOM-killed the same way at 12.6 GB resident, about 6 min into the blocks, when another
+engineer's 10.5 GB job started.  So lmax 650 is not measured here; from the rows above
+(products 5.1e11 flop in 82 s at lmax 400: 6 GFlop/s under this load) its three products
+(8.3e12 flop) would take ~22 min under load (~4 min at the 37 GFlop/s one unchunked product
+reached at load ~3, lmax 300, 630 rows), the blocks' 1.0e12 flop of Gram products and
+1.2e11 of Cholesky some 4-8 min, the draws (4x lmax 400's block entries) ~1-1.5 min.
 The estimate for that case (``--estimate 650 630 1301``): R 4.27 GB; factors 3.16 GB (21
 buckets, padding 7.5 %), build 3.75, products 1.06 (chunks of 26 times), draws 2.26 GB:
 10.23 GB beyond the system and the runtime.
