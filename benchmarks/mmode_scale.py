@@ -45,12 +45,19 @@ build running alongside); the set-up that followed was killed by the kernel's OO
 at 12.8 GB resident when another job on the machine reached 16.4 GB (24 GB shared, no swap).
 A second try on a random response of the same shape (``--real --random``, 06:17 UTC, load
 ``5.13 7.74 9.38``; the response 18.7 s, 9.9 GB peak for the random generation) was
-OOM-killed the same way at 12.6 GB resident, about 6 min into the blocks, when another
-engineer's 10.5 GB job started.  So lmax 650 is not measured here; from the rows above
-(products 5.1e11 flop in 82 s at lmax 400: 6 GFlop/s under this load) its three products
-(8.3e12 flop) would take ~22 min under load (~4 min at the 37 GFlop/s one unchunked product
-reached at load ~3, lmax 300, 630 rows), the blocks' 1.0e12 flop of Gram products and
-1.2e11 of Cholesky some 4-8 min, the draws (4x lmax 400's block entries) ~1-1.5 min.
+OOM-killed the same way at 12.6 GB resident, about 6 min into the set-up (past the blocks,
+which take ~1 min: below, so in the Wiener products), when another engineer's 10.5 GB job
+started.  Then the blocks and the draws alone (06:27 UTC, a script doing
+:func:`mmode_factor` and ``draw_mmode``'s loop with ``a_wf = 0``, no Wiener filter; load
+``7.18 10.62 10.40`` / ``10.03 10.70 10.46``) on a random (1, 630, 423801) response::
+
+    lmax 650, Nbl 630, Nt 1301: resident before 4.61 GB; blocks + factors 67.5 s (21 buckets,
+    compiles included), peak 8.34 GB; 200 draws 16.2 s (compile included), peak 12.42 GB
+
+against the estimate 4.61 + 10.23 = 14.84 GB.  The Wiener step (three products) is not
+measured at lmax 650; from the rows above (5.1e11 flop in 82 s at lmax 400: 6 GFlop/s under
+this load) its 8.3e12 flop would take ~22 min under load, ~4 min at the 37 GFlop/s one
+unchunked product reached at load ~3 (lmax 300, 630 rows).
 The estimate for that case (``--estimate 650 630 1301``): R 4.27 GB; factors 3.16 GB (21
 buckets, padding 7.5 %), build 3.75, products 1.06 (chunks of 26 times), draws 2.26 GB:
 10.23 GB beyond the system and the runtime.
