@@ -19,8 +19,14 @@ from scipy import stats
 
 from gcrsky.instrument import antpairs, response_matrix
 from gcrsky.model import LinearSystem, VisOperator, isotropic_prior, precision_matrix, wiener_rhs
-from gcrsky.solvers import draw_mmode, mmode_blocks, mmode_check, prepare_mmode
-from gcrsky.solvers.mmode import blocks_to_dense, is_mmode_diagonal, mmode_wiener_and_draws
+from gcrsky.solvers import MModeOptions, draw_mmode, mmode_blocks, mmode_check, prepare_mmode
+from gcrsky.solvers.mmode import (
+    block_solve,
+    blocks_to_dense,
+    is_mmode_diagonal,
+    mmode_buckets,
+    mmode_wiener_and_draws,
+)
 from gcrsky.sphere import lmax_from_nparams, mode_table
 
 #: total false-alarm rate of the statistical test of the draws, split over its parts
@@ -60,9 +66,12 @@ def test_blocks_equal_dense_precision(system, dense_P, small_response):
     data_P = dense_P - prior_diag
     # the data term is not negligible next to the prior (else the test would be vacuous)
     assert np.abs(data_P).max() > 0.1 * np.asarray(system.prior.inv_var).max()
-    blocks = np.asarray(mmode_blocks(system))
+    bb = mmode_blocks(system)
+    # lmax 6 < the default quantum: one bucket of every order, padded to lmax+1 per half
+    assert len(bb.arrays) == 1
+    blocks = np.asarray(bb.arrays[0])
     assert blocks.shape == (2, lmax + 1, 2 * (lmax + 1), 2 * (lmax + 1))
-    Pb = blocks_to_dense(blocks)
+    Pb = blocks_to_dense(bb)
     rel = np.abs(Pb - dense_P).max() / np.abs(dense_P).max()
     rel_data = np.abs((Pb - prior_diag) - data_P).max() / np.abs(data_P).max()
     assert rel < 1e-10 and rel_data < 1e-10, (rel, rel_data)
@@ -76,6 +85,49 @@ def test_blocks_equal_dense_precision(system, dense_P, small_response):
     assert np.all(blocks[:, 0, lmax + 1 :, lmax + 1 :] == np.eye(lmax + 1))
 
 
+@pytest.mark.parametrize("lmax,quantum", [(12, 4), (20, 8), (20, 3)])
+def test_bucketed_blocks_equal_dense_precision(small_array, lmax, quantum):
+    """Several buckets with padding: the blocks are P's m-blocks to 1e-12, padding is identity and
+    decoupled, and the Wiener filter, the draws' whitening and the log det agree with the dense P."""
+    pairs = antpairs(small_array.positions_enu_m.shape[0])
+    sysl = full_day_system(response_matrix(small_array, pairs, np.array([100e6, 110e6]), lmax, 32))
+    lay = mmode_buckets(lmax, quantum)
+    assert len(lay.orders) >= 3 and lay.waste > 0  # several buckets, some padded
+    assert lay.orders[0][0] == 0 and lay.orders[-1][1] == lmax + 1
+    bb = mmode_blocks(sysl, quantum)
+    assert [a.shape[1:] for a in bb.arrays] == [(g, s, s) for g, s in lay.shapes]
+    P = np.asarray(precision_matrix(sysl))
+    Pb = blocks_to_dense(bb)
+    assert np.abs(Pb - P).max() < 1e-12 * np.abs(P).max()
+    for a, mask in zip(bb.arrays, lay.mask):
+        a = np.asarray(a)
+        pad = ~mask[None, :, :, None] | ~mask[None, :, None, :]
+        eye = np.broadcast_to(np.eye(a.shape[-1], dtype=bool), a.shape)
+        assert np.all(a[pad & eye] == 1.0) and np.all(a[pad & ~eye] == 0.0)
+    # through the factors: Wiener filter, whitened draws and log det against the dense P
+    opts = MModeOptions(bucket=quantum)
+    prep = prepare_mmode(sysl, opts)
+    ref = np.linalg.solve(P, np.asarray(wiener_rhs(sysl))[..., None])[..., 0]
+    err = np.asarray(prep.a_wf) - ref
+    assert np.all(np.sqrt(np.einsum("fi,fij,fj->f", err, P, err)) < 1e-8)
+    x = np.asarray(block_solve(prep.chol, jnp.asarray(P[:, :, 0] * 0 + np.arange(P.shape[1]))))
+    np.testing.assert_allclose(np.einsum("fij,fj->fi", P, x), np.broadcast_to(np.arange(P.shape[1]), x.shape),
+                               rtol=0, atol=1e-9 * P.shape[1])
+    draws, info = draw_mmode(jax.random.PRNGKey(3), prep, 4)
+    assert np.all(np.asarray(info.draws.converged))
+    # L_m^-T z has covariance P^-1 exactly: P^1/2-whitening the draws gives back unit normals of the
+    # same norm, i.e. (x - a_wf)^T P (x - a_wf) = |z|^2 summed over the buckets' real entries
+    d = np.asarray(draws) - np.asarray(prep.a_wf)[:, None, :]
+    quad = np.einsum("fdi,fij,fdj->fd", d, P, d)
+    z = np.asarray(jax.random.normal(jax.random.PRNGKey(3), (2, sum(g * s for g, s in lay.shapes), 4)))
+    real = np.concatenate([m.ravel() for m in lay.mask])
+    zsq = np.sum(z[:, real] ** 2, axis=1)
+    np.testing.assert_allclose(quad, zsq, rtol=1e-9)
+    logdet = np.linalg.slogdet(P)[1]
+    got = sum(np.sum(np.log(np.diagonal(np.asarray(a), axis1=-2, axis2=-1)), axis=(1, 2)) for a in prep.chol.arrays)
+    np.testing.assert_allclose(2 * got, logdet, rtol=1e-12)
+
+
 def test_wiener_filter_equals_dense_solve(system, dense_P):
     prep = prepare_mmode(system)
     b = np.asarray(wiener_rhs(system))
@@ -86,6 +138,20 @@ def test_wiener_filter_equals_dense_solve(system, dense_P):
     assert np.all(err_sigma < 1e-8), err_sigma
     assert np.all(np.asarray(prep.wiener.converged))
     assert np.all(np.asarray(prep.wiener.err_sigma) < 1e-8)
+
+
+def test_wiener_over_time_chunks_equals_one_chunk(system):
+    """The matrix-free products summed over chunks of times (the last one padded with zero weight)
+    give the same Wiener filter and residual as over all times at once."""
+    from gcrsky.solvers.mmode import _mmode_wiener, mmode_factor, product_time_chunk
+
+    nt = system.op.angles.shape[0]
+    assert product_time_chunk(2, nt, 49) == nt and product_time_chunk(2, nt, 49, budget=1.0) == 1
+    L = mmode_factor(system)
+    a1, _ = _mmode_wiener(system, L, MModeOptions(), nt)
+    a4, i4 = _mmode_wiener(system, L, MModeOptions(), 4)  # 17 times: 5 chunks, the last padded
+    assert np.abs(np.asarray(a4 - a1)).max() < 1e-12 * np.abs(np.asarray(a1)).max()
+    assert np.all(np.asarray(i4.converged)) and np.all(np.asarray(i4.err_sigma) < 1e-8)
 
 
 def test_draws_have_exact_covariance(system, dense_P):

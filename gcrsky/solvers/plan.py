@@ -12,7 +12,8 @@ Paths (all exact; they differ only in cost):
 
 * ``"mmode"``: uniform full-day coverage with time-stationary noise and no frame map
   (:func:`gcrsky.solvers.mmode.mmode_check`): P is block-diagonal in m; blocks cost
-  ``O(Nf Nbl lmax^3)`` to build and ``8 Nf (lmax+1) (2 lmax+2)^2`` bytes.
+  ``O(Nf Nbl lmax^3)`` to build and ``~(32/3) Nf lmax^3`` bytes, built and factorised by
+  buckets of orders (:func:`gcrsky.solvers.mmode.mmode_memory`).
 * ``"cholesky"``: dense ``P`` built once by m-blocks (``~8 Nf Nbl n^2`` flop whatever
   Nt, :func:`gcrsky.model.precision_matrix`; ``8 Nf n^2`` bytes, three times that with
   its factor and ``L^-T``, twice for ``n >`` :data:`~gcrsky.solvers.dense.CHOLESKY_INVERSE_MAX_N`
