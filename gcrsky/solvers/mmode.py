@@ -58,7 +58,7 @@ import numpy as np
 
 from ..base.dtypes import check_float64
 from ..base.memory import format_bytes
-from ..model.operator import adjoint, n_in
+from ..model.operator import MFACTOR_MIN_TIMES, MFACTOR_MIN_WORK, adjoint, n_in, uses_mfactor
 from ..model.system import LinearSystem, data_apply, precision_apply, wiener_rhs
 from ..sphere.modes import lmax_from_nparams, n_alm
 from .info import DrawInfo, SolveInfo, direct_info, exact_info
@@ -463,7 +463,11 @@ def _mmode_wiener(system: LinearSystem, L: MModeBlocks, options: MModeOptions, c
 
 
 def _chunk_of(system: LinearSystem) -> int:
+    """All times at once on the m-factorised products (their memory does not grow with ``Nt n``); else
+    :func:`product_time_chunk`."""
     nf, nt, _ = system.data.shape
+    if uses_mfactor(system.op):
+        return int(nt)
     return product_time_chunk(int(nf), int(nt), int(system.prior.inv_var.shape[1]))
 
 
@@ -585,7 +589,11 @@ def mmode_memory(nf: int, nbl: int, nt: int, lmax: int, ndraws: int = 1,
     n = (lmax + 1) ** 2
     factors = 8.0 * nf * lay.padded_entries
     build = max(8.0 * nf * (8 * nbl * g * s + 5 * g * s * s) for g, s in lay.shapes)
-    products = float(PRODUCT_BYTES_PER_TIME_MODE) * nf * product_time_chunk(nf, nt, n) * n
+    if nt >= MFACTOR_MIN_TIMES and nt * nbl * n >= MFACTOR_MIN_WORK:  # m-factorised products (all times at once):
+        # one order's window of R (complex, and its cotangent), U and W per order, the visibilities, a few vectors
+        products = 8.0 * nf * (8 * nbl * (lmax + 1) + 8 * nbl * (lmax + 1) + 4 * nt * nbl + 6 * n)
+    else:
+        products = float(PRODUCT_BYTES_PER_TIME_MODE) * nf * product_time_chunk(nf, nt, n) * n
     gs = max(g * s for g, s in lay.shapes)
     draws = 8.0 * nf * max(1, ndraws) * (2 * n + sum(g * s for g, s in lay.shapes) + 3 * gs)
     return MModeMemory(factors, build, products, draws)
