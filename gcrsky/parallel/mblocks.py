@@ -1,0 +1,165 @@
+"""The m-mode path's blocks split over devices: each bucket of orders built, factorised and solved on its own.
+
+Uniform full-day coverage makes P block-diagonal in m (:mod:`gcrsky.solvers.mmode`), and the
+path stores its blocks by *buckets* of consecutive orders (:func:`gcrsky.solvers.mmode.mmode_buckets`).
+The buckets share nothing but the response, so they split over devices without communication:
+bucket ``i`` goes to ``devices[i % len(devices)]``, which receives a copy of the response, the
+noise sums and the prior (each device gathers only its buckets' columns from it), builds and
+factorises its blocks there (:func:`mmode_factor_on`), and keeps the factors.  The solves and the
+draws run bucket by bucket on the devices that hold them, with the right-hand sides and the
+normals cut from the same arrays as on one device and the results gathered back: the numbers are
+those of :func:`gcrsky.solvers.prepare_mmode` / :func:`~gcrsky.solvers.draw_mmode` (the same
+operations on the same inputs; tested equal to 1e-13 with 2 forced host devices in
+``tests/test_parallel_mblocks.py``).
+
+The Wiener filter's right-hand side and its true-residual check (matrix-free products over every
+time) run on the first device; shard the baselines (:func:`gcrsky.parallel.shard_system`) to split
+those too.  Not traced as a whole (host orchestration over devices): :func:`prepare_mmode_on` takes
+concrete arrays, and the state it returns is for :func:`draw_mmode_on`, not for the single-device
+functions' jitted code.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..base.dtypes import check_float64
+from ..model.system import LinearSystem, precision_apply, wiener_rhs
+from ..solvers.info import DrawInfo, SolveInfo, direct_info, exact_info
+from ..solvers.mmode import (
+    MModeBlocks,
+    _bucket_factor_jit,
+    _from_buckets,
+    _to_buckets,
+    _tri,
+    mmode_buckets,
+    mmode_check,
+)
+from ..solvers.options import MModeOptions
+from ..sphere.modes import lmax_from_nparams
+
+__all__ = ["MModeSplitState", "bucket_devices", "draw_mmode_on", "mmode_factor_on", "prepare_mmode_on"]
+
+
+class MModeSplitState(NamedTuple):
+    """The m-mode path set up over several devices (:func:`prepare_mmode_on`).
+
+    Attributes:
+        system: the linear system (on the first device).
+        a_wf: (Nf, n) Wiener filter (first device).
+        wiener: its SolveInfo (Nf,), from the true matrix-free residual.
+        chol: :class:`~gcrsky.solvers.mmode.MModeBlocks` whose bucket ``i`` lives on ``devices[i % len(devices)]``.
+        devices: the devices, in order.
+    """
+
+    system: LinearSystem
+    a_wf: jax.Array
+    wiener: SolveInfo
+    chol: MModeBlocks
+    devices: tuple
+
+
+def bucket_devices(nbuckets: int, devices: Sequence) -> list:
+    """The device of each bucket: round robin, ``devices[i % len(devices)]``."""
+    devices = list(devices)
+    if not devices:
+        raise ValueError("bucket_devices needs at least one device")
+    return [devices[i % len(devices)] for i in range(int(nbuckets))]
+
+
+def mmode_factor_on(system: LinearSystem, devices: Sequence, bucket: int = MModeOptions.bucket) -> MModeBlocks:
+    """:func:`gcrsky.solvers.mmode.mmode_factor` with bucket ``i`` built and factorised on ``devices[i % D]``.
+
+    Every device gets one copy of the response ``(Nf, Nbl, n)``, the noise sums and the prior's inverse
+    variances; the buckets are dispatched in turn (asynchronously, so the devices work at once).
+    """
+    op = system.op
+    if op.frame is not None:
+        raise ValueError("the m-blocks need op.frame is None (a frame map couples m)")
+    lay = mmode_buckets(lmax_from_nparams(op.response.shape[2]), bucket)
+    w = jnp.sum(system.inv_noise, axis=1)
+    where = bucket_devices(len(lay.gather), devices)
+    inputs = {d: jax.device_put((op.response, w, system.prior.inv_var), d) for d in dict.fromkeys(where)}
+    arrays = tuple(_bucket_factor_jit(*inputs[d], *jax.device_put((jnp.asarray(g), jnp.asarray(mk), jnp.asarray(sc)), d))
+                   for d, g, mk, sc in zip(where, lay.gather, lay.mask, lay.scale))
+    return MModeBlocks(arrays, lay.lmax, lay.quantum)
+
+
+@jax.jit
+def _solve_bucket(L: jax.Array, g: jax.Array) -> jax.Array:
+    return _tri(L, _tri(L, g[..., None], False), True)[..., 0]
+
+
+def _block_solve_on(chol: MModeBlocks, b: jax.Array) -> jax.Array:
+    """``P^-1 b`` (Nf, n) through factors that live on several devices; the result on b's device."""
+    home = next(iter(b.devices()))
+    pieces = [_solve_bucket(L, jax.device_put(g, next(iter(L.devices())))) for L, g in
+              zip(chol.arrays, _to_buckets(b, chol.layout))]
+    return _from_buckets([jax.device_put(p, home) for p in pieces], chol.layout, jnp.zeros_like(b))
+
+
+@partial(jax.jit, static_argnames=("tol",))
+def _wiener_info(system: LinearSystem, a_wf: jax.Array, b: jax.Array, Pinv_r_dot: jax.Array, finite, tol: float):
+    r = b - precision_apply(system, a_wf)
+    err = jnp.sqrt(jnp.abs(Pinv_r_dot))
+    rel = jnp.linalg.norm(r, axis=-1) / jnp.linalg.norm(b, axis=-1)
+    return direct_info(err, rel, finite, tol)
+
+
+def prepare_mmode_on(system: LinearSystem, devices: Sequence | None = None,
+                     options: MModeOptions | None = None) -> MModeSplitState:
+    """:func:`gcrsky.solvers.prepare_mmode` with the blocks split over ``devices`` (default: all local ones).
+
+    Raises ``ValueError`` naming the reason unless :func:`gcrsky.solvers.mmode_check` passes.  The Wiener
+    filter is ``P^-1 b`` through the factors (as on one device), judged by its true matrix-free residual.
+    """
+    options = MModeOptions() if options is None else options
+    devices = tuple(jax.local_devices() if devices is None else devices)
+    check_float64(system.op.response, system.inv_noise)
+    res = mmode_check(system, atol=options.atol, rtol=options.rtol)
+    if not res.ok:
+        raise ValueError(f"P is not block-diagonal in m: {res.reason}")
+    system = jax.device_put(system, devices[0])
+    L = mmode_factor_on(system, devices, options.bucket)
+    b = wiener_rhs(system)
+    a_wf = _block_solve_on(L, b)
+    r = b - precision_apply(system, a_wf)
+    dot = jnp.sum(r * _block_solve_on(L, r), axis=-1)
+    finite = jnp.stack([jax.device_put(jnp.all(jnp.isfinite(a), axis=(1, 2, 3)), devices[0]) for a in L.arrays]).all(0)
+    info = _wiener_info(system, a_wf, b, dot, finite, options.tol)
+    return MModeSplitState(system, a_wf, info, L, devices)
+
+
+def draw_mmode_on(key: jax.Array, state: MModeSplitState, ndraws: int):
+    """``ndraws`` exact draws ``a_wf + L_m^-T z``, each bucket's solve on its own device.
+
+    The normals are :func:`gcrsky.solvers.draw_mmode`'s (one (Nf, sum_b G_b 2H_b, ndraws) array from
+    ``key``, cut bucket by bucket), so the draws equal the single-device ones.
+
+    Returns:
+        draws (Nf, ndraws, n) on the first device; a :class:`~gcrsky.solvers.DrawInfo`.
+    """
+    L, a_wf = state.chol, state.a_wf
+    nf, n = a_wf.shape
+    lay = L.layout
+    home = state.devices[0]
+    rows = [Lb.shape[1] * Lb.shape[2] for Lb in L.arrays]
+    z = jax.device_put(jax.random.normal(key, (nf, sum(rows), ndraws), a_wf.dtype), home)
+    out = jnp.broadcast_to(a_wf[:, None, :], (nf, ndraws, n))
+    for Lb, start, size, src, dst in zip(L.arrays, np.cumsum([0, *rows]), rows, lay.src, lay.dst):
+        zb = jax.lax.slice_in_dim(z, int(start), int(start) + size, axis=1).reshape(Lb.shape[:3] + (ndraws,))
+        delta = jax.device_put(_tri_t(Lb, jax.device_put(zb, next(iter(Lb.devices())))), home)
+        out = out.at[..., dst].add(jnp.moveaxis(delta, -1, 1).reshape(nf, ndraws, -1)[..., src])
+    finite = jnp.all(jnp.isfinite(out), axis=-1)
+    return out, DrawInfo(state.wiener, exact_info(state.wiener, finite, (nf, ndraws)), a_wf)
+
+
+@jax.jit
+def _tri_t(L: jax.Array, z: jax.Array) -> jax.Array:
+    return _tri(L, z, True)
