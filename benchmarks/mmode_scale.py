@@ -39,28 +39,22 @@ formula, the stages summed, on the same run's resident size: the run itself prin
 The Wiener step is the three matrix-free products (``O(Nt Nbl n)`` each); the blocks at
 lmax 400 (14.7 s) are mostly compiles (13 buckets) and LAPACK.
 
-lmax 650, ``--real``: the 630 unique rows (nside 512, SHT route) took 578.7 s with a process
-peak of 13.40 GB during the response build (load ~8-10, another engineer's lmax-650 response
-build running alongside); the set-up that followed was killed by the kernel's OOM killer
-at 12.8 GB resident when another job on the machine reached 16.4 GB (24 GB shared, no swap).
-A second try on a random response of the same shape (``--real --random``, 06:17 UTC, load
-``5.13 7.74 9.38``; the response 18.7 s, 9.9 GB peak for the random generation) was
-OOM-killed the same way at 12.6 GB resident, about 6 min into the set-up (past the blocks,
-which take ~1 min: below, so in the Wiener products), when another engineer's 10.5 GB job
-started.  Then the blocks and the draws alone (06:27 UTC, a script doing
-:func:`mmode_factor` and ``draw_mmode``'s loop with ``a_wf = 0``, no Wiener filter; load
-``7.18 10.62 10.40`` / ``10.03 10.70 10.46``) on a random (1, 630, 423801) response::
+lmax 650, ``--real`` (MEASURED 2026-12-03 06:37-06:41 UTC, after the m-factorised operator products
+and the ducc0 response route were merged; ``OPENBLAS_NUM_THREADS=1 python benchmarks/mmode_scale.py
+--real``, load ``5.46 6.42 8.41`` at the start, ``7.62 7.08 8.16`` at the end, other engineers' jobs
+running; wall 4 min 26 s, ``/usr/bin/time`` max RSS 12.8 GB)::
 
-    lmax 650, Nbl 630, Nt 1301: resident before 4.61 GB; blocks + factors 67.5 s (21 buckets,
-    compiles included), peak 8.34 GB; 200 draws 16.2 s (compile included), peak 12.42 GB
+    lmax  n       Nbl  Nt    response_s  setup_s (blocks + wiener)  draws200_s  peak_GB  est_GB  buckets  waste  chunk  err_sigma
+    650   423801  630  1301  148.9         101.1 (87.1 + 13.9)         7.7         13.09    14.23   21       0.075  1301   7.0e-12
 
-against the estimate 4.61 + 10.23 = 14.84 GB.  The Wiener step (three products) is not
-measured at lmax 650; from the rows above (5.1e11 flop in 82 s at lmax 400: 6 GFlop/s under
-this load) its 8.3e12 flop would take ~22 min under load, ~4 min at the 37 GFlop/s one
-unchunked product reached at load ~3 (lmax 300, 630 rows).
-The estimate for that case (``--estimate 650 630 1301``): R 4.27 GB; factors 3.16 GB (21
-buckets, padding 7.5 %), build 3.75, products 1.06 (chunks of 26 times), draws 2.26 GB:
-10.23 GB beyond the system and the runtime.
+Goals of the issue (response + set-up < 20 min, 200 draws < 1 min, peak < 16 GB): 250 s, 7.7 s,
+13.1 GB: met.  The Wiener step (three matrix-free products over all 1301 times) takes 13.9 s on
+the m-factorised products (``gcrsky.model.mfactor``); before them, the same products cost ~3e12
+flop each and the set-up was OOM-killed twice on this shared machine (a run before the merge:
+response by the healpy route 578.7 s, 13.4 GB peak; blocks and draws alone on a random response
+of the same shape: 67.5 s and 16.2 s, 12.4 GB).  Where the time goes now: the response (ducc0's
+adjoint SHTs over the beam's rings, 60 %), the blocks (Gram products ``~1e12`` flop and 651
+Cholesky factors, 35 %), the Wiener step (5 %).
 """
 
 from __future__ import annotations
