@@ -294,8 +294,9 @@ def window_blocks(system: LinearSystem, bandwidth: int, taper: bool = True) -> j
         z = jnp.einsum("fbdst,fdtbj->fdsbj", kmat, nb_)
         return jnp.einsum("fsbi,fdsbj->fdij", a.real, z.real) + jnp.einsum("fsbi,fdsbj->fdij", a.imag, z.imag)
 
-    q = jax.lax.map(one, jnp.arange(lmax + 1))  # (L+1, Nf, d, nB, nB)
-    return jnp.moveaxis(q, 0, 1)
+    q = jnp.moveaxis(jax.lax.map(one, jnp.arange(lmax + 1)), 0, 1)  # (Nf, L+1, d, nB, nB)
+    q0 = q[:, :, 0]
+    return q.at[:, :, 0].set(0.5 * (q0 + jnp.swapaxes(q0, -1, -2)))  # exactly symmetric diagonal blocks
 
 
 def window_data_matrix(system: LinearSystem, bandwidth: int, taper: bool = True) -> jax.Array:
