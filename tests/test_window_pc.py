@@ -18,7 +18,7 @@ import pytest
 
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, groups_for_array, hex_array, make_array, unique_response
 from gcrsky.model import LinearSystem, VisOperator, isotropic_prior, precision_matrix
-from gcrsky.solvers import CGOptions, make_preconditioner, pcg, prepare_cg, draw_cg, resolve_cg_options, solve_cg
+from gcrsky.solvers import CGOptions, draw_cg, make_preconditioner, pcg, prepare_cg, resolve_cg_options, solve_cg
 from gcrsky.solvers.preconditioners import inverse_bound, precondition_one, resolve_preconditioner, stop_norm
 from gcrsky.solvers.window import (
     auto_bandwidth,
@@ -192,10 +192,10 @@ def test_m_norm_stop_would_under_report(coverage):
         pc = make_preconditioner(s, "window", bandwidth=4)
         prec = lambda r, pc=pc: precondition_one(pc, 0, r)  # noqa: E731
         mv = lambda x, P=P: P[0] @ x  # noqa: E731
-        x, info = jax.jit(lambda b: pcg(mv, prec, b, jnp.zeros_like(b), tol=TOL, maxiter=5000))(b)
+        x, info = jax.jit(lambda b, mv=mv, prec=prec: pcg(mv, prec, b, jnp.zeros_like(b), tol=TOL, maxiter=5000))(b)
         assert bool(info.converged)  # it believes it met the tolerance ...
         worst = max(worst, _p_error(P, x, xs) / TOL)
-        x2, info2 = pcg(mv, prec, b, jnp.zeros_like(b), tol=TOL, maxiter=5000, stop=stop_norm(pc, 0))
+        _, info2 = pcg(mv, prec, b, jnp.zeros_like(b), tol=TOL, maxiter=5000, stop=stop_norm(pc, 0))
         assert info2.iterations > info.iterations  # the rigorous stop costs iterations
     assert worst > 2.0  # ... but the true error exceeds it (measured 4-20x)
 
@@ -205,7 +205,7 @@ def test_matrix_free_draws_float32_and_jax_engine():
     P = np.asarray(precision_matrix(s)[0])
     opt = CGOptions(preconditioner="window", bandwidth=3, dense=False)
     state = prepare_cg(s, opt)
-    draws, info = draw_cg(jax.random.PRNGKey(0), state, 3)
+    _, info = draw_cg(jax.random.PRNGKey(0), state, 3)
     assert bool(jnp.all(info.draws.converged)) and bool(jnp.all(info.wiener.converged))
     b = jnp.asarray(_rhs(P))[None]
     xs = np.linalg.solve(P, np.asarray(b[0]))

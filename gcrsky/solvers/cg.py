@@ -53,8 +53,8 @@ from .preconditioners import (
     resolve_preconditioner,
     stop_norm,
 )
-from .window import WINDOW_AUTO_MAX, resolve_bandwidth, window_memory_bytes
 from .slq import whitened_logdet_slq
+from .window import WINDOW_AUTO_MAX, resolve_bandwidth, window_memory_bytes
 
 __all__ = ["CGPath", "CGState", "cg_solve", "draw_cg", "freq_slice", "pcg", "prepare_cg", "resolve_cg_options", "solve_cg",
            "wiener_cg"]
@@ -92,7 +92,7 @@ def pcg(matvec, precond, b, x0, *, tol: float = CGOptions.tol, maxiter: int = CG
     thresh = jnp.maximum(tol, rtol * jnp.sqrt(jnp.abs(sq(b, precond(b)))))
 
     def cond(s):
-        k, x, r, z, p, rz, bad, e2 = s
+        k, *_, bad, e2 = s
         return (k < maxiter) & (jnp.sqrt(jnp.abs(e2)) > thresh) & (~bad)
 
     def body(s):
@@ -114,7 +114,7 @@ def pcg(matvec, precond, b, x0, *, tol: float = CGOptions.tol, maxiter: int = CG
         z = precond(r)
         rz = jnp.vdot(r, z).real
         init = (k0, x, r, z, z, rz, jnp.asarray(False), sq(r, z))
-        k, x, r, z, _, rz, bad, _ = jax.lax.while_loop(cond, body, init)
+        k, x, *_, bad, _ = jax.lax.while_loop(cond, body, init)
         return k, x, bad
 
     k, x, bad1 = run(jnp.asarray(0), x0)
