@@ -89,7 +89,7 @@ class CGOptions:
             chosen by ``"auto"``).
         bandwidth: the window preconditioner's bandwidth B in m (an integer >= 0), or
             ``"auto"`` (:func:`gcrsky.solvers.window.auto_bandwidth`, from the decay of
-            the window kernel ``|K(D)| / K(0)``; 4 under a trace).  Ignored by the others.
+            the window kernel ``|K(D)| / K(0)``; 8 under a trace).  Ignored by the others.
         sketch_size: Nystrom sketch size, the number of directions sketched (clipped to n).
             ``rank=`` is accepted as its old name, with a DeprecationWarning.
         pc_dtype: ``"float64"`` or ``"float32"`` storage of the preconditioner (CG

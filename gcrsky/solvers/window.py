@@ -85,8 +85,9 @@ __all__ = [
 WINDOW_AUTO_THRESHOLD = 0.01
 #: :func:`auto_bandwidth`: the largest bandwidth it returns.
 WINDOW_AUTO_MAX = 8
-#: Bandwidth used for ``"auto"`` when the weights are traced (unknown values).
-WINDOW_TRACED_BANDWIDTH = 4
+#: Bandwidth used for ``"auto"`` when the weights are traced (unknown values): what the rule
+#: gives for any partial coverage.
+WINDOW_TRACED_BANDWIDTH = WINDOW_AUTO_MAX
 
 
 class WindowPreconditioner(NamedTuple):
