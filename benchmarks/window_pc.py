@@ -27,7 +27,9 @@ Measured
 2026-12-03, this shared 2-core CPU box (``cat /proc/loadavg`` 16.1 15.7 9.5 at the start of
 lmax 16, 12.4 15.0 10.6 at lmax 32, 8.2 9.5 10.4 at lmax 64: other engineers' jobs ran;
 iteration counts do not depend on it, the build seconds do).  ``--lmax 16`` ran in 3 min,
-``--lmax 32`` in 9 min, ``--lmax 64 --skip none`` in LMAX64_MIN.  CG iterations to
+``--lmax 32`` in 9 min; ``--lmax 64 --skip none --hours 16 8 2 20`` took 16 and 14 min
+for its first two rows and was stopped there (the deadline): lmax 64 at 2, 4, 12 and 20 h
+and lmax 100 (a row would take well over the ~2 min allowed) were not measured.  CG iterations to
 ``sqrt(r^T S r) <= 1e-6`` (maxiter 3000)::
 
     lmax hours    none   prior  mblock     nys  nys(M)    win2    win4    win8   build[s]  MiB (peak est.)
@@ -43,9 +45,12 @@ iteration counts do not depend on it, the build seconds do).  ``--lmax 16`` ran 
       32    12   >3000    1543    1449      54      52    1124     869     587       1.06  18.0 (49.3)
       32    16   >3000    1913    1020     166     154     754     656     455       1.76  18.0 (49.3)
       32    20   >3000    2099     372     532     494     340     287     222       3.08  18.0 (49.3)
-LMAX64_ROWS
+      64     8       -    2196    2804     786     776    1968    1523    1060       1.79  136.0 (361.1)
+      64    16       -    2808    2214    1713    1670    1646    1405     946       5.84  136.0 (361.1)
 
-(lmax 16 and 32: one build each, before ``_build_time`` took the minimum of three; on
+(lmax 16 and 32 ran with the script's first version, which closed over P instead of passing it
+to ``jit``; rerun with this one, lmax 16 at 8 and 16 h gave the same iterations.  They timed one
+build each, before ``_build_time`` took the minimum of three; on
 this loaded box a build's small LAPACK calls stall at random by up to ~1.5 s, the
 unstalled build at lmax 16 takes ~0.01-0.03 s.)  ``auto_bandwidth`` gives 8 at every
 row (its first threshold, 0.1, gave 8 8 7 5 2 3 for 2..20 h: too small at 16 h).
@@ -60,7 +65,11 @@ Findings:
 * It beats m-blocks everywhere but near full-day coverage (20 h: 41 vs 62, 222 vs 372).
 * Nystrom (sketch 128) wins wherever the data inform fewer than ~128 whitened directions
   (all of lmax 16, lmax 32 to 12 h: 2-54 iterations); the window wins where they are
-  many more (lmax 32 at 20 h: 222 vs 532).  LMAX64_FINDING
+  many more (lmax 32 at 20 h: 222 vs 532).  At lmax 64 (n = 4225) Nystrom still wins at 8 h
+  (786 vs 1060) but the window wins at 16 h: 946 iterations against 1713 (Nystrom),
+  2214 (m-blocks) and 2808 (prior).  Per iteration the window's ``M^-1 r`` costs
+  ``window_flop(...)["apply"]`` (~24 G lmax^3: 57 Mflop at lmax 64, B = 8, about one
+  dense P product), so iterations compare costs roughly one to one there.
 * The rigorous S-norm stop costs ~15-20 % more iterations than the window's own
   M-norm stop, which is not a bound: in ``tests/test_window_pc.py`` stopping on the
   M-norm at 1e-6 left true P-norm errors of 4e-6 to 2e-5.
