@@ -116,7 +116,8 @@ def gcr_step(
     options = resolve_cg_options(system, options)
     precision = precision_matrix(system) if options.dense else None
     if pc is None:
-        pc = make_preconditioner(system, options.preconditioner, precision, options.sketch_size, options.pc_dtype)
+        pc = make_preconditioner(system, options.preconditioner, precision, options.sketch_size, options.pc_dtype,
+                                 options.bandwidth)
     b = wiener_rhs(system) + fluctuation_rhs(key, system)
     x, info = solve_cg(system, precision, pc, b, state.position, options)
     return GCRState(x), info

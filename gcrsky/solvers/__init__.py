@@ -3,6 +3,7 @@
 - ``options``: one frozen options object per path (:class:`CGOptions`, ...)
 - ``info``: :class:`SolveInfo`, what every solve reports
 - ``preconditioners``: prior-whitened Nystrom and m-block preconditioners for CG
+- ``window``: the window preconditioner (block-banded in m, Fejer-tapered window kernel)
 - ``cg``: preconditioned CG (matrix-free or dense P): :func:`prepare_cg`, :func:`draw_cg`, :func:`wiener_cg`
 - ``dense``: dense Cholesky and eigen-decomposition
 - ``mmode``: block-by-block solves for uniform full-day coverage
@@ -80,8 +81,10 @@ from .preconditioners import (
     make_preconditioner,
     nystrom_preconditioner,
     resolve_preconditioner,
+    stop_norm,
 )
 from .registry import METHODS, PATHS, SolverOptions, method_of, options_for, path_of
+from .window import WindowPreconditioner, auto_bandwidth, window_preconditioner
 
 __all__ = [
     "DATASPACE_MAX_ND",
@@ -92,6 +95,7 @@ __all__ = [
     "METHODS",
     "PATHS",
     "PLAN_DRAWS",
+    "WindowPreconditioner",
     "CGOptions",
     "CGPath",
     "CGState",
@@ -154,5 +158,8 @@ __all__ = [
     "resolve_preconditioner",
     "result_names",
     "solve_cg",
+    "stop_norm",
+    "auto_bandwidth",
+    "window_preconditioner",
     "wiener_cg",
 ]

@@ -7,7 +7,13 @@ approximates), so ``r^T M^-1 r >= r^T P^-1 r = ||x - x*||_P^2``: a rigorous boun
 the error's P-norm, which itself bounds every mode's error in units of its posterior
 std.  With the m-block preconditioner (flat priors) the same number is only an
 estimate (measured 100x optimistic on the standard case), so pass a smaller ``tol``
-there.  ``jax.scipy.sparse.linalg.cg`` implements the same recurrence but reports
+there.  The window preconditioner (:mod:`gcrsky.solvers.window`, block-banded in m)
+has no ``M <= P``, so ``r^T M^-1 r`` bounds nothing; CG preconditions with it but
+stops on the prior norm, ``sqrt(r^T S r) <= tol``, rigorous because ``P >= S^-1``
+gives ``r^T P^-1 r <= r^T S r`` (the stop quantity is chosen per preconditioner by
+:func:`gcrsky.solvers.preconditioners.stop_norm`; it costs one more n-vector product
+per iteration, and more iterations than the M-norm would need, the price of rigour).
+``jax.scipy.sparse.linalg.cg`` implements the same recurrence but reports
 neither iterations nor residual, so it is written out here with ``lax.while_loop``
 (tests check the two agree; ``CGOptions(engine="jax")`` selects JAX's).
 
@@ -45,17 +51,21 @@ from .preconditioners import (
     make_preconditioner,
     precondition_one,
     resolve_preconditioner,
+    stop_norm,
 )
 from .slq import whitened_logdet_slq
+from .window import WINDOW_AUTO_MAX, resolve_bandwidth, window_memory_bytes
 
 __all__ = ["CGPath", "CGState", "cg_solve", "draw_cg", "freq_slice", "pcg", "prepare_cg", "resolve_cg_options", "solve_cg",
            "wiener_cg"]
 
 
-def pcg(matvec, precond, b, x0, *, tol: float = CGOptions.tol, maxiter: int = CGOptions.maxiter, rtol: float = 0.0):
+def pcg(matvec, precond, b, x0, *, tol: float = CGOptions.tol, maxiter: int = CGOptions.maxiter, rtol: float = 0.0,
+        stop=None):
     """Preconditioned CG for one right-hand side (vectors of any shape); not differentiable itself.
 
-    Stops when ``sqrt(r . M^-1 r) <= max(tol, rtol * sqrt(b . M^-1 b))``: ``tol`` is
+    Stops when ``sqrt(r . M^-1 r) <= max(tol, rtol * sqrt(b . M^-1 b))`` (with ``stop``
+    given: ``sqrt(stop(r)) <= max(tol, rtol * sqrt(stop(b)))``): ``tol`` is
     absolute, in posterior-sigma units for the GCR system; ``rtol`` relative to the
     right-hand side (used for the cotangent solves of :func:`cg_solve`).  The
     recurrence residual drifts from the true one ``b - P x`` in floating point; when
@@ -71,18 +81,22 @@ def pcg(matvec, precond, b, x0, *, tol: float = CGOptions.tol, maxiter: int = CG
         tol: absolute threshold on ``sqrt(r . M^-1 r)``.
         maxiter: hard cap on iterations (both passes together).
         rtol: relative threshold (0: absolute only).
+        stop: None (stop on ``r . M^-1 r``) or ``r -> r . N r`` for another SPD N, e.g. the
+            prior covariance S when ``M <= P`` does not hold
+            (:func:`gcrsky.solvers.preconditioners.stop_norm`).
 
     Returns:
         (x, SolveInfo) with scalar info fields.
     """
-    thresh = jnp.maximum(tol, rtol * jnp.sqrt(jnp.abs(jnp.vdot(b, precond(b)).real)))
+    sq = (lambda r, z: jnp.vdot(r, z).real) if stop is None else (lambda r, z: stop(r))  # noqa: E731
+    thresh = jnp.maximum(tol, rtol * jnp.sqrt(jnp.abs(sq(b, precond(b)))))
 
     def cond(s):
-        k, x, r, z, p, rz, bad = s
-        return (k < maxiter) & (jnp.sqrt(jnp.abs(rz)) > thresh) & (~bad)
+        k, *_, bad, e2 = s
+        return (k < maxiter) & (jnp.sqrt(jnp.abs(e2)) > thresh) & (~bad)
 
     def body(s):
-        k, x, r, z, p, rz, bad = s
+        k, x, r, z, p, rz, bad, _ = s
         Ap = matvec(p)
         pAp = jnp.vdot(p, Ap).real
         bad = ~(pAp > 0)
@@ -93,30 +107,31 @@ def pcg(matvec, precond, b, x0, *, tol: float = CGOptions.tol, maxiter: int = CG
         rz_new = jnp.vdot(r, z).real
         beta = rz_new / jnp.where(rz == 0, 1.0, rz)
         p = z + beta * p
-        return k + 1, x, r, z, p, rz_new, bad
+        return k + 1, x, r, z, p, rz_new, bad, sq(r, z)
 
     def run(k0, x):
         r = b - matvec(x)
         z = precond(r)
-        init = (k0, x, r, z, z, jnp.vdot(r, z).real, jnp.asarray(False))
-        k, x, r, z, _, rz, bad = jax.lax.while_loop(cond, body, init)
+        rz = jnp.vdot(r, z).real
+        init = (k0, x, r, z, z, rz, jnp.asarray(False), sq(r, z))
+        k, x, *_, bad, _ = jax.lax.while_loop(cond, body, init)
         return k, x, bad
 
     k, x, bad1 = run(jnp.asarray(0), x0)
     k, x, bad2 = run(k, x)  # restart from the true residual (exits at once if converged)
-    return x, _residual_info(matvec, precond, b, x, k, thresh, bad1 | bad2)
+    return x, _residual_info(matvec, precond, b, x, k, thresh, bad1 | bad2, stop)
 
 
-def _residual_info(matvec, precond, b, x, k, thresh, broke) -> SolveInfo:
+def _residual_info(matvec, precond, b, x, k, thresh, broke, stop=None) -> SolveInfo:
     r = b - matvec(x)
-    err = jnp.sqrt(jnp.abs(jnp.vdot(r, precond(r)).real))
+    err = jnp.sqrt(jnp.abs(jnp.vdot(r, precond(r)).real if stop is None else stop(r)))
     rel = jnp.linalg.norm(r) / jnp.maximum(jnp.linalg.norm(b), jnp.finfo(b.dtype).tiny)
     finite = jnp.isfinite(err) & jnp.all(jnp.isfinite(x))
     code = result_code(err <= thresh, finite=finite, broke=broke)
     return SolveInfo(k, err, rel, code == Result.SUCCESS, code)
 
 
-def cg_solve(matvec, precond, b, x0, options: CGOptions, *, inverse_bound=None):
+def cg_solve(matvec, precond, b, x0, options: CGOptions, *, inverse_bound=None, stop=None):
     """``P^-1 b`` by preconditioned CG that differentiates implicitly (``jax.lax.custom_linear_solve``).
 
     The forward solve starts at ``x0`` and stops at ``options.tol`` (absolute,
@@ -129,6 +144,9 @@ def cg_solve(matvec, precond, b, x0, options: CGOptions, *, inverse_bound=None):
 
     ``inverse_bound``: an upper bound on ``lambda_max(M^-1)``, needed by
     ``engine="jax"`` (:func:`gcrsky.solvers.preconditioners.inverse_bound`).
+    ``stop``: the stopping quantity (:func:`pcg`; None: ``r^T M^-1 r``).  With
+    ``engine="jax"`` and a ``stop`` of weight N, ``inverse_bound`` must bound
+    ``lambda_max(N)`` as well.
 
     Returns:
         (x, SolveInfo) of the forward solve (scalar fields; not differentiated).
@@ -136,18 +154,19 @@ def cg_solve(matvec, precond, b, x0, options: CGOptions, *, inverse_bound=None):
     if options.engine == "jax":
         if inverse_bound is None:
             raise ValueError("engine='jax' needs inverse_bound, an upper bound on lambda_max(M^-1)")
-        return _jax_cg(matvec, precond, b, x0, options, inverse_bound)
+        return _jax_cg(matvec, precond, b, x0, options, inverse_bound, stop)
 
     def solve(mv, rhs):
-        return pcg(mv, precond, rhs, x0, tol=options.tol, maxiter=options.maxiter)
+        return pcg(mv, precond, rhs, x0, tol=options.tol, maxiter=options.maxiter, stop=stop)
 
     def transpose_solve(mv, rhs):
-        return pcg(mv, precond, rhs, jnp.zeros_like(rhs), tol=0.0, maxiter=options.maxiter, rtol=options.tol)
+        return pcg(mv, precond, rhs, jnp.zeros_like(rhs), tol=0.0, maxiter=options.maxiter, rtol=options.tol,
+                   stop=stop)
 
     return jax.lax.custom_linear_solve(matvec, b, solve, transpose_solve, symmetric=True, has_aux=True)
 
 
-def _jax_cg(matvec, precond, b, x0, options: CGOptions, inverse_bound):
+def _jax_cg(matvec, precond, b, x0, options: CGOptions, inverse_bound, stop=None):
     """``jax.scipy.sparse.linalg.cg`` with our preconditioner; SolveInfo from the true residual.
 
     JAX stops on the 2-norm, ``||r|| <= atol``.  Since ``r^T M^-1 r <= ||r||^2
@@ -157,7 +176,7 @@ def _jax_cg(matvec, precond, b, x0, options: CGOptions, inverse_bound):
     atol = options.tol / jnp.sqrt(jax.lax.stop_gradient(inverse_bound))
     x, _ = jax.scipy.sparse.linalg.cg(matvec, b, x0, tol=0.0, atol=atol, maxiter=options.maxiter, M=precond)
     info = _residual_info(matvec, precond, jax.lax.stop_gradient(b), jax.lax.stop_gradient(x), jnp.asarray(-1),
-                          options.tol, jnp.asarray(False))
+                          options.tol, jnp.asarray(False), stop)
     return x, jax.tree_util.tree_map(jax.lax.stop_gradient, info)
 
 
@@ -194,7 +213,8 @@ def solve_cg(system: LinearSystem, precision, pc, b, x0, options: CGOptions):
             mv = lambda x: precision_apply(sys_f, x[None])[0]  # noqa: E731
         prec = lambda r: precondition_one(pc, f, r)  # noqa: E731
         bound = inverse_bound(pc, f) if options.engine == "jax" else None
-        solve1 = lambda bb, xx: cg_solve(mv, prec, bb, xx, options, inverse_bound=bound)  # noqa: E731
+        stop = stop_norm(pc, f)
+        solve1 = lambda bb, xx: cg_solve(mv, prec, bb, xx, options, inverse_bound=bound, stop=stop)  # noqa: E731
         if bf.ndim == 1:
             return solve1(bf, x0f)
         return jax.vmap(solve1)(bf, x0f)
@@ -206,15 +226,18 @@ def solve_cg(system: LinearSystem, precision, pc, b, x0, options: CGOptions):
 
 
 def resolve_cg_options(system: LinearSystem, options: CGOptions | None = None) -> CGOptions:
-    """``options`` with ``preconditioner="auto"`` made concrete for ``system``.
+    """``options`` with ``preconditioner="auto"`` (and the window's ``bandwidth="auto"``) made concrete.
 
     See :func:`gcrsky.solvers.preconditioners.resolve_preconditioner` (host-side on
-    concrete arrays; ``"nystrom"`` under a trace).
+    concrete arrays; ``"nystrom"`` under a trace) and
+    :func:`gcrsky.solvers.window.resolve_bandwidth`.
     """
     options = CGOptions() if options is None else options
     if not isinstance(options, CGOptions):
         raise TypeError(f"the CG path takes CGOptions, got {type(options).__name__}")
     kind = resolve_preconditioner(system, options.preconditioner, warn=options.preconditioner == "auto")
+    if kind == "window" and options.bandwidth == "auto":
+        options = dataclasses.replace(options, bandwidth=resolve_bandwidth(system, "auto"))
     return options if kind == options.preconditioner else dataclasses.replace(options, preconditioner=kind)
 
 
@@ -223,7 +246,8 @@ def _setup(system: LinearSystem, options: CGOptions):
     if options.preconditioner == "auto":
         raise ValueError("resolve preconditioner='auto' first (resolve_cg_options)")
     precision = precision_matrix(system) if options.dense else None
-    pc = make_preconditioner(system, options.preconditioner, precision, options.sketch_size, options.pc_dtype)
+    pc = make_preconditioner(system, options.preconditioner, precision, options.sketch_size, options.pc_dtype,
+                             options.bandwidth)
     return precision, pc
 
 
@@ -340,6 +364,10 @@ class CGPath(SolverPath):
         lmax = int(round(np.sqrt(n))) - 1
         vec = 6.0 * 8 * nf * max(1, ndraws) * n  # CG state per draw
         sketch = max(3.0 * 8 * nf * n * min(n, options.sketch_size), 8.0 * nf * (lmax + 1) * (2 * lmax + 2) ** 2)
+        if options.preconditioner == "window":
+            bw = options.bandwidth if options.bandwidth != "auto" else WINDOW_AUTO_MAX
+            nbl = int(system.op.response.shape[1])
+            sketch = max(sketch, window_memory_bytes(lmax, bw, nbl, nf)["peak"])
         return (8.0 * nf * n * n if options.dense else 0.0) + sketch + vec
 
     def describe(self, system, options, memory):

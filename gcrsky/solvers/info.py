@@ -43,7 +43,8 @@ class SolveInfo(NamedTuple):
             does not report them, ``CGOptions(engine="jax")``).
         err_sigma: ``sqrt(r^T M^-1 r)`` from the *true* final residual ``b - P x``, in
             posterior-sigma units: an upper bound on the error's P-norm with the
-            Nystrom preconditioner, an estimate with m-blocks; for the direct paths
+            Nystrom preconditioner, an estimate with m-blocks; with the window
+            preconditioner ``sqrt(r^T S r)`` instead (a bound: ``P >= S^-1``); for the direct paths
             the same quantity with their exact factor (rounding only).
         rel_residual: ``||b - P x|| / ||b||``.
         converged: ``result == Result.SUCCESS``.

@@ -4,7 +4,7 @@ Each path's knobs live in one frozen, hashable dataclass, so they travel through
 ``jax.jit`` as a single static argument, are validated once (a bad value is a
 ``ValueError`` naming it) and cannot drift apart between modules:
 
-- ``"cg"``: :class:`CGOptions`: ``tol``, ``maxiter``, ``dense``, ``preconditioner``, ``rank``, ``pc_dtype``,
+- ``"cg"``: :class:`CGOptions`: ``tol``, ``maxiter``, ``dense``, ``preconditioner``, ``bandwidth``, ``rank``, ``pc_dtype``,
   ``engine``, ``throw``
 - ``"cholesky"``: :class:`CholeskyOptions`: ``throw`` (the factorisation is exact)
 - ``"eigh"``: :class:`EighOptions`: ``rcond``, ``throw``
@@ -72,14 +72,24 @@ class CGOptions:
         tol: stop when ``sqrt(r^T M^-1 r) <= tol``, posterior-sigma units (with the
             Nystrom preconditioner a rigorous bound on the error's P-norm, hence on
             every mode's error in units of its posterior std; with m-blocks an
-            estimate, so pass a smaller ``tol`` there).
+            estimate, so pass a smaller ``tol`` there).  With ``"window"`` (no
+            ``M <= P``) the stop is ``sqrt(r^T S r) <= tol`` instead, S the prior
+            covariance: rigorous since ``P >= S^-1``, and never looser than the error's
+            P-norm.
         maxiter: cap on iterations per solve (both passes of the residual restart).
         dense: form the dense P once (fast for n up to a few thousand) or stay
             matrix-free (O(Nf Nt Nbl n) per product, no n^2 memory).
         preconditioner: ``"auto"`` (Nystrom when every mode has a proper prior, else
             m-blocks; decided on concrete arrays by
             :func:`gcrsky.solvers.preconditioners.resolve_preconditioner`, and
-            ``"nystrom"`` inside a trace), ``"nystrom"`` or ``"mblock"``.
+            ``"nystrom"`` inside a trace), ``"nystrom"``, ``"mblock"`` or ``"window"``
+            (:mod:`gcrsky.solvers.window`: P's data term with a Fejer-tapered window
+            kernel, block-banded in m; proper prior and no frame map needed; helps only
+            at large coverage fractions of the day, ``benchmarks/window_pc.py``; never
+            chosen by ``"auto"``).
+        bandwidth: the window preconditioner's bandwidth B in m (an integer >= 0), or
+            ``"auto"`` (:func:`gcrsky.solvers.window.auto_bandwidth`, from the decay of
+            the window kernel ``|K(D)| / K(0)``; 8 under a trace).  Ignored by the others.
         sketch_size: Nystrom sketch size, the number of directions sketched (clipped to n).
             ``rank=`` is accepted as its old name, with a DeprecationWarning.
         pc_dtype: ``"float64"`` or ``"float32"`` storage of the preconditioner (CG
@@ -97,11 +107,12 @@ class CGOptions:
     tol: float = DEFAULT_TOL
     maxiter: int = 5000
     dense: bool = True
-    preconditioner: Literal["auto", "nystrom", "mblock"] = "auto"
+    preconditioner: Literal["auto", "nystrom", "mblock", "window"] = "auto"
     sketch_size: int = 128
     pc_dtype: Literal["float64", "float32"] = "float64"
     engine: Literal["gcrsky", "jax"] = "gcrsky"
     throw: bool = False
+    bandwidth: int | Literal["auto"] = "auto"
 
     method = "cg"
 
@@ -115,8 +126,11 @@ class CGOptions:
         _positive("sketch_size", self.sketch_size, integer=True)
         if not isinstance(self.dense, bool):
             raise ValueError(f"dense must be True or False, got {self.dense!r}")
-        if self.preconditioner not in ("auto", "nystrom", "mblock"):
-            raise ValueError(f"preconditioner must be 'auto', 'nystrom' or 'mblock', got {self.preconditioner!r}")
+        if self.preconditioner not in ("auto", "nystrom", "mblock", "window"):
+            raise ValueError(f"preconditioner must be 'auto', 'nystrom', 'mblock' or 'window', got {self.preconditioner!r}")
+        bw = self.bandwidth
+        if bw != "auto" and (isinstance(bw, bool) or not isinstance(bw, int) or bw < 0):
+            raise ValueError(f"bandwidth must be 'auto' or an integer >= 0, got {bw!r}")
         if self.pc_dtype not in ("float64", "float32"):
             raise ValueError(f"pc_dtype must be 'float64' or 'float32', got {self.pc_dtype!r}")
 

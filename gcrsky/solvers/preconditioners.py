@@ -1,10 +1,13 @@
-"""CG preconditioners: prior-whitened randomized Nystrom and m-block Cholesky.
+"""CG preconditioners: prior-whitened randomized Nystrom, m-block Cholesky and the window.
 
-Both are PyTrees built once per system and applied per frequency inside CG
+All are PyTrees built once per system and applied per frequency inside CG
 (:mod:`gcrsky.solvers.cg`).  The Nystrom sketch is the default for proper priors:
 it never exceeds the matrix it approximates (``M <= P``), which makes CG's stopping
 rule a rigorous bound on the error's P-norm.  m-blocks serve flat priors (exact for
-uniform full-day coverage, an estimate otherwise).
+uniform full-day coverage, an estimate otherwise).  The window preconditioner
+(:mod:`gcrsky.solvers.window`, block-banded in m, for large partial coverage) has no
+``M <= P``: CG stops on the prior norm ``sqrt(r^T S r)`` instead (:func:`stop_norm`),
+rigorous because ``P >= S^-1``.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import numpy as np
 from ..model.operator import n_in
 from ..model.system import LinearSystem, data_apply, time_terms
 from ..sphere.modes import lmax_from_nparams, mode_table
+from .window import WindowPreconditioner, resolve_bandwidth, window_preconditioner, window_solve
 
 __all__ = [
     "MBlockPreconditioner",
@@ -32,7 +36,11 @@ __all__ = [
     "nystrom_preconditioner",
     "precondition_one",
     "resolve_preconditioner",
+    "stop_norm",
 ]
+
+#: The preconditioners by name (``"auto"`` resolves to one of the first two).
+KINDS = ("nystrom", "mblock", "window")
 
 
 @lru_cache(maxsize=32)
@@ -108,7 +116,7 @@ def precondition_one(pc, f, r: jax.Array) -> jax.Array:
     Computed in the preconditioner's own precision (float32 if it was stored so) and
     returned in ``r``'s.
     """
-    dt = (pc.chol if isinstance(pc, MBlockPreconditioner) else getattr(pc, "U", r)).dtype
+    dt = (pc.chol if isinstance(pc, (MBlockPreconditioner, WindowPreconditioner)) else getattr(pc, "U", r)).dtype
     if dt != r.dtype:
         return _precondition(pc, f, r.astype(dt)).astype(r.dtype)
     return _precondition(pc, f, r)
@@ -123,6 +131,8 @@ def _precondition(pc, f, r: jax.Array) -> jax.Array:
         y = pc.scale[f] * r
         c = pc.U[f].T @ y
         return pc.scale[f] * (pc.U[f] @ (c / (pc.lam[f] + 1.0)) + y - pc.U[f] @ c)
+    if isinstance(pc, WindowPreconditioner):
+        return window_solve(pc, f, r)
     raise TypeError(f"unknown preconditioner {type(pc).__name__}")
 
 
@@ -185,15 +195,17 @@ def nystrom_preconditioner(system: LinearSystem, sketch_size: int = 128, key: ja
 
 
 def make_preconditioner(system: LinearSystem, kind: str, precision=None, sketch_size: int = 128,
-                        pc_dtype: str = "float64"):
-    """Build the named preconditioner: ``"nystrom"`` (proper prior needed) or ``"mblock"``.
+                        pc_dtype: str = "float64", bandwidth="auto"):
+    """Build the named preconditioner: ``"nystrom"``, ``"window"`` (proper prior needed) or ``"mblock"``.
 
     Args:
         system: the linear system.
-        kind: ``"nystrom"`` or ``"mblock"`` (resolve ``"auto"`` first with
+        kind: ``"nystrom"``, ``"mblock"`` or ``"window"`` (resolve ``"auto"`` first with
             :func:`resolve_preconditioner`).
         precision: optional dense P (Nf, n, n) for the Nystrom sketch's products.
         sketch_size: Nystrom sketch size.
+        bandwidth: window bandwidth B (an integer >= 0, or ``"auto"``:
+            :func:`gcrsky.solvers.window.resolve_bandwidth`).
         pc_dtype: ``"float32"`` stores and applies it in single precision (built in
             float64, then rounded).  That is safe: CG's iterates, products and the
             convergence test stay float64, so the answer is as exact as with a float64
@@ -204,12 +216,15 @@ def make_preconditioner(system: LinearSystem, kind: str, precision=None, sketch_
         pc = nystrom_preconditioner(system, sketch_size=sketch_size, precision=precision)
     elif kind == "mblock":
         pc = m_block_preconditioner(system)
+    elif kind == "window":
+        pc = window_preconditioner(system, resolve_bandwidth(system, bandwidth))
     else:
-        raise ValueError(f"preconditioner must be 'nystrom' or 'mblock', got {kind!r}")
+        raise ValueError(f"preconditioner must be 'nystrom', 'mblock' or 'window', got {kind!r}")
     if pc_dtype not in ("float64", "float32"):
         raise ValueError(f"pc_dtype must be 'float64' or 'float32', got {pc_dtype!r}")
     if pc_dtype == "float32":
-        pc = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32) if jnp.issubdtype(x.dtype, jnp.floating) else x, pc)
+        pc32 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32) if jnp.issubdtype(x.dtype, jnp.floating) else x, pc)
+        pc = pc32._replace(svar=pc.svar) if isinstance(pc, WindowPreconditioner) else pc32  # the stop stays float64
     return pc
 
 
@@ -221,8 +236,8 @@ def resolve_preconditioner(system: LinearSystem, kind: str = "auto", *, warn: bo
     Logs a warning for a flat prior, whose P may be singular (unless ``warn=False``),
     and refuses Nystrom there.
     """
-    if kind not in ("auto", "nystrom", "mblock"):
-        raise ValueError(f"preconditioner must be 'auto', 'nystrom' or 'mblock', got {kind!r}")
+    if kind not in ("auto", *KINDS):
+        raise ValueError(f"preconditioner must be 'auto', 'nystrom', 'mblock' or 'window', got {kind!r}")
     if isinstance(system.prior.inv_var, jax.core.Tracer):
         return "nystrom" if kind == "auto" else kind
     nflat = int(np.sum(np.asarray(system.prior.inv_var) <= 0))  # NumPy: the caller may be tracing
@@ -233,8 +248,8 @@ def resolve_preconditioner(system: LinearSystem, kind: str = "auto", *, warn: bo
             nflat,
         )
     if kind != "auto":
-        if kind == "nystrom" and nflat:
-            raise ValueError("the Nystrom preconditioner needs S^-1 > 0 in every mode; use 'mblock' for a flat prior")
+        if kind in ("nystrom", "window") and nflat:
+            raise ValueError(f"the {kind} preconditioner needs S^-1 > 0 in every mode; use 'mblock' for a flat prior")
         return kind
     return "mblock" if nflat else "nystrom"
 
@@ -244,10 +259,28 @@ def inverse_bound(pc, f) -> jax.Array:
 
     Nystrom: ``M^-1 = S^1/2 [U diag(1/(1+lam)) U^T + (I - U U^T)] S^1/2`` and the bracket
     is at most I, so ``max S_ii``.  m-blocks: ``1 / min_m sigma_min(L_m)^2`` (exact).
+    Window: ``M >= S^-1`` so ``M^-1 <= S``, ``max S_ii`` (which also bounds ``lambda_max(S)``,
+    the weight of its stop norm).
     """
+    if isinstance(pc, WindowPreconditioner):
+        return jnp.max(pc.svar[f].astype(jnp.float64))
     if isinstance(pc, NystromPreconditioner):
         return jnp.max(pc.scale[f].astype(jnp.float64) ** 2)
     if isinstance(pc, MBlockPreconditioner):
         s = jnp.linalg.svd(pc.chol[f].astype(jnp.float64), compute_uv=False)  # (M, B)
         return 1.0 / jnp.min(s[..., -1]) ** 2
     raise TypeError(f"unknown preconditioner {type(pc).__name__}")
+
+
+def stop_norm(pc, f):
+    """CG's stopping quantity for preconditioner ``pc``: None (``r^T M^-1 r``) or ``r -> r^T N r``.
+
+    Nystrom (``M <= P``) and m-blocks keep ``r^T M^-1 r`` (None).  The window preconditioner
+    does not satisfy ``M <= P``, so ``r^T M^-1 r`` need not bound ``r^T P^-1 r`` (the error's
+    squared P-norm); ``P >= S^-1`` gives ``r^T P^-1 r <= r^T S r``, the rigorous stop used there.
+    ``f``: the frequency (traced index allowed).
+    """
+    if isinstance(pc, WindowPreconditioner):
+        svar = pc.svar[f]
+        return lambda r: jnp.vdot(r, svar.astype(r.dtype) * r).real
+    return None
