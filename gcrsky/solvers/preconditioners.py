@@ -13,7 +13,7 @@ rigorous because ``P >= S^-1``.
 from __future__ import annotations
 
 import logging
-from functools import lru_cache, partial
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -22,7 +22,7 @@ import numpy as np
 
 from ..model.operator import n_in
 from ..model.system import LinearSystem, data_apply, time_terms
-from ..sphere.modes import lmax_from_nparams, mode_table
+from ..sphere.modes import lmax_from_nparams, order_slots
 from .window import WindowPreconditioner, resolve_bandwidth, window_preconditioner, window_solve
 
 __all__ = [
@@ -43,21 +43,10 @@ __all__ = [
 KINDS = ("nystrom", "mblock", "window")
 
 
-@lru_cache(maxsize=32)
 def m_blocks(lmax: int):
-    """Index table of the m-blocks: (lmax+1, B) indices into the realified vector, and a mask.
-
-    Block m holds Re a_lm (l = m..lmax) then Im a_lm (m > 0); padded to the largest size B.
-    """
-    tab = mode_table(lmax)
-    blocks = [np.flatnonzero(tab.m == m) for m in range(lmax + 1)]
-    B = max(len(b) for b in blocks)
-    idx = np.zeros((lmax + 1, B), np.int64)
-    mask = np.zeros((lmax + 1, B), bool)
-    for m, b in enumerate(blocks):
-        idx[m, : len(b)] = b
-        mask[m, : len(b)] = True
-    return idx, mask
+    """Index table of the m-blocks: (lmax+1, B) indices into the realified vector, and a mask
+    (:func:`gcrsky.sphere.modes.order_slots`: block m holds Re a_lm, l = m..lmax, then Im a_lm, m > 0)."""
+    return order_slots(lmax)
 
 
 class MBlockPreconditioner(NamedTuple):

@@ -62,7 +62,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model.system import LinearSystem
-from ..sphere.modes import lmax_from_nparams, mode_table
+from ..sphere.modes import lmax_from_nparams, mode_table, order_slots
 
 __all__ = [
     "WINDOW_AUTO_MAX",
@@ -121,18 +121,6 @@ class WindowPreconditioner(NamedTuple):
 # ------------------------------------------------------------------ layout
 
 
-@lru_cache(maxsize=32)
-def _order_slots(lmax: int):
-    """Slots of each order: (lmax+1, nB) realified indices and a mask (Re l=m..L, then Im)."""
-    tab = mode_table(lmax)
-    blocks = [np.flatnonzero(tab.m == m) for m in range(lmax + 1)]
-    nb = max(len(b) for b in blocks)
-    idx = np.zeros((lmax + 1, nb), np.int64)
-    mask = np.zeros((lmax + 1, nb), bool)
-    for m, b in enumerate(blocks):
-        idx[m, : len(b)] = b
-        mask[m, : len(b)] = True
-    return idx, mask
 
 
 def _group(lmax: int, bandwidth: int) -> tuple[int, int]:
@@ -152,7 +140,7 @@ def _super_tables(lmax: int, bandwidth: int):
     """
     bm, g = _group(lmax, bandwidth)
     ns = -(-(lmax + 1) // g)
-    idx, mask = _order_slots(lmax)
+    idx, mask = order_slots(lmax)
     nb = idx.shape[1]
     orders = np.arange(ns * g).reshape(ns, g)
     ok = orders <= lmax
@@ -263,7 +251,7 @@ def _columns(response: jax.Array, lmax: int) -> jax.Array:
     imag = jnp.asarray(tab.is_imag)
     plus = jnp.where(m0, rre, 0.5 * (rre - 1j * rim)) * jnp.where(imag, 1j, 1.0)
     minus = jnp.where(m0, 0.0, 0.5 * (rre + 1j * rim) * jnp.where(imag, -1j, 1.0))
-    idx, mask = _order_slots(lmax)
+    idx, mask = order_slots(lmax)
     c = jnp.stack([plus, minus], axis=1)[..., idx] * jnp.asarray(mask)  # (Nf, 2, Nbl, L+1, nB)
     return jnp.moveaxis(c, 3, 1)
 
@@ -273,7 +261,7 @@ def window_blocks(system: LinearSystem, bandwidth: int, taper: bool = True) -> j
     """The band of the (data part of the) window matrix, order pair by order pair.
 
     ``Q[f, m, d]`` is the (nB, nB) block of rows of order m and columns of order m + d
-    (slots of :func:`_order_slots`; zero where m + d > lmax), d = 0..min(B, lmax).
+    (slots of :func:`order_slots`; zero where m + d > lmax), d = 0..min(B, lmax).
     With ``taper=False`` the kernel is cut at ``|D| <= B`` without the Fejer weights
     (not positive definite in general: for tests, where ``B >= 2 lmax`` gives the exact
     data term of P).  Cost ``~32 Nf Nbl (lmax+1) (B+1) nB^2`` flop; memory
@@ -314,7 +302,7 @@ def window_data_matrix(system: LinearSystem, bandwidth: int, taper: bool = True)
     """The dense (Nf, n, n) data part of M (tests and diagnostics only: n^2 memory)."""
     lmax = lmax_from_nparams(system.op.response.shape[-1])
     q = window_blocks(system, bandwidth, taper)
-    idx, mask = _order_slots(lmax)
+    idx, mask = order_slots(lmax)
     nf, n = q.shape[0], (lmax + 1) ** 2
     out = jnp.zeros((nf, n, n), q.dtype)
     for m in range(lmax + 1):
@@ -419,7 +407,7 @@ def window_solve(pc: WindowPreconditioner, f, r: jax.Array) -> jax.Array:
 def _sizes(lmax: int, bandwidth: int):
     bm, g = _group(lmax, bandwidth)
     ns = -(-(lmax + 1) // g)
-    nb = _order_slots(lmax)[0].shape[1]
+    nb = order_slots(lmax)[0].shape[1]
     return bm, g, ns, nb, g * nb
 
 

@@ -16,12 +16,14 @@ Conventions (see README, "Conventions"):
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
 
 __all__ = [
+    "order_slots",
     "ModeTable",
     "n_alm",
     "n_params",
@@ -112,3 +114,21 @@ def unrealify(a, lmax: int):
     re = a[..., :nalm]
     im = xp.concatenate([xp.zeros(a.shape[:-1] + (lmax + 1,), a.dtype), a[..., nalm:]], axis=-1)
     return re + 1j * im
+
+
+@lru_cache(maxsize=32)
+def order_slots(lmax: int) -> tuple[np.ndarray, np.ndarray]:
+    """The realified entries of each order m: ``(lmax+1, B)`` indices and a mask, padded to the largest B.
+
+    Row m holds the indices of ``Re a_lm`` (l = m..lmax) then ``Im a_lm`` (m > 0); ``B = 2 lmax + 1``
+    (order 1's size; order 0 has ``lmax + 1``).  Host-side, cached: do not modify the arrays.
+    """
+    tab = mode_table(lmax)
+    blocks = [np.flatnonzero(tab.m == m) for m in range(lmax + 1)]
+    width = max(len(b) for b in blocks)
+    idx = np.zeros((lmax + 1, width), np.int64)
+    mask = np.zeros((lmax + 1, width), bool)
+    for m, b in enumerate(blocks):
+        idx[m, : len(b)] = b
+        mask[m, : len(b)] = True
+    return idx, mask
