@@ -1,0 +1,100 @@
+"""``gcrsky run --data`` at scale: a HERA-core-like file, the automatic band limit, one exact path.
+
+Writes a hexagon's drift scan (:func:`gcrsky.checks.hera_sim.simulate_hera_file`: ``n_side``
+antennas on a side, 14.6 m, 14 m Gaussian dishes, 100 MHz, 30 LSTs over 8 h, a GSM-C_l sky
+to ~1.15 x the longest baseline's reach, pI noise 20 % of the rms cross-correlation) and runs
+``gcrsky run --data FILE --dish-diameter 14 --nside NSIDE --nsamples 200`` on it (no
+``--lmax``: the band-limit rule chooses) under ``/usr/bin/time -v``, then prints one row
+per array: the lmax chosen (and the reach the simulator computed), the path, N_d
+(``2 Nt Nrow``), n (``(lmax+1)^2``), the CLI's stages (build = read + checks + responses;
+set-up = Wiener stage: the data-space set-up and the Wiener filter, compilation included;
+draws; maps and files), the wall time of the whole command, its peak RSS and the fit's
+chi^2/dof.  The run's nside is the simulation's (the same response quadrature).
+
+    PYTHONPATH=. GCRSKY_COMPILE_CACHE=off python benchmarks/cli_scale.py --n-side 3 5 [--keep DIR]
+
+Measured 2026-12-03 on the shared 2-core CPU (``/proc/loadavg`` at the start given per row;
+other engineers' benchmarks running), float64, compilation cache off:
+
+    (table below, filled by the run)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def _simulate(path: Path, n_side: int, n_times: int) -> dict:
+    """Write the file in a child process (its memory is not the run's); what was simulated."""
+    code = ("import json,sys; from gcrsky.checks.hera_sim import simulate_hera_file as s; "
+            f"r=s({str(path)!r}, n_side={n_side}, n_times={n_times}); "
+            "print(json.dumps({k: v for k, v in r._asdict().items() if k in ('n_antennas','n_baselines','n_groups',"
+            "'lmax_sky','reach','nside','dt_s','noise_fraction','seconds')}))")
+    out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _run_cli(path: Path, out: Path, nside: int, nsamples: int, budget_gb: float) -> tuple[dict, float, float, str]:
+    """``(summary.json, wall s, max RSS GB, stdout)`` of ``gcrsky run --data`` under ``/usr/bin/time -v``."""
+    cmd = ["/usr/bin/time", "-v", sys.executable, "-m", "gcrsky", "run", "--data", str(path), "--dish-diameter",
+           "14", "--nside", str(nside), "--nsamples", str(nsamples), "--out", str(out), "--no-progress",
+           "--no-plots"]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "GCRSKY_COMPILE_CACHE": "off",
+                                                                      "GCRSKY_MEMORY_BUDGET_GB": f"{budget_gb:g}"})
+    wall = time.perf_counter() - t0
+    rss = re.search(r"Maximum resident set size \(kbytes\): (\d+)", proc.stderr)
+    if proc.returncode != 0:
+        raise RuntimeError(f"gcrsky run failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
+    summary = json.loads((out / "summary.json").read_text())
+    return summary, wall, (int(rss.group(1)) / 2**20 if rss else float("nan")), proc.stdout
+
+
+def _row(sim: dict, summary: dict, wall: float, rss_gb: float, load: str) -> str:
+    band = summary["data_checks"]["band_limit"]
+    t = summary["timings_s"]
+    lmax = int(band["lmax"])
+    nt = len(summary["config"]["conventions"]["times_jd"])
+    nrow = int(band["rows_for_memory"]) - int(band.get("rows_cut", 0))
+    gof = summary["goodness_of_fit"]
+    return (f"{sim['n_antennas']:4d} {sim['n_baselines']:5d} {nrow:5d} {lmax:5d} ({band['chosen']}; sim reach "
+            f"{sim['reach']}, sky {sim['lmax_sky']}) {summary['run']['method']:>10s} N_d {2 * nt * nrow:6d} "
+            f"n {(lmax + 1) ** 2:6d} | build {t['build']:6.1f} set-up {t['wiener']:6.1f} draws {t['draws']:6.1f} "
+            f"maps+files {t['maps'] + t['write']:5.1f} | wall {wall:6.1f} s, RSS {rss_gb:5.2f} GB | chi2/dof "
+            f"{', '.join(f'{x:.3f}' for x in gof['chi2_per_dof'])} | sim {sum(sim['seconds'].values()):.0f} s | load {load}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--n-side", type=int, nargs="+", default=[3, 5], help="antennas on a hexagon's side (7: 127)")
+    ap.add_argument("--n-times", type=int, default=30)
+    ap.add_argument("--nsamples", type=int, default=200)
+    ap.add_argument("--budget-gb", type=float, default=6.0,
+                    help="GCRSKY_MEMORY_BUDGET_GB of the run (the planner's and the lmax cap's free memory)")
+    ap.add_argument("--keep", type=Path, default=None, help="write files and runs here (default: a temp dir)")
+    args = ap.parse_args(argv)
+    root = args.keep or Path(tempfile.mkdtemp(prefix="cli_scale_"))
+    root.mkdir(parents=True, exist_ok=True)
+    print("ants   bls  rows  lmax (rule)                          path     N_d      n | stages (s) | whole | fit")
+    for k in args.n_side:
+        load = Path("/proc/loadavg").read_text().split()[0:3]
+        f = root / f"hex{k}.uvh5"
+        sim = _simulate(f, k, args.n_times)
+        out = root / f"run{k}"
+        summary, wall, rss, _ = _run_cli(f, out, sim["nside"], args.nsamples, args.budget_gb)
+        print(_row(sim, summary, wall, rss, " ".join(load)), flush=True)
+        print(f"     sim: dt {sim['dt_s']:.3g} s, noise fraction {sim['noise_fraction']:.3f}; band limit "
+              f"{json.dumps(summary['data_checks']['band_limit'])}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
