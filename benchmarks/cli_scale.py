@@ -13,10 +13,32 @@ chi^2/dof.  The run's nside is the simulation's (the same response quadrature).
 
     PYTHONPATH=. GCRSKY_COMPILE_CACHE=off python benchmarks/cli_scale.py --n-side 3 5 [--keep DIR]
 
-Measured 2026-12-03 on the shared 2-core CPU (``/proc/loadavg`` at the start given per row;
-other engineers' benchmarks running), float64, compilation cache off:
+Measured 2026-12-03 on the shared 2-core CPU, float64, compilation cache off,
+``GCRSKY_MEMORY_BUDGET_GB=6`` (other engineers' benchmarks running: ``/proc/loadavg`` 5-15
+throughout, this process got 30-80 % of one core; the times are upper bounds):
 
-    (table below, filled by the run)
+    TABLE
+
+What the runs found (and what the branch changed):
+
+* **No file was ever compressed.**  Positions read from a file go through ECEF and come back
+  ~1e-9 m off, so ``redundant_groups`` at its 1e-9 m default refused a hexagon's grouping as
+  ambiguous, ``compress_problem`` was skipped and every baseline kept, its response built:
+  8001 x (lmax 413)^2 x 16 B = 22 GB for the 127-antenna core.  Now the rows are grouped within
+  1e-6 m (exactness: the fringe-phase guard 2 pi |db| nu / c <= 1e-8, as ``unique_response``) and
+  merged *before* the response, which is built for one row per group (19 antennas, 10 times, lmax
+  164: 5 min 9 s / 6.2 GB -> 1 min 24 s / 3.6 GB).
+* The lmax cap counted every baseline and only the standard data-space set-up: it now counts
+  the merged rows and the in-place set-up's estimate.
+* **The in-place data-space set-up never applies to a file**: its lag shortcut needs no frame
+  map, and a file's ICRS coefficients always have one (ICRS -> CIRS of date).  At 61 antennas
+  (108 rows, N_d 6480, lmax 287, n 82944) the standard set-up is estimated at 11.75 GiB, so
+  under a 6 GB budget ``plan_sampler`` falls back to matrix-free CG, whose Nystrom sketch then
+  formed all 128 products at once (RSS > 17.9 GB when killed; its estimate: 0.9 GB).  The sketch
+  now forms 8 at a time (not yet re-measured at that size); ``--method dataspace`` passed 10 GB
+  RSS (killed).  The 61-, 91- and 127-antenna runs did not finish here.
+* The data checks flag the last 2-4 of 30 times as noise-excess outliers on these files
+  (model + radiometer noise only, 16.5 min between LSTs): not investigated.
 """
 
 from __future__ import annotations
