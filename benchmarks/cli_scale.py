@@ -17,7 +17,17 @@ Measured 2026-12-03 on the shared 2-core CPU, float64, compilation cache off,
 ``GCRSKY_MEMORY_BUDGET_GB=6`` (other engineers' benchmarks running: ``/proc/loadavg`` 5-15
 throughout, this process got 30-80 % of one core; the times are upper bounds):
 
-    TABLE
+    ants  bls rows lmax (rule)      path       N_d      n | build set-up draws maps+files | wall   RSS     | chi2/dof
+      19  171   30  164 (reach)   dataspace    600  27225 |  21.5  48.6   4.1   2.0        | 84 s   3.44 GiB | 0.986
+      (10 LSTs; by hand: gcrsky run --data hex19.uvh5 --dish-diameter 14 --nside 128 --nsamples 200; before
+      this branch the same run kept all 171 baselines: 309 s, 5.96 GiB)
+      19  171   30  164 (reach)   dataspace   1800  27225 |  11.4  91.1   5.2   1.7        | 115 s  3.83 GiB | 0.979
+      (this script, --n-side 3: 30 LSTs, sky to l = 189, dt 0.046 s, pI noise 0.245 of the signal; sim 14 s;
+      loadavg 1.80 4.61 7.05)
+      37  666   63  226 (reach)   ?           3780  51529 | killed by the watchdog at 6.1 GiB after 11 min 10 s
+      61 1830  108  287 (reach)   cg (auto)   6480  82944 | build 66 s; killed at > 17.9 GB in the Nystrom sketch
+      61 1830  108  287 (reach)   dataspace   6480  82944 | (--method dataspace --batch 10) killed at 10 GB
+     127 8001  234  409 (reach)   not run: N_d 14040, n 168100; the sim's reach and the rule's agree (tests)
 
 What the runs found (and what the branch changed):
 
