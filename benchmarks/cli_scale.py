@@ -25,8 +25,8 @@ throughout, this process got 30-80 % of one core; the times are upper bounds):
       (this script, --n-side 3: 30 LSTs, sky to l = 189, dt 0.046 s, pI noise 0.245 of the signal; sim 14 s;
       loadavg 1.80 4.61 7.05)
       37  666   63  226 (reach)   ?           3780  51529 | killed by the watchdog at 6.1 GiB after 11 min 10 s
-      61 1830  108  287 (reach)   cg (auto)   6480  82944 | build 66 s; killed at > 17.9 GB in the Nystrom sketch
-      61 1830  108  287 (reach)   dataspace   6480  82944 | (--method dataspace --batch 10) killed at 10 GB
+      61 1830  108  287 (reach)   cg (auto)   6480  82944 | build 66 s; killed at 17.1 GiB in the Nystrom sketch
+      61 1830  108  287 (reach)   dataspace   6480  82944 | (--method dataspace --batch 10) killed at 10.0 GiB
      127 8001  234  409 (reach)   not run: N_d 14040, n 168100; the sim's reach and the rule's agree (tests)
 
 What the runs found (and what the branch changed):
@@ -37,16 +37,16 @@ What the runs found (and what the branch changed):
   8001 x (lmax 413)^2 x 16 B = 22 GB for the 127-antenna core.  Now the rows are grouped within
   1e-6 m (exactness: the fringe-phase guard 2 pi |db| nu / c <= 1e-8, as ``unique_response``) and
   merged *before* the response, which is built for one row per group (19 antennas, 10 times, lmax
-  164: 5 min 9 s / 6.2 GB -> 1 min 24 s / 3.6 GB).
+  164: 5 min 9 s / 5.96 GiB -> 1 min 24 s / 3.44 GiB).
 * The lmax cap counted every baseline and only the standard data-space set-up: it now counts
   the merged rows and the in-place set-up's estimate.
 * **The in-place data-space set-up never applies to a file**: its lag shortcut needs no frame
   map, and a file's ICRS coefficients always have one (ICRS -> CIRS of date).  At 61 antennas
   (108 rows, N_d 6480, lmax 287, n 82944) the standard set-up is estimated at 11.75 GiB, so
   under a 6 GB budget ``plan_sampler`` falls back to matrix-free CG, whose Nystrom sketch then
-  formed all 128 products at once (RSS > 17.9 GB when killed; its estimate: 0.9 GB).  The sketch
+  formed all 128 products at once (RSS 17.1 GiB when killed; its estimate: 0.9 GiB).  The sketch
   now forms 8 at a time (not yet re-measured at that size); ``--method dataspace`` passed 10 GB
-  RSS (killed).  The 61-, 91- and 127-antenna runs did not finish here.
+  RSS (killed).  The 37- and 61-antenna runs were stopped; 91 and 127 were not attempted.
 * The data checks flag the last 2-4 of 30 times as noise-excess outliers on these files
   (model + radiometer noise only, 16.5 min between LSTs): not investigated.
 """
