@@ -45,8 +45,9 @@ What the runs found (and what the branch changed):
   (108 rows, N_d 6480, lmax 287, n 82944) the standard set-up is estimated at 11.75 GiB, so
   under a 6 GB budget ``plan_sampler`` falls back to matrix-free CG, whose Nystrom sketch then
   formed all 128 products at once (RSS 17.1 GiB when killed; its estimate: 0.9 GiB).  The sketch
-  now forms 8 at a time (not yet re-measured at that size); ``--method dataspace`` passed 10 GB
-  RSS (killed).  The 37- and 61-antenna runs were stopped; 91 and 127 were not attempted.
+  now forms 8 at a time, yet the CG set-up (``prepare``: preconditioner and Wiener solve, batch 10)
+  still passed 6 GiB about 40 s after the build (killed; which XLA program holds it is open: the
+  estimate ignores the operator's transients); ``--method dataspace`` passed 10 GiB RSS (killed).  The 37- and 61-antenna runs were stopped; 91 and 127 were not attempted.
 * The data checks flag the last 2-4 of 30 times as noise-excess outliers on these files
   (model + radiometer noise only, 16.5 min between LSTs): not investigated.
 """
