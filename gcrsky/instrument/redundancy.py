@@ -326,6 +326,7 @@ def unique_response(
     lst_ref_rad: float = 0.0,
     method: Literal["auto", "quadrature", "sht"] = "auto",
     rtol: float = DEFAULT_RTOL,
+    pols=None,
 ) -> jax.Array:
     """Response rows of the group representatives only: (Nf, Ngroups, (lmax+1)**2) complex.
 
@@ -343,6 +344,8 @@ def unique_response(
             (:func:`gcrsky.instrument.response_matrix` by rings) or ``"sht"``
             (:func:`gcrsky.instrument.response_sht.response_matrix_sht`).
         rtol: bound on the phase offset above.
+        pols: None (the unpolarised kernel) or the product of each group, (Ngroups,) names
+            (:func:`gcrsky.instrument.response_matrix`'s ``pols``; groups never mix products).
 
     Returns:
         ``R_u`` with ``R_u[:, g]`` the row of group ``g``; the full response is
@@ -371,7 +374,8 @@ def unique_response(
     how = {"auto": "auto", "quadrature": "rings", "sht": "sht"}.get(method)
     if how is None:
         raise ValueError(f"method must be 'auto', 'quadrature' or 'sht', got {method!r}")
-    return response_matrix(array, reps, freqs, lmax, nside, lst_ref_rad=lst_ref_rad, method=how)
+    return response_matrix(array, reps, freqs, lmax, nside, lst_ref_rad=lst_ref_rad, method=how,
+                           pols=None if pols is None else list(pols))
 
 
 def redundant_responses(

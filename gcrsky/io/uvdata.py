@@ -318,7 +318,8 @@ def from_uvdata(
         accept_x_orientation_mismatch=accept_x_orientation_mismatch)
     checks.update(flux_checks(obs, beams[0], pol=pol, mode=flux_scale))  # through the prepared beam
     lmax, band_note = observation_lmax(obs, beams, lmax, n_products=len(parse_products(pol)[0]),
-                                       frame_pad=frame_pad, budget_bytes=memory_budget)
+                                       frame_pad=frame_pad, budget_bytes=memory_budget,
+                                       compress=compress and band_limit != "marginalise")
     prior_obj, prior_note, prior_rec = apply_prior_mean(*_resolve_prior(prior, prior_scale, obs.freqs_hz, lmax),
                                                         prior_mean, prior, obs.freqs_hz, lmax)
     prob = problem_from_observation(obs, beams, lmax=lmax, nside=nside, pol=pol, prior=prior_obj, noise=noise,

@@ -77,6 +77,7 @@ __all__ = [
     "memory_lmax",
     "observation_lmax",
     "observation_reach",
+    "observation_rows",
     "problem_baselines",
     "required_lmax",
 ]
@@ -155,17 +156,21 @@ def required_lmax(reach) -> int:
 def memory_lmax(n_freqs: int, n_rows: int, budget_bytes: float, *, frame_pad: int = 4,
                 n_times: int | None = None) -> int:
     """The largest lmax whose large arrays fit in ``budget_bytes``: the response (Nf, Nrow,
-    (lmax + pad + 1)^2 complex128) plus, per channel, the cheaper exact path's: one dense (n, n)
-    float64 precision, or (with ``n_times``) the data-space path's (N_d, N_d) float64 matrix three
-    times over and the explicit (N_d / 2, n_resp) complex128 operator twice (``N_d = 2 Nrow Nt``
-    real data values; a conservative bound of its set-up, which issue 27 measures)."""
+    (lmax + pad + 1)^2 complex128) plus, per channel, the cheapest exact path's: one dense (n, n)
+    float64 precision, or (with ``n_times``) a data-space set-up (``N_d = 2 Nrow Nt`` real data
+    values): the standard one's (N_d, N_d) matrix three times over and the explicit (N_d / 2, n_resp)
+    complex128 operator twice, or the in-place one's
+    (:func:`gcrsky.solvers.dataspace_large.dataspace_large_bytes`: D once, the lag blocks
+    ``2 x 8 Nt (2 Nrow)^2`` and the response's four real copies ``4 x 8 (2 Nrow) n_resp``)."""
     lmax = 1
     while True:
         n, nr = (lmax + 2) ** 2, (lmax + 2 + frame_pad) ** 2
         per_channel = 8.0 * n * n
         if n_times is not None:
             nd = 2 * n_rows * n_times
-            per_channel = min(per_channel, 3 * 8.0 * nd * nd + 2 * 16.0 * (nd / 2) * nr)
+            standard = 3 * 8.0 * nd * nd + 2 * 16.0 * (nd / 2) * nr
+            in_place = 8.0 * nd * nd + 2 * 8.0 * n_times * (2 * n_rows) ** 2 + 4 * 8.0 * 2 * n_rows * nr
+            per_channel = min(per_channel, standard, in_place)
         if 16.0 * n_freqs * n_rows * nr + n_freqs * per_channel > budget_bytes:
             return lmax
         lmax += 1
@@ -343,14 +348,33 @@ def observation_reach(obs, beams, dish_diameter_m: float | None = None) -> tuple
     return baseline_reach(pos[pairs[:, 1]] - pos[pairs[:, 0]], obs.freqs_hz, dish), dish
 
 
+def observation_rows(obs, compress: bool = False) -> int:
+    """Rows per product a problem of ``obs`` has before its band limit: every baseline, or with
+    ``compress`` one per redundant group (:func:`gcrsky.instrument.redundant_groups` within
+    :data:`gcrsky.model.observed.COMPRESS_TOL_M`; every baseline where the grouping is refused)."""
+    if not compress:
+        return int(obs.n_baselines)
+    from ..instrument.redundancy import redundant_groups
+    from .observed import COMPRESS_TOL_M
+
+    try:
+        return redundant_groups(obs.antpos_enu_m, obs.antpairs, tol_m=COMPRESS_TOL_M).n_groups
+    except ValueError:
+        return int(obs.n_baselines)
+
+
 def observation_lmax(obs, beams, lmax: int | None, *, n_products: int = 1, frame_pad: int = 4,
-                     budget_bytes: float | None = None, dish_diameter_m: float | None = None) -> tuple[int, dict]:
+                     budget_bytes: float | None = None, dish_diameter_m: float | None = None,
+                     compress: bool = False) -> tuple[int, dict]:
     """An Observation's lmax (:func:`choose_lmax`: ``lmax`` if given, else the reach of every used
-    baseline at the highest used frequency, capped by memory) and its note (reach, D)."""
+    baseline at the highest used frequency, capped by memory) and its note (reach, D).  ``compress``:
+    the memory cap counts one row per redundant group (:func:`observation_rows`), as the problem has."""
     reach, dish = observation_reach(obs, beams, dish_diameter_m)
-    chosen, note = choose_lmax(reach, lmax, n_rows=reach.shape[1] * n_products, budget_bytes=budget_bytes,
-                               n_times=obs.n_times, frame_pad=frame_pad)
+    n_rows = observation_rows(obs, compress) * n_products
+    chosen, note = choose_lmax(reach, lmax, n_rows=n_rows, budget_bytes=budget_bytes, n_times=obs.n_times,
+                               frame_pad=frame_pad)
     note["dish_m"] = [round(float(dish.min()), 3), round(float(dish.max()), 3)]
+    note["rows_for_memory"] = int(n_rows)
     return chosen, note
 
 

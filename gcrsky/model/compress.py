@@ -30,7 +30,7 @@ from ..instrument.redundancy import (
 )
 from .system import LinearSystem
 
-__all__ = ["compress_problem", "compress_system", "compress_visibilities"]
+__all__ = ["compress_problem", "compress_rows", "compress_system", "compress_visibilities", "row_groups"]
 
 
 @partial(jax.jit, static_argnames=("n_groups",))
@@ -112,15 +112,23 @@ def _pairs_groups(problem, array, pairs, tol_m) -> RedundantGroups:
 
 def _problem_groups(problem, array, tol_m) -> RedundantGroups:
     """Redundant groups of the problem's rows; rows of different feed products never share a group."""
-    pairs = np.asarray(problem.antpairs)
-    if problem.pols is None or len(set(problem.pols)) == 1:
-        return _pairs_groups(problem, array, pairs, tol_m)
-    pols = np.asarray(problem.pols)
+    return row_groups(np.asarray(problem.antpairs), problem.pols,
+                      lambda pairs: _pairs_groups(problem, array, pairs, tol_m))
+
+
+def row_groups(pairs, pols, group_pairs) -> RedundantGroups:
+    """Redundant groups of rows ``pairs`` (Nrow, 2) with products ``pols`` (Nrow names, or None):
+    ``group_pairs(pairs)`` groups the rows of one product (e.g. :func:`groups_for_array`); rows of
+    different products never share a group; representatives in row order."""
+    pairs = np.asarray(pairs)
+    if pols is None or len(set(pols)) == 1:
+        return group_pairs(pairs)
+    pols = np.asarray(pols)
     group_of = np.empty(pairs.shape[0], np.int64)
     reps, vecs, offs = [], [], []
-    for p in dict.fromkeys(problem.pols):  # in order of first appearance
+    for p in dict.fromkeys(pols.tolist()):  # in order of first appearance
         rows = np.flatnonzero(pols == p)
-        g = _pairs_groups(problem, array, pairs[rows], tol_m)
+        g = group_pairs(pairs[rows])
         group_of[rows] = g.group_of + len(reps)
         reps.extend(rows[g.representative].tolist())
         vecs.append(g.vectors_m)
@@ -131,6 +139,25 @@ def _problem_groups(problem, array, tol_m) -> RedundantGroups:
     rep = np.asarray(reps)[order]
     return RedundantGroups(rank[group_of], rep, np.bincount(rank[group_of], minlength=rep.size).astype(np.int64),
                            pairs.copy(), np.concatenate(vecs)[order], np.concatenate(offs)[order])
+
+
+def compress_rows(data, sigma, weights, groups: RedundantGroups):
+    """``(data_g, sigma_g, weights_g)`` (Nf, Nt, Ngroups) of rows (Nf, Nt, Nrow) merged by ``groups``.
+
+    ``data_g`` the inverse-variance-weighted group average (0 where the whole group is flagged),
+    ``sigma_g = 1/sqrt(sum_b w_b / sigma_b^2)`` (the unflagged group noise
+    ``1/sqrt(sum_b 1/sigma_b^2)`` where the whole group is flagged) and ``weights_g`` 1 (0 there):
+    :func:`compress_problem`'s numbers, without a response.
+    """
+    sigma = np.asarray(sigma, np.float64)
+    iv = np.asarray(weights, np.float64) / sigma**2
+    gof = jnp.asarray(groups.group_of)
+    data_g, iv_g = compress_visibilities(jnp.asarray(data), jnp.asarray(iv), gof, groups.n_groups)
+    _, iv_full = compress_visibilities(jnp.asarray(data), jnp.asarray(1.0 / sigma**2), gof, groups.n_groups)
+    iv_g, iv_full = np.asarray(iv_g), np.asarray(iv_full)
+    kept = iv_g > 0
+    sigma_g = np.where(kept, 1.0 / np.sqrt(np.where(kept, iv_g, 1.0)), 1.0 / np.sqrt(iv_full))
+    return data_g, sigma_g, kept.astype(np.float64)
 
 
 def compress_problem(
@@ -175,16 +202,8 @@ def compress_problem(
     if groups.antpairs.shape != pairs.shape or not np.array_equal(groups.antpairs, pairs):
         raise ValueError("groups were built for different antenna pairs than the problem's (order matters)")
     check_redundancy(problem.response, groups, rtol=rtol, freqs_hz=problem.freqs_hz)
-    sigma = np.asarray(problem.sigma, np.float64)
-    w = np.asarray(problem.weights, np.float64)
-    iv = w / sigma**2
     rep = jnp.asarray(groups.representative)
-    gof = jnp.asarray(groups.group_of)
-    data_g, iv_g = compress_visibilities(problem.data, jnp.asarray(iv), gof, groups.n_groups)
-    _, iv_full = compress_visibilities(problem.data, jnp.asarray(1.0 / sigma**2), gof, groups.n_groups)
-    iv_g, iv_full = np.asarray(iv_g), np.asarray(iv_full)
-    kept = iv_g > 0
-    sigma_g = np.where(kept, 1.0 / np.sqrt(np.where(kept, iv_g, 1.0)), 1.0 / np.sqrt(iv_full))
+    data_g, sigma_g, kept = compress_rows(problem.data, problem.sigma, problem.weights, groups)
     pols = None if problem.pols is None else tuple(problem.pols[int(r)] for r in groups.representative)
     if pols is not None and any(problem.pols[b] != pols[g] for b, g in enumerate(np.asarray(groups.group_of))):
         raise ValueError("a redundant group mixes feed products (problem.pols): group each product apart")
@@ -195,6 +214,6 @@ def compress_problem(
         response=jnp.take(problem.response, rep, axis=1),
         data=data_g,
         sigma=jnp.asarray(sigma_g),
-        weights=jnp.asarray(kept.astype(np.float64)),
+        weights=jnp.asarray(kept),
         sigma_sky=None,  # not tracked through the merge (only a gain run uses it, and it keeps every baseline)
     )

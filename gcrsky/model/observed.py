@@ -51,6 +51,7 @@ from .skyprior import gsm_cl_source, gsm_prior
 
 __all__ = [
     "COMPRESS_RTOL",
+    "COMPRESS_TOL_M",
     "DataConfig",
     "check_observation",
     "conventions",
@@ -67,6 +68,11 @@ log = logging.getLogger(__name__)
 #: (6.4e6 m), so "redundant" baselines differ by ~1e-9 m and their responses by ~1e-9 relative (measured
 #: 1.6e-9 at 102 MHz); merging within 1e-8 changes the model far below any noise or simulator agreement.
 COMPRESS_RTOL = 1e-8
+#: Grouping tolerance of the automatic compression, metres: wide enough for the ~1e-9 m that positions
+#: read through ECEF differ by (at the default 1e-9 m such jitter splits groups and a hexagon's grouping is
+#: refused as ambiguous), far below any array's spacing; exactness is then the phase guard's or the
+#: response check's (:data:`COMPRESS_RTOL`), not this tolerance's.
+COMPRESS_TOL_M = 1e-6
 
 
 @dataclasses.dataclass(frozen=True)
@@ -286,21 +292,57 @@ def _response(array, pairs, freqs, lmax_resp, nside, lst_ref, pols):
     return response_matrix(array, pairs, freqs, lmax_resp, nside, lst_ref_rad=lst_ref, pols=list(pols))
 
 
-def _instrument(obs: Observation, beams, lmax, nside, frame_pad, pairs, row_pols):
-    """``(array, geometry, (cross, auto) responses, lst_ref)`` at the file's times and site."""
+def _instrument(obs: Observation, array, beams, lmax, nside, frame_pad, pairs, row_pols):
+    """``(geometry, (cross, auto) responses, lst_ref)`` of the rows ``pairs`` at the file's times and site.
+
+    The autocorrelations' response is built once per distinct beam (every auto has separation 0)
+    and gathered to the antennas.
+    """
     from astropy.time import Time
 
-    loc = obs.location
-    array = make_array(obs.antpos_enu_m, float(loc.lat.deg), list(beams))
+    from ..instrument.redundancy import groups_for_array
+
     times = Time(obs.times_jd, format="jd", scale="utc")
-    geom = observation_geometry(array, lmax, times=times, location=loc, frame_pad=frame_pad)
+    geom = observation_geometry(array, lmax, times=times, location=obs.location, frame_pad=frame_pad)
     lst_ref = float(geom.lsts_rad[0])
     _check_beam_freqs(beams, obs.freqs_hz)
     resp = _response(array, pairs, obs.freqs_hz, geom.lmax_response, nside, lst_ref, row_pols)
-    auto_pairs = np.stack([np.arange(obs.n_antennas)] * 2, 1)
-    auto = _response(array, auto_pairs, obs.freqs_hz, geom.lmax_response, nside, lst_ref,
-                     [row_pols[0]] * auto_pairs.shape[0])
-    return array, geom, (resp, auto), lst_ref
+    auto_groups = groups_for_array(array, np.stack([np.arange(obs.n_antennas)] * 2, 1))
+    auto_u = _response(array, auto_groups.representative_antpairs, obs.freqs_hz, geom.lmax_response, nside, lst_ref,
+                       [row_pols[0]] * auto_groups.n_groups)
+    auto = auto_u[:, np.asarray(auto_groups.group_of)]
+    return geom, (resp, auto), lst_ref
+
+
+def _merge_before_response(obs: Observation, array, data, sigma, weights, pairs, row_pols):
+    """Redundant rows merged *before* any response is built: ``(data, sigma, weights, pairs, row_pols,
+    n_before)`` of one row per group, or the inputs unchanged (``n_before`` None) where nothing merges.
+
+    Groups (:func:`gcrsky.model.compress.row_groups`: per product, by separation within
+    :data:`COMPRESS_TOL_M` and ordered beam pair) are exact where every member's offset from its
+    representative moves the fringe phase by at most :data:`COMPRESS_RTOL` at the highest frequency
+    (the guard of :func:`gcrsky.instrument.unique_response`): then the members' response rows equal
+    the representative's to that tolerance and are never computed.  The data merge is
+    :func:`gcrsky.model.compress.compress_rows` (what :func:`gcrsky.model.compress_problem` does).
+    """
+    from ..base.units import SPEED_OF_LIGHT
+    from ..instrument.redundancy import groups_for_array
+    from .compress import compress_rows, row_groups
+
+    try:
+        groups = row_groups(pairs, row_pols, lambda p: groups_for_array(array, p, tol_m=COMPRESS_TOL_M))
+    except ValueError as err:  # an irregular layout: the rows are merged after the response, if at all
+        log.info("redundant compression before the response skipped: %s", err)
+        return data, sigma, weights, pairs, row_pols, None
+    phase = 2 * np.pi * float(np.max(groups.max_offset_m)) * float(np.max(obs.freqs_hz)) / SPEED_OF_LIGHT
+    if phase > COMPRESS_RTOL or groups.n_groups == pairs.shape[0]:
+        return data, sigma, weights, pairs, row_pols, None
+    data_g, sigma_g, w_g = compress_rows(data, sigma, weights, groups)
+    rep = groups.representative
+    log.info("redundant compression: %d -> %d rows before the response (members within %.2g m: fringe phase "
+             "%.2g rad)", pairs.shape[0], groups.n_groups, float(np.max(groups.max_offset_m)), phase)
+    return (np.asarray(data_g), sigma_g, w_g, groups.representative_antpairs.copy(),
+            [row_pols[int(r)] for r in rep], pairs.shape[0])
 
 
 def _data_config(obs: Observation, prods, geom, beams, *, lmax, nside, noise, beam_note, prior_note) -> DataConfig:
@@ -327,7 +369,7 @@ def _compress(prob: Problem, array, cfg: DataConfig) -> Problem:
     from .compress import compress_problem
 
     try:
-        out = compress_problem(prob, array, rtol=COMPRESS_RTOL)
+        out = compress_problem(prob, array, rtol=COMPRESS_RTOL, tol_m=COMPRESS_TOL_M)
     except ValueError as err:  # not exactly redundant (e.g. per-antenna beams): keep every baseline
         log.info("redundant compression skipped: %s", err)
         return prob
@@ -392,7 +434,12 @@ def problem_from_observation(
         prior, default_note = default_prior(obs.freqs_hz, lmax)
         prior_note = prior_note or default_note
     data, sigma, weights, pairs, row_pols = _data_rows(obs, prods, raw, noise)
-    array, geom, responses, lst_ref = _instrument(obs, beams, lmax, nside, frame_pad, pairs, row_pols)
+    array = make_array(obs.antpos_enu_m, float(obs.location.lat.deg), list(beams))
+    merged = None
+    if compress and band_limit != "marginalise":  # marginalise adds each baseline's high-l variance first
+        data, sigma, weights, pairs, row_pols, merged = _merge_before_response(obs, array, data, sigma, weights,
+                                                                               pairs, row_pols)
+    geom, responses, lst_ref = _instrument(obs, array, beams, lmax, nside, frame_pad, pairs, row_pols)
     cfg = _data_config(obs, prods, geom, beams, lmax=lmax, nside=nside, noise=noise, beam_note=beam_note or note,
                        prior_note=prior_note or "given (a Prior)")
     cfg = dataclasses.replace(cfg, checks=dict(checks or {}))
@@ -408,4 +455,6 @@ def problem_from_observation(
         note = band_note if band_note is not None else observation_lmax(obs, beams, lmax)[1]
         prob = apply_band_limit(prob, array, band_limit, note, nside=nside)
         cfg = prob.config
+    if merged is not None:
+        return dataclasses.replace(prob, config=dataclasses.replace(cfg, compressed=True))
     return _compress(prob, array, cfg) if compress else prob
