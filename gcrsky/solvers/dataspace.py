@@ -77,7 +77,14 @@ from ..base.memory import available_memory_bytes, check_memory, format_bytes
 from ..model.operator import adjoint, apply, response_at
 from ..model.system import LinearSystem, precision_apply, wiener_rhs
 from .blocked import triangular_solves
-from .dataspace_large import dataspace_large_bytes, factor_in_place, lag_blocks_by_m, logdet_no_grad
+from .dataspace_large import (
+    HostFactor,
+    dataspace_large_bytes,
+    factor_in_place,
+    host_logdet,
+    lag_blocks_by_m,
+    logdet_no_grad,
+)
 from .dense import cholesky_logdet, cholesky_solve
 from .info import DrawInfo, SolveInfo, direct_info, exact_info
 from .options import DataSpaceOptions
@@ -427,9 +434,19 @@ def _d_solve(system: LinearSystem, sqrt_w, D, L, b):
     kept, else against the matrix-free :func:`_d_matvec` (the in-place set-up)."""
     if D is not None:
         return cholesky_solve(D, L, b)
-    Lc = jax.lax.stop_gradient(L)
-    solve = lambda _, r: jax.vmap(triangular_solves)(Lc, r)  # noqa: E731
+    if isinstance(L, HostFactor):
+        solve = lambda _, r: L.solve(r)  # noqa: E731
+    else:
+        Lc = jax.lax.stop_gradient(L)
+        solve = lambda _, r: jax.vmap(triangular_solves)(Lc, r)  # noqa: E731
     return jax.lax.custom_linear_solve(lambda u: _d_matvec(system, sqrt_w, u), b, solve, symmetric=True)
+
+
+def _factor_finite(L) -> jax.Array:
+    """(Nf,) every entry of the channel's factor finite."""
+    if isinstance(L, HostFactor):
+        return jnp.asarray(L.finite)
+    return jnp.all(jnp.isfinite(jax.lax.stop_gradient(L)), axis=(1, 2))
 
 
 def _posterior_cov_apply(system: LinearSystem, sqrt_w, D, L, v):
@@ -470,7 +487,7 @@ def _dataspace_wiener(system: LinearSystem, D, L, options: DataSpaceOptions):
     b = wiener_rhs(ssys)
     r = b - precision_apply(ssys, a)
     err = jnp.sqrt(jnp.abs(jnp.sum(r * _posterior_cov_apply(ssys, sg(sqrt_w), Dc, Lc, r), axis=-1)))
-    finite = jnp.all(jnp.isfinite(Lc), axis=(1, 2)) & jnp.all(jnp.isfinite(a), axis=-1)
+    finite = _factor_finite(L) & jnp.all(jnp.isfinite(a), axis=-1)
     info = direct_info(err, jnp.linalg.norm(r, axis=-1) / jnp.linalg.norm(b, axis=-1), finite, options.tol)
     if options.throw:
         a_wf = eqx.error_if(a_wf, ~info.converged, "gcrsky data space: D is not positive definite or the Wiener "
@@ -768,6 +785,12 @@ class DataSpacePath(SolverPath):
         sqrt_w = _sqrt_w(state.system)
         rt = _whitened_residual(state.system, sqrt_w)
         q = jnp.sum(rt * _d_solve(state.system, sqrt_w, state.gram, state.chol, rt), axis=-1)
-        finite = jnp.all(jnp.isfinite(jax.lax.stop_gradient(state.chol)), axis=(1, 2))
-        logdet = logdet_no_grad(state.chol) if state.gram is None else cholesky_logdet(state.gram, state.chol)
+        finite = _factor_finite(state.chol)
+        if isinstance(state.chol, HostFactor):
+            s = state.system
+            logdet = host_logdet(jnp.asarray(state.chol.logdet), s.inv_noise, s.prior.inv_var, s.op.response)
+        elif state.gram is None:
+            logdet = logdet_no_grad(state.chol)
+        else:
+            logdet = cholesky_logdet(state.gram, state.chol)
         return _parts(state.system, state.options, terms, q, logdet, finite)

@@ -40,6 +40,7 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.linalg as sla
 
 from ..base.dtypes import check_float64
 from ..model.system import LinearSystem
@@ -47,10 +48,13 @@ from ..sphere.modes import lmax_from_nparams, n_alm
 from .blocked import BLOCK, blocked_cholesky, blocked_cholesky_bytes
 
 __all__ = [
+    "HostFactor",
     "M_CHUNK",
     "aligned_empty",
     "dataspace_large_bytes",
+    "factor_in_place",
     "fill_lower",
+    "host_logdet",
     "lag_blocks_by_m",
     "logdet_no_grad",
 ]
@@ -177,6 +181,75 @@ def dataspace_large_bytes(system: LinearSystem, nlags: int, ndraws: int = 1, blo
     return max(build, factor) + max(1, ndraws) * 6.0 * 8 * nf * (nd + n)
 
 
+class HostFactor:
+    """The in-place factor of D, kept on the host: (Nf, N_d, N_d) lower triangular NumPy array.
+
+    XLA's CPU triangular solve takes a working copy of its matrix (measured: a temporary the size of the
+    factor in every compiled solve, 11.4 GB at N_d = 37800), which the in-place set-up exists to avoid;
+    so the solves with it run on the host (LAPACK ``dpotrs`` through SciPy, no copy) inside a
+    ``jax.pure_callback``, linear and vmappable, differentiated implicitly by the caller
+    (:func:`gcrsky.solvers.dataspace._d_solve`).  It enters PyTrees as static data (hashed by identity), so
+    a state that holds it is still a PyTree jit and vmap accept; host-bound by design: a device that holds
+    ``2 x 8 N_d^2`` bytes uses the standard set-up instead.
+
+    Attributes:
+        L: the factor (host array, written once, not to be modified).
+        finite: (Nf,) bool, every entry of the channel's factor finite.
+        logdet: (Nf,) ``log det D`` per channel (``2 sum log diag L``).
+    """
+
+    def __init__(self, L: np.ndarray):
+        self.L = L
+        diag = np.diagonal(L, axis1=-2, axis2=-1)
+        self.finite = np.array([bool(np.all(np.isfinite(np.diagonal(Lf))) and np.isfinite(Lf.sum())) for Lf in L])
+        self.logdet = 2.0 * np.sum(np.log(diag), axis=-1)
+
+    @property
+    def shape(self) -> tuple:
+        return self.L.shape
+
+    def __hash__(self) -> int:
+        return id(self)
+
+    def __eq__(self, other) -> bool:
+        return self is other
+
+    def _solve_host(self, r: np.ndarray) -> np.ndarray:
+        r = np.asarray(r, np.float64)
+        nf, nd = self.L.shape[0], self.L.shape[-1]
+        flat = np.moveaxis(r.reshape((-1, nf, nd)), 0, -1)  # (Nf, N_d, k)
+        # L[f].T is Fortran-ordered (no copy): the upper factor U = L^T with U^T U = D, as LAPACK's dpotrs
+        # wants it (passing L itself, C-ordered, makes f2py copy the whole factor)
+        out = np.stack([sla.cho_solve((self.L[f].T, False), flat[f], check_finite=False) for f in range(nf)])
+        return np.moveaxis(out, -1, 0).reshape(r.shape)
+
+    def solve(self, r: jax.Array) -> jax.Array:
+        """``D^-1 r`` for r (..., Nf, N_d) through the host factor (a pure callback; not differentiable
+        by itself: wrap it in ``lax.custom_linear_solve``)."""
+        return jax.pure_callback(self._solve_host, jax.ShapeDtypeStruct(r.shape, r.dtype), r,
+                                 vmap_method="expand_dims")
+
+
+jax.tree_util.register_pytree_node(HostFactor, lambda h: ((), h), lambda h, _: h)
+
+
+@jax.custom_jvp
+def host_logdet(logdet: jax.Array, *depends_on) -> jax.Array:
+    """``logdet`` (a constant from the host factor) with a NaN derivative along everything in ``depends_on``
+    (the system's arrays D depends on): ``tr(D^-1 dD)`` is not available here, so a gradient through it is
+    NaN, never silently zero."""
+    return logdet
+
+
+@host_logdet.defjvp
+def _host_logdet_jvp(primals, tangents):
+    logdet, *deps = primals
+    _, *dts = tangents
+    t = sum(jnp.sum(jnp.zeros_like(d) if isinstance(dt, jax.custom_derivatives.SymbolicZero) else dt)
+            for d, dt in zip(deps, dts))
+    return logdet, jnp.nan * t * jnp.ones_like(logdet)
+
+
 @jax.custom_jvp
 def logdet_no_grad(L: jax.Array) -> jax.Array:
     """``2 sum log diag L`` (...,) for a lower factor (..., N, N) whose matrix is not kept: its
@@ -192,9 +265,9 @@ def _logdet_no_grad_jvp(primals, tangents):
 
 
 def factor_in_place(system: LinearSystem, G: jax.Array, index: np.ndarray, sqrt_w_rows: np.ndarray,
-                    block: int = BLOCK) -> jax.Array:
+                    block: int = BLOCK) -> HostFactor:
     """D filled for every channel into one aligned host buffer, the lag blocks dropped, then factorised
-    channel by channel in place; the factor (Nf, N_d, N_d) as a JAX array sharing that buffer.
+    channel by channel in place; the factor (Nf, N_d, N_d) as a :class:`HostFactor` around that buffer.
 
     ``G`` is consumed: pass it as a temporary (the caller's reference keeps its memory alive).  Raises
     ``ValueError`` naming the channel if D is not positive definite (it is ``I +`` a PSD matrix, so only
@@ -214,4 +287,4 @@ def factor_in_place(system: LinearSystem, G: jax.Array, index: np.ndarray, sqrt_
             blocked_cholesky(out[f], block)
         except ValueError as err:
             raise ValueError(f"data space, channel {f}: {err}") from None
-    return jax.device_put(out)
+    return HostFactor(out)
