@@ -165,9 +165,9 @@ def dataspace_large_bytes(system: LinearSystem, nlags: int, ndraws: int = 1, blo
 
     The larger of its two phases, plus per draw ``~6`` vectors of ``N_d + n``:
 
-    * building: the lag blocks on the device and their host copy (``2 x 8 k Nf (2 Nbl)^2``), the per-order
-      Gram chunk (``4 M_CHUNK`` blocks), the response's two padded real copies (``4 x 8 Nf 2 Nbl n``) while
-      the blocks form, and D filled (``8 Nf N_d^2``);
+    * building: first the lag blocks (``8 k Nf (2 Nbl)^2``) with the per-order Gram chunk (``4 M_CHUNK``
+      blocks) and the response's padded real copies (``4 x 8 Nf 2 Nbl n``) while they form; then D
+      (``8 Nf N_d^2``) filled from the lag blocks and their host copy (the larger of the two);
     * factorising: D and the blocked factorisation's temporaries
       (:func:`gcrsky.solvers.blocked.blocked_cholesky_bytes`).
     """
@@ -176,7 +176,9 @@ def dataspace_large_bytes(system: LinearSystem, nlags: int, ndraws: int = 1, blo
     nd = 2 * nt * nbl
     B2 = 8.0 * (2 * nbl) ** 2
     D = nf * 8.0 * nd * nd
-    build = D + 2.0 * nlags * nf * B2 + max(4.0 * M_CHUNK * nf * B2, 4.0 * 8 * nf * 2 * nbl * (n + np.sqrt(n)))
+    lag = nlags * nf * B2
+    grams = lag + 4.0 * M_CHUNK * nf * B2 + 4.0 * 8 * nf * 2 * nbl * (n + np.sqrt(n))  # before D exists
+    build = max(grams, D + 2.0 * lag)  # D filled from the lag blocks and their host copy
     factor = D + (blocked_cholesky_bytes(nd, block) - 8.0 * nd * nd)
     return max(build, factor) + max(1, ndraws) * 6.0 * 8 * nf * (nd + n)
 
