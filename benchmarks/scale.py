@@ -243,6 +243,33 @@ summed over times.  Exact dense Cholesky (``method="auto"`` picks it)::
 rings' beam-floor cut.  ``response_matrix(method="auto")`` (the default) now builds by
 the SHT from lmax 200 (``RESPONSE_SHT_MIN_LMAX``).  The 177 s of (B) was the rings under
 load 4-6 inside the full m-mode run; the SHT route there is MEASURED 41.5 s here.
+
+(D) Issue 24 item 2: 331 antennas, 8 h, 30 LSTs, lmax 300 (l300-a331-t30-8h-f1-red, MEASURED 2026-12-03
+06:56-07:10 UTC, ``python benchmarks/scale.py --only l300-a331-t30-8h-f1-red``; load 1.0 at the start,
+5-6 later: the test suite of a fresh clone ran alongside).  n = 90601 (a dense P: 66 GB), N_d = 37800
+(D: 11.4 GB, D + factor + transients of the standard set-up: 46 GB)::
+
+    config                      n      Nbl/all    N_d    resp_s  prob_s  peak_MB  ds (in place)              cgMF-ny (maxiter 300)
+    l300-a331-t30-8h-f1-red     90601  630/54615  37800    10.8     3.1  13846    470.2 / 131 ms per draw     13.6+300.1 [300]! err 1.6e+05 sigma
+
+* The in-place data space (``gcrsky.solvers.dataspace_large``): lag blocks from per-order Grams, D filled
+  and factorised in its own host buffer (N_d^3 / 3 = 1.8e13 flop, one OpenBLAS thread), the Wiener filter
+  through the host factor: set-up 470 s, 200 draws 26.2 s (+4.6 s compile): set-up + 200 draws 501 s
+  (goal < 30 min: met); the set-up's peak 13.8 GB (goal < 16 GB: met; its estimate, beyond the system,
+  14.2 GB with 200 draws); Wiener filter exact to 2.4e-8 posterior sigma (goal 1e-6: met).  Every draw
+  exact (Hoffman-Ribak through the factor): no iteration count.
+* Matrix-free CG, prior-whitened Nystrom (rank 128), m-factorised products (1.0 s per iteration): after
+  300 iterations the rigorous error bound is still 1.6e5 posterior sigma.  The block-banded window
+  preconditioner does not change that at 8 h (``benchmarks/window_pc.py``: at lmax 64 it needs 1060
+  iterations against Nystrom's 786; it pays only for coverage of most of the day), so the ``<= 200 CG
+  iterations`` route of the issue is not what makes this case exact: the data space is.
+* The process's peak over the whole row, 15.8 GB, is the CG run after the data space (its Nystrom sketch
+  and work vectors on top of the response).
+* Where the time goes: the factorisation (~75 % of the set-up), D's fill and the lag blocks (1.2e12 flop of
+  per-order Grams instead of 1.7e13 lag by lag), the Wiener filter's three products.  Next bottleneck:
+  the factorisation runs on one core (``OPENBLAS_NUM_THREADS=1``, which the threaded ``dpotrf`` crash
+  above N = 14000 imposes; the blocked factorisation calls only ``dpotrf`` on 1024-wide blocks, so its
+  GEMMs could take both cores).
 """
 
 from __future__ import annotations
