@@ -120,12 +120,15 @@ def test_a_run_on_a_file_reaches_the_paper_only_through_its_hook(graph):
 
 
 def test_import_gcrsky_stays_lean():
-    """``import gcrsky`` loads none of the application dependencies (nor healpy, which pulls in matplotlib)."""
+    """``import gcrsky`` loads none of the application dependencies (nor healpy, which pulls in matplotlib),
+    nor ducc0, nor SciPy's LAPACK: its OpenBLAS reads its thread count when it loads, and the LAPACK that JAX
+    calls must load after ``use_safe_cpu_threading`` (a threaded ``dpotrf`` crashed above n = 14000; the
+    HERA lmax 150 Cholesky segfaulted when a new module imported ``scipy.linalg`` at import time)."""
     code = textwrap.dedent(
         """
         import sys
         import gcrsky
-        heavy = ('matplotlib', 'matvis', 'pygdsm', 'pyradiosky', 'healpy', 'tqdm')
+        heavy = ('matplotlib', 'matvis', 'pygdsm', 'pyradiosky', 'healpy', 'tqdm', 'ducc0', 'scipy.linalg')
         print(sorted(m for m in heavy if m in sys.modules))
         """
     )

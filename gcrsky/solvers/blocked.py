@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import jax
 import numpy as np
-import scipy.linalg as sla
 
 __all__ = ["BLOCK", "blocked_cholesky", "blocked_cholesky_bytes", "factor_solve", "triangular_solves"]
 
@@ -57,6 +56,8 @@ def blocked_cholesky(A: np.ndarray, block: int = BLOCK) -> np.ndarray:
         ValueError: A is not square, float64 or C-contiguous, or not positive definite (naming
             the first panel whose diagonal block failed).
     """
+    import scipy.linalg as sla  # lazily: SciPy's OpenBLAS loaded at `import gcrsky` would fix its thread count before use_safe_cpu_threading runs
+
     if not isinstance(A, np.ndarray) or A.ndim != 2 or A.shape[0] != A.shape[1]:
         raise ValueError(f"blocked_cholesky needs a square NumPy array (N, N), got {type(A).__name__} "
                          f"of shape {getattr(A, 'shape', None)}")

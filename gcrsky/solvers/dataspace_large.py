@@ -40,7 +40,6 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.linalg as sla
 
 from ..base.dtypes import check_float64
 from ..model.system import LinearSystem
@@ -217,6 +216,8 @@ class HostFactor:
         return self is other
 
     def _solve_host(self, r: np.ndarray) -> np.ndarray:
+        import scipy.linalg as sla  # lazily: loading SciPy's OpenBLAS at `import gcrsky` would fix its thread count before use_safe_cpu_threading can
+
         r = np.asarray(r, np.float64)
         nf, nd = self.L.shape[0], self.L.shape[-1]
         flat = np.moveaxis(r.reshape((-1, nf, nd)), 0, -1)  # (Nf, N_d, k)
