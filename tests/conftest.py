@@ -2,7 +2,7 @@
 
 * float64 everywhere: x64 is enabled at import, before any array is created
   (gcrsky's normal matrices reach condition numbers ~1e9).
-* a private JAX compilation cache per test process (``GCRSKY_COMPILE_CACHE``), never the user's.
+* no persistent JAX compilation cache (``GCRSKY_COMPILE_CACHE=off``; see ``_no_compile_cache``).
 * ``getkey``: a function returning fresh PRNG keys from a fixed seed (lineax
   style), so every test is reproducible and independent of test order.
 * Session-scoped small problem (10-antenna hexagon, lmax 6, nside 32,
@@ -44,27 +44,21 @@ def _safe_threading():
 _safe_threading()
 
 
-def _private_compile_cache():
-    """A fresh JAX compilation cache for this test process (each xdist worker its own), removed at exit.
+def _no_compile_cache():
+    """No persistent JAX compilation cache in the tests (``GCRSKY_COMPILE_CACHE=off``, inherited by the
+    subprocess tests; tests/test_compile_cache.py sets its own).
 
-    The CLI turns the persistent cache on for its process (``gcrsky.parallel.use_compile_cache``), by
-    default in the user's ``~/.cache/gcrsky/jax``.  Shared with the user, with other test workers and with
-    processes that were killed mid-write, a corrupted or half-written entry crashed test workers inside
-    JAX's cache read and write (segmentation fault, abort: seen twice on the development host).  Subprocess
-    tests inherit the variable, so they use this worker's directory too.
+    The CLI turns the cache on for the rest of its process (``gcrsky.parallel.use_compile_cache``).  Every
+    test-worker crash seen on the development host (five, in four suite runs) happened in a worker where it
+    was on, inside JAX's cache read, cache write or the compile that feeds it (segmentation faults and
+    aborts), with the user's cache directory and with a fresh private one per worker alike.
     """
-    import atexit
     import os
-    import shutil
-    import tempfile
 
-    worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
-    path = tempfile.mkdtemp(prefix=f"gcrsky-test-jax-cache-{worker}-")
-    os.environ["GCRSKY_COMPILE_CACHE"] = path
-    atexit.register(shutil.rmtree, path, ignore_errors=True)
+    os.environ["GCRSKY_COMPILE_CACHE"] = "off"
 
 
-_private_compile_cache()
+_no_compile_cache()
 
 import jax  # noqa: E402
 
