@@ -351,11 +351,11 @@ def observation_reach(obs, beams, dish_diameter_m: float | None = None) -> tuple
 def observation_rows(obs, compress: bool = False) -> int:
     """Rows per product a problem of ``obs`` has before its band limit: every baseline, or with
     ``compress`` one per redundant group (:func:`gcrsky.instrument.redundant_groups` within
-    :data:`gcrsky.model.observed.COMPRESS_TOL_M`; every baseline where the grouping is refused)."""
+    :data:`gcrsky.model.compress.COMPRESS_TOL_M`; every baseline where the grouping is refused)."""
     if not compress:
         return int(obs.n_baselines)
     from ..instrument.redundancy import redundant_groups
-    from .observed import COMPRESS_TOL_M
+    from .compress import COMPRESS_TOL_M
 
     try:
         return redundant_groups(obs.antpos_enu_m, obs.antpairs, tol_m=COMPRESS_TOL_M).n_groups

@@ -30,6 +30,12 @@ from ..instrument.redundancy import (
 )
 from .system import LinearSystem
 
+#: Grouping tolerance of the automatic compression, metres: wide enough for the ~1e-9 m that positions
+#: read through ECEF differ by (at the default 1e-9 m such jitter splits groups and a hexagon's grouping is
+#: refused as ambiguous), far below any array's spacing; exactness is then the phase guard's or the
+#: response check's (:data:`gcrsky.model.observed.COMPRESS_RTOL`), not this tolerance's.
+COMPRESS_TOL_M = 1e-6
+
 __all__ = ["compress_problem", "compress_rows", "compress_system", "compress_visibilities", "row_groups"]
 
 

@@ -42,6 +42,7 @@ from ..base.units import kelvin_sr_to_jy
 from ..instrument.antennas import make_array
 from ..instrument.beams import unique_beams
 from ..instrument.response import response_matrix
+from .compress import COMPRESS_TOL_M
 from .datachecks import refuse_empty
 from .noise import radiometer_variance, time_difference_variance
 from .observation import POLS, Observation, parse_products
@@ -68,11 +69,6 @@ log = logging.getLogger(__name__)
 #: (6.4e6 m), so "redundant" baselines differ by ~1e-9 m and their responses by ~1e-9 relative (measured
 #: 1.6e-9 at 102 MHz); merging within 1e-8 changes the model far below any noise or simulator agreement.
 COMPRESS_RTOL = 1e-8
-#: Grouping tolerance of the automatic compression, metres: wide enough for the ~1e-9 m that positions
-#: read through ECEF differ by (at the default 1e-9 m such jitter splits groups and a hexagon's grouping is
-#: refused as ambiguous), far below any array's spacing; exactness is then the phase guard's or the
-#: response check's (:data:`COMPRESS_RTOL`), not this tolerance's.
-COMPRESS_TOL_M = 1e-6
 
 
 @dataclasses.dataclass(frozen=True)
