@@ -5,4 +5,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
+# A larger main-thread stack for the workers: XLA compiles on the calling thread, and two workers died in
+# backend_compile_and_load (segfault, the compile of a Gibbs / NUTS program) with the default 8 MB.
+ulimit -s unlimited 2>/dev/null || ulimit -s 1048576 2>/dev/null || true
 exec .venv/bin/python -m pytest -q -n auto --dist loadfile "$@"
