@@ -2,7 +2,8 @@
 
 * float64 everywhere: x64 is enabled at import, before any array is created
   (gcrsky's normal matrices reach condition numbers ~1e9).
-* no persistent JAX compilation cache (``GCRSKY_COMPILE_CACHE=off``; see ``_no_compile_cache``).
+* no persistent JAX compilation cache (``GCRSKY_COMPILE_CACHE=off``; see ``_no_compile_cache``), and
+  JAX's compiled programs dropped after each test file (``_release_compiled_programs``).
 * ``getkey``: a function returning fresh PRNG keys from a fixed seed (lineax
   style), so every test is reproducible and independent of test order.
 * Session-scoped small problem (10-antenna hexagon, lmax 6, nside 32,
@@ -48,10 +49,10 @@ def _no_compile_cache():
     """No persistent JAX compilation cache in the tests (``GCRSKY_COMPILE_CACHE=off``, inherited by the
     subprocess tests; tests/test_compile_cache.py sets its own).
 
-    The CLI turns the cache on for the rest of its process (``gcrsky.parallel.use_compile_cache``).  Every
-    test-worker crash seen on the development host (five, in four suite runs) happened in a worker where it
-    was on, inside JAX's cache read, cache write or the compile that feeds it (segmentation faults and
-    aborts), with the user's cache directory and with a fresh private one per worker alike.
+    The CLI turns the cache on for the rest of its process (``gcrsky.parallel.use_compile_cache``); the
+    tests must not read or fill the user's cache.  (The worker crashes first blamed on it, inside JAX's
+    cache read and write, recurred with the cache off: they were the exhaustion of memory mappings that
+    ``_release_compiled_programs`` prevents.)
     """
     import os
 
@@ -87,6 +88,43 @@ SMALL_LMAX = 6
 SMALL_NSIDE = 32
 SMALL_FREQS_HZ = (100e6, 102e6)
 SMALL_DISH_M = 14.0
+
+
+def _map_count() -> int:
+    """Memory mappings of this process (Linux; 0 elsewhere)."""
+    try:
+        with open("/proc/self/maps") as fh:
+            return sum(1 for _ in fh)
+    except OSError:
+        return 0
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _release_compiled_programs():
+    """Drop JAX's compiled programs after each test file (``jax.clear_caches``).
+
+    Every XLA:CPU program JIT-links its code into ~27 memory mappings of its own, kept as long as the
+    program is cached, and a worker process compiles thousands over the suite.  Linux refuses a process
+    more than ``vm.max_map_count`` mappings (65530 by default): LLVM's section allocation then fails
+    (``report_fatal_error`` in ``RuntimeDyldImpl::emitSection``, an abort) or a ``malloc`` does (a
+    segmentation fault), inside ``backend_compile_and_load``.  That was the worker crash of three suite
+    runs (the core file of one held 65531 mappings).  Clearing per file bounds the live programs by one
+    file's; the shared session fixtures are arrays, not programs, and stay.
+    """
+    yield
+    jax.clear_caches()
+    import gc
+
+    gc.collect()
+    try:
+        limit = int(Path("/proc/sys/vm/max_map_count").read_text())
+    except (OSError, ValueError):
+        return
+    if _map_count() > limit // 2:
+        import warnings
+
+        warnings.warn(f"this test process still holds {_map_count()} memory mappings after clearing JAX's caches "
+                      f"(the kernel's limit is {limit}): something keeps compiled programs alive", stacklevel=1)
 
 
 @pytest.fixture

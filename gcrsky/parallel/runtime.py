@@ -61,6 +61,16 @@ CPU LAPACK kernels call) crashed with a segmentation fault from n = 16000 on thi
 must precede the first import of scipy's LAPACK (gcrsky imports it lazily, so calling
 :func:`use_safe_cpu_threading` right after ``import gcrsky`` is early enough).
 
+Compiled programs and the kernel's map limit
+--------------------------------------------
+Each compiled XLA:CPU program JIT-links its code into ~27 memory mappings (measured with
+jaxlib 0.10.2), held as long as JAX caches the program.  Linux allows a process at most
+``vm.max_map_count`` mappings (65530 by default), so a process that compiles more than
+~2400 distinct programs and keeps them (a long notebook session that varies shapes, a test
+worker running hundreds of files) ends in an abort (LLVM cannot allocate a section) or a
+segmentation fault inside ``backend_compile_and_load``.  ``jax.clear_caches()`` releases
+them (the test suite does it after each file).  One ``gcrsky run`` compiles a few hundred.
+
 Compilation cache
 -----------------
 
