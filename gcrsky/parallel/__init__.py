@@ -2,7 +2,7 @@
 
 - ``sharding``: :func:`shard_system`: baselines padded and sharded over a mesh, identical results
 - ``channels``: frequency channels one at a time (:func:`sample_channels`), over a device mesh (:func:`sample_channels_sharded`) and over ``jax.distributed`` processes (:func:`distributed_channels`), with a per-channel key scheme that makes the split invisible
-- ``mblocks``: the m-mode path's buckets of orders built, factorised and solved over several devices (:func:`prepare_mmode_on`, :func:`draw_mmode_on`), equal to one device
+- ``mblocks``: the m-mode path's buckets of orders built, factorised and solved over several devices (:func:`prepare_mmode_on`, :func:`draw_mmode_on`) and ``jax.distributed`` processes (:func:`prepare_mmode_processes`), equal to one device
 - ``runtime``: XLA CPU-thread settings (the safe single-threaded Eigen pool, forced host devices sized so batched LAPACK cannot deadlock); JAX's persistent compilation cache (:func:`use_compile_cache`, which the CLI calls and importing gcrsky never does) and the compile time and cache use of a run (:func:`compile_stats`)
 """
 
@@ -20,7 +20,15 @@ from .channels import (
     sample_channels,
     sample_channels_sharded,
 )
-from .mblocks import MModeSplitState, bucket_devices, draw_mmode_on, mmode_factor_on, prepare_mmode_on
+from .mblocks import (
+    MModeSplitState,
+    bucket_devices,
+    draw_mmode_on,
+    mmode_factor_on,
+    prepare_mmode_on,
+    prepare_mmode_processes,
+    process_buckets,
+)
 from .runtime import (
     COMPILE_CACHE_ENV,
     POOL_THREADS_PER_DEVICE,
@@ -52,6 +60,8 @@ __all__ = [
     "draw_mmode_on",
     "mmode_factor_on",
     "prepare_mmode_on",
+    "prepare_mmode_processes",
+    "process_buckets",
     "CHANNEL_KEY_SCHEME",
     "FREQ_AXIS",
     "ChannelDraws",
