@@ -738,7 +738,9 @@ def draw_dataspace(key: jax.Array, state: DataSpaceState, ndraws: int):
     unflagged rows, though flagged rows drop out of the product anyway).
 
     On a stationary-proxy state (``state.options.proxy``) ``D^-1`` is CG preconditioned by the proxy's
-    factor: ``draws`` then reports each solve's iterations and its rigorous bound ``||r||_2``.
+    factor, one solve per draw for the whole draw ``a0 + delta + S Y^T D^-1 (r~ - Y delta - z)`` (the same
+    draw, algebraically), so that ``draws`` reports each draw's iterations and its own rigorous bound
+    ``||r||_2`` on the draw's error (posterior sigma; not the Wiener solve's plus the fluctuation's).
 
     Returns:
         draws (Nf, ndraws, n); a :class:`~gcrsky.solvers.DrawInfo` (``wiener``, ``draws`` a SolveInfo over
@@ -763,16 +765,18 @@ def draw_dataspace(key: jax.Array, state: DataSpaceState, ndraws: int):
         u = jax.vmap(lambda dd: _y_apply(system, sqrt_w, dd))(delta) + z
     else:
         u = jnp.einsum("fak,dfk->dfa", Y, delta) + z
-    if state.options.proxy:  # CG with the true D, preconditioned by the proxy's factor: (Nf, ndraws) info
-        x, dinfo = _proxy_solve(system, sqrt_w, L, u, state.options)
-        dinfo = jax.tree_util.tree_map(lambda v: jnp.swapaxes(v, 0, 1), dinfo)
+    base = a_wf
+    if state.options.proxy:  # one CG solve per draw, a = a0 + delta - S Y^T D^-1 (Y delta + z - r~): its own bound
+        base = system.prior.mean
+        x, dinfo = _proxy_solve(system, sqrt_w, L, u - _whitened_residual(system, sqrt_w), state.options)
+        dinfo = jax.tree_util.tree_map(lambda v: jnp.swapaxes(v, 0, 1), dinfo)  # (Nf, ndraws)
     else:
         x = jax.vmap(lambda uu: _d_solve(system, sqrt_w, D, L, uu))(u)
     if Y is None:
         corr = jax.vmap(lambda xx: s * _y_adjoint(system, sqrt_w, xx))(x)
     else:
         corr = s * jnp.einsum("fak,dfa->dfk", Y, x)
-    out = a_wf[:, None, :] + jnp.moveaxis(delta - corr, 0, 1)
+    out = base[:, None, :] + jnp.moveaxis(delta - corr, 0, 1)
     finite = jnp.all(jnp.isfinite(out), axis=-1)
     if state.options.proxy:
         code = jnp.where(finite, dinfo.result, Result.NONFINITE)
