@@ -878,8 +878,9 @@ class DataSpacePath(SolverPath):
         draw the products with X and ``X^T`` (``16 Nf Nt Nbl n`` plus ``~8 Nf Nt (lmax+1)^3`` for the
         rotations; ``4 Nf N_d n`` with Y materialised) and two triangular solves (``2 Nf N_d^2``).  With the
         stationary proxy: its D0 by the shortcut and its factor, then per solve (the Wiener filter and each
-        draw) ``PROXY_ITERATIONS + 1`` products with the true D (X, ``X^T`` and the frame map's
-        ``~16 Nf lmax_out^3``) and preconditioner solves."""
+        draw) ``PROXY_ITERATIONS + 1`` products with the true D, m-factorised (``16 Nf Nbl n_resp`` for the
+        response, ``32 Nf Nt Nbl lmax_out`` for the phases, ``~16 Nf lmax_out^3`` for the frame map's
+        rotations and aberration) and preconditioner solves (``2 Nf N_d^2``)."""
         nf, nt, nbl = (int(x) for x in system.data.shape)
         n = int(system.prior.mean.shape[-1])
         nd = 2.0 * nt * nbl
@@ -887,7 +888,8 @@ class DataSpacePath(SolverPath):
         if nlags is not None:
             n_resp = int(system.op.response.shape[-1])
             build = 16.0 * nf * (2.0 * nbl) ** 2 * n + 4.0 * nf * nlags * (2.0 * nbl) ** 2 * np.sqrt(n)
-            prod = 16.0 * nf * nt * nbl * n_resp + 8.0 * nf * nt * np.sqrt(n_resp) ** 3 + 16.0 * nf * np.sqrt(n_resp) ** 3
+            lout = np.sqrt(n_resp)
+            prod = 16.0 * nf * nbl * n_resp + 32.0 * nf * nt * nbl * lout + 16.0 * nf * lout**3
             per_solve = (PROXY_ITERATIONS + 1) * (prod + 2.0 * nf * nd * nd)
             return build + nf * nd**3 / 3.0 + (ndraws + 1) * per_solve
         lags = lag_structure(system) if options.stationary else None
@@ -910,7 +912,8 @@ class DataSpacePath(SolverPath):
             return f"N_d = {nd} > {cap} (DATASPACE_{'IN_PLACE_' if in_place else ''}MAX_ND)"
         mem = self.memory_bytes(system, options, ndraws)
         if mem > AUTO_MEMORY_FRACTION * budget:
-            return f"D + factor would need {format_bytes(mem)}, more than {AUTO_MEMORY_FRACTION:.0%} of " \
+            what = "D + factor" if _proxy_lags(system, options) is None else "the stationary proxy (D0's factor, CG)"
+            return f"{what} would need {format_bytes(mem)}, more than {AUTO_MEMORY_FRACTION:.0%} of " \
                    f"{format_bytes(budget)}"
         return ""
 

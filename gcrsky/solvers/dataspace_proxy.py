@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..model.operator import VisOperator
+from ..model.operator import VisOperator, uses_mfactor
 from ..model.system import LinearSystem
 from ..sphere.frames import FrameMap, frame_lmax
 from ..sphere.modes import mode_table
@@ -69,6 +69,10 @@ log = logging.getLogger(__name__)
 #: Iterations per solve the planner's cost model assumes (measured 3-6 at lmax 8-20, tol 1e-6..1e-10;
 #: the aberration's relative size grows like lmax, so a few more at lmax ~300).
 PROXY_ITERATIONS = 10
+#: Transient copies of the frame map's Wigner blocks (``8 (lmax_out+1) (2 lmax_out+1)^2`` bytes each) a batch of
+#: products with the true D holds (not measured: the standard set-up's rows hold ~3.4, forming every time's
+#: rows at once; a product applies the map once per draw).
+PROXY_WIGNER_COPIES = 2.0
 #: Relative tolerance of the isotropy check of the prior's variances (per degree).
 ISOTROPY_RTOL = 1e-12
 
@@ -236,15 +240,19 @@ def pcg_solve(matvec, precond, b, *, tol: float, maxiter: int):
 
 def proxy_draw_bytes(system: LinearSystem, ndraws: int = 1) -> float:
     """Per-batch bytes of the proxy's CG solves, beyond the factor: per draw ~10 data-space vectors
-    (``8 Nf N_d`` each: x, r, z, p, A p, the batch's right-hand side and temporaries), ~6 parameter
-    vectors (``8 Nf n``) and the operator's rotated copies (``2 x 8 Nf Nt n_resp``), plus the frame
-    map's Wigner blocks (4 copies)."""
+    (``8 Nf N_d`` each: x, r, z, p, A p, the batch's right-hand side and temporaries), ~8 parameter-sized
+    vectors (``8 Nf n_resp``: the frame map's (l, m) grids, the products' results) and, where the operator
+    is not m-factorised (:func:`gcrsky.model.operator.uses_mfactor`), its rotated copies
+    (``2 x 8 Nf Nt n_resp``); plus transient copies of the frame map's Wigner blocks
+    (:data:`PROXY_WIGNER_COPIES`; the system holds one more)."""
     nf, nt, nbl = (int(x) for x in system.data.shape)
     n = int(system.prior.mean.shape[-1])
     n_resp = int(system.op.response.shape[-1])
     u = getattr(getattr(system.op.frame, "blocks", None), "u", None)
-    wigner = 0.0 if u is None else 4.0 * 8.0 * float(np.prod(u.shape))
-    per_draw = 10.0 * 8 * nf * 2 * nt * nbl + 6.0 * 8 * nf * n + 2.0 * 8 * nf * nt * n_resp
+    wigner = 0.0 if u is None else PROXY_WIGNER_COPIES * 8.0 * float(np.prod(u.shape))
+    per_draw = 10.0 * 8 * nf * 2 * nt * nbl + 8.0 * 8 * nf * max(n, n_resp)
+    if not uses_mfactor(system.op):
+        per_draw += 2.0 * 8 * nf * nt * n_resp
     return wigner + max(1, ndraws) * per_draw
 
 
