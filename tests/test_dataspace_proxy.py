@@ -242,3 +242,19 @@ def test_options_validate():
     for bad in (dict(proxy="yes"), dict(maxiter=0), dict(maxiter=1.5)):
         with pytest.raises(ValueError):
             DataSpaceOptions(**bad)
+
+
+@pytest.mark.parametrize("ndraws", [1, 16])
+def test_draw_memory_estimate_bounds_the_compiled_draws(system, ndraws):
+    """proxy_draw_bytes bounds XLA's memory analysis of the compiled proxy draws (temporaries + outputs), and
+    not by far (the frame map's Wigner copies and the per-draw vectors were calibrated on it at lmax 40)."""
+    from gcrsky.solvers.dataspace_proxy import proxy_draw_bytes
+
+    st = prepare_dataspace(system, DataSpaceOptions(in_place=True))
+    ma = draw_dataspace.lower(jax.random.PRNGKey(0), st, ndraws).compile().memory_analysis()
+    if ma is None:
+        pytest.skip("this backend gives no memory analysis")
+    used = ma.temp_size_in_bytes + ma.output_size_in_bytes
+    est = proxy_draw_bytes(system, ndraws)
+    log.info("proxy draws (%d): XLA %d bytes, estimate %d", ndraws, used, est)
+    assert used <= est < 3 * used

@@ -70,9 +70,12 @@ log = logging.getLogger(__name__)
 #: the aberration's relative size grows like lmax, so a few more at lmax ~300).
 PROXY_ITERATIONS = 10
 #: Transient copies of the frame map's Wigner blocks (``8 (lmax_out+1) (2 lmax_out+1)^2`` bytes each) a batch of
-#: products with the true D holds (not measured: the standard set-up's rows hold ~3.4, forming every time's
-#: rows at once; a product applies the map once per draw).
-PROXY_WIGNER_COPIES = 2.0
+#: products with the true D holds: :func:`gcrsky.sphere.rotate_euler` slices the blocks and multiplies them
+#: into complex grids (a complex copy is two).  XLA's memory analysis of the draws at lmax 40: ~4 (margin: 4.5).
+PROXY_WIGNER_COPIES = 4.5
+#: Parameter-sized (``8 Nf n_resp``) arrays per draw of a batch of products with the true D (the frame map's
+#: complex (l, m) grids, the rotations' results, CG's products): XLA's memory analysis at lmax 40: ~22.
+PROXY_PARAM_VECTORS = 24.0
 #: Relative tolerance of the isotropy check of the prior's variances (per degree).
 ISOTROPY_RTOL = 1e-12
 
@@ -240,8 +243,8 @@ def pcg_solve(matvec, precond, b, *, tol: float, maxiter: int):
 
 def proxy_draw_bytes(system: LinearSystem, ndraws: int = 1) -> float:
     """Per-batch bytes of the proxy's CG solves, beyond the factor: per draw ~10 data-space vectors
-    (``8 Nf N_d`` each: x, r, z, p, A p, the batch's right-hand side and temporaries), ~8 parameter-sized
-    vectors (``8 Nf n_resp``: the frame map's (l, m) grids, the products' results) and, where the operator
+    (``8 Nf N_d`` each: x, r, z, p, A p, the batch's right-hand side and temporaries),
+    :data:`PROXY_PARAM_VECTORS` parameter-sized ones (``8 Nf n_resp``) and, where the operator
     is not m-factorised (:func:`gcrsky.model.operator.uses_mfactor`), its rotated copies
     (``2 x 8 Nf Nt n_resp``); plus transient copies of the frame map's Wigner blocks
     (:data:`PROXY_WIGNER_COPIES`; the system holds one more)."""
@@ -250,7 +253,7 @@ def proxy_draw_bytes(system: LinearSystem, ndraws: int = 1) -> float:
     n_resp = int(system.op.response.shape[-1])
     u = getattr(getattr(system.op.frame, "blocks", None), "u", None)
     wigner = 0.0 if u is None else PROXY_WIGNER_COPIES * 8.0 * float(np.prod(u.shape))
-    per_draw = 10.0 * 8 * nf * 2 * nt * nbl + 8.0 * 8 * nf * max(n, n_resp)
+    per_draw = 10.0 * 8 * nf * 2 * nt * nbl + PROXY_PARAM_VECTORS * 8 * nf * max(n, n_resp)
     if not uses_mfactor(system.op):
         per_draw += 2.0 * 8 * nf * nt * n_resp
     return wigner + max(1, ndraws) * per_draw
