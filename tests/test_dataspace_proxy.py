@@ -191,12 +191,12 @@ def test_anisotropic_prior_has_no_proxy(system):
     assert stationary_proxy(no_frame) is None
 
 
-@pytest.mark.parametrize("which", ["noise", "prior"])
-def test_wiener_filter_differentiates_implicitly(system, which):
-    """d/d(scale) of a fixed projection of the Wiener filter, the proxy's factor held at scale 1 and D
-    matrix-free at the traced scale: against central differences of fresh proxy set-ups (h = 1e-5)."""
+@pytest.mark.parametrize("which,in_place", [("noise", False), ("prior", False), ("noise", True)])
+def test_wiener_filter_differentiates_implicitly(system, which, in_place):
+    """d/d(scale) of a fixed projection of the Wiener filter, the proxy's factor (jnp or host) held at scale 1
+    and D matrix-free at the traced scale: against central differences of fresh proxy set-ups (h = 1e-5)."""
     w = jnp.asarray(np.random.default_rng(4).standard_normal(system.prior.mean.shape))
-    opts = DataSpaceOptions(tol=1e-12)
+    opts = DataSpaceOptions(tol=1e-12, in_place=in_place)
 
     def scaled(s):
         if which == "noise":
