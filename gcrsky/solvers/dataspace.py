@@ -49,6 +49,12 @@ frame map and S commutes; lags closer than :data:`LAG_TOL` rad share one block (
 error ``<= lmax LAG_TOL``).  Under a trace (e.g. ``jax.grad`` of the evidence in the
 prior) the general construction runs: same D to rounding.
 
+With a frame map (a file's ICRS coefficients) the shortcut does not apply; for an isotropic prior
+:func:`prepare_dataspace` then factorises the *stationary proxy*'s ``D0`` (the frame map's rotations
+without aberration) by the shortcut and solves every ``D^-1 b`` by CG with the true matrix-free D,
+preconditioned by ``D0^-1`` (:mod:`gcrsky.solvers.dataspace_proxy`: rigorous stop ``||r||_2 <= tol``,
+iterations reported; no ``log det D``, so no evidence from such a state).
+
 Differentiation is implicit as on the primal Cholesky path: solves with D go through
 :func:`gcrsky.solvers.cholesky_solve` (``dx = D^-1 (db - dD x)``, the factor held
 fixed) and ``log det D`` through :func:`gcrsky.solvers.cholesky_logdet`
