@@ -75,11 +75,14 @@ def _simulate(path: Path, n_side: int, n_times: int) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def _run_cli(path: Path, out: Path, nside: int, nsamples: int, budget_gb: float) -> tuple[dict, float, float, str]:
+def _run_cli(path: Path, out: Path, nside: int, nsamples: int, budget_gb: float,
+             batch: int | None = None) -> tuple[dict, float, float, str]:
     """``(summary.json, wall s, max RSS GB, stdout)`` of ``gcrsky run --data`` under ``/usr/bin/time -v``."""
     cmd = ["/usr/bin/time", "-v", sys.executable, "-m", "gcrsky", "run", "--data", str(path), "--dish-diameter",
            "14", "--nside", str(nside), "--nsamples", str(nsamples), "--out", str(out), "--no-progress",
            "--no-plots", "--flux-scale", "accept"]  # the sky is a draw of the GSM's C_l, not the GSM map
+    if batch is not None:
+        cmd += ["--batch", str(batch)]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "GCRSKY_COMPILE_CACHE": "off",
                                                                       "GCRSKY_MEMORY_BUDGET_GB": f"{budget_gb:g}"})
@@ -98,11 +101,19 @@ def _row(sim: dict, summary: dict, wall: float, rss_gb: float, load: str) -> str
     nt = len(summary["config"]["conventions"]["times_jd"])
     nrow = int(band["rows_for_memory"]) - int(band.get("rows_cut", 0))
     gof = summary["goodness_of_fit"]
+    sv = summary.get("solver", {})
+    it_w, it_d = sv.get("wiener", {}), sv.get("draws", {})
+    method = summary["run"]["method"]
+    if method == "dataspace" and it_d.get("iterations_max", 0) > 0:  # the stationary proxy + CG (a frame map)
+        method = "dataspace+proxy"
+    iters = (f"iters wiener {it_w.get('iterations_max', 0)}, draws mean {it_d.get('iterations_mean', 0):.1f} max "
+             f"{it_d.get('iterations_max', 0)}, err <= {max(it_w.get('err_sigma_max', 0), it_d.get('err_sigma_max', 0)):.1e}")
     return (f"{sim['n_antennas']:4d} {sim['n_baselines']:5d} {nrow:5d} {lmax:5d} ({band['chosen']}; sim reach "
-            f"{sim['reach']}, sky {sim['lmax_sky']}) {summary['run']['method']:>10s} N_d {2 * nt * nrow:6d} "
+            f"{sim['reach']}, sky {sim['lmax_sky']}) {method:>15s} N_d {2 * nt * nrow:6d} "
             f"n {(lmax + 1) ** 2:6d} | build {t['build']:6.1f} set-up {t['wiener']:6.1f} draws {t['draws']:6.1f} "
             f"maps+files {t['maps'] + t['write']:5.1f} | wall {wall:6.1f} s, RSS {rss_gb:5.2f} GB | chi2/dof "
-            f"{', '.join(f'{x:.3f}' for x in gof['chi2_per_dof'])} | sim {sum(sim['seconds'].values()):.0f} s | load {load}")
+            f"{', '.join(f'{x:.3f}' for x in gof['chi2_per_dof'])} | {iters} | sim {sum(sim['seconds'].values()):.0f} s "
+            f"| load {load}")
 
 
 def main(argv=None) -> int:
@@ -112,6 +123,7 @@ def main(argv=None) -> int:
     ap.add_argument("--nsamples", type=int, default=200)
     ap.add_argument("--budget-gb", type=float, default=6.0,
                     help="GCRSKY_MEMORY_BUDGET_GB of the run (the planner's and the lmax cap's free memory)")
+    ap.add_argument("--batch", type=int, default=None, help="draws per batch (default: the CLI's)")
     ap.add_argument("--keep", type=Path, default=None, help="write files and runs here (default: a temp dir)")
     args = ap.parse_args(argv)
     root = args.keep or Path(tempfile.mkdtemp(prefix="cli_scale_"))
@@ -122,7 +134,7 @@ def main(argv=None) -> int:
         f = root / f"hex{k}.uvh5"
         sim = _simulate(f, k, args.n_times)
         out = root / f"run{k}"
-        summary, wall, rss, _ = _run_cli(f, out, sim["nside"], args.nsamples, args.budget_gb)
+        summary, wall, rss, _ = _run_cli(f, out, sim["nside"], args.nsamples, args.budget_gb, args.batch)
         print(_row(sim, summary, wall, rss, " ".join(load)), flush=True)
         print(f"     sim: dt {sim['dt_s']:.3g} s, noise fraction {sim['noise_fraction']:.3f}; band limit "
               f"{json.dumps(summary['data_checks']['band_limit'])}", flush=True)

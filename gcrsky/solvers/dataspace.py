@@ -49,6 +49,12 @@ frame map and S commutes; lags closer than :data:`LAG_TOL` rad share one block (
 error ``<= lmax LAG_TOL``).  Under a trace (e.g. ``jax.grad`` of the evidence in the
 prior) the general construction runs: same D to rounding.
 
+With a frame map (a file's ICRS coefficients) the shortcut does not apply; for an isotropic prior
+:func:`prepare_dataspace` then factorises the *stationary proxy*'s ``D0`` (the frame map's rotations
+without aberration) by the shortcut and solves every ``D^-1 b`` by CG with the true matrix-free D,
+preconditioned by ``D0^-1`` (:mod:`gcrsky.solvers.dataspace_proxy`: rigorous stop ``||r||_2 <= tol``,
+iterations reported; no ``log det D``, so no evidence from such a state).
+
 Differentiation is implicit as on the primal Cholesky path: solves with D go through
 :func:`gcrsky.solvers.cholesky_solve` (``dx = D^-1 (db - dD x)``, the factor held
 fixed) and ``log det D`` through :func:`gcrsky.solvers.cholesky_logdet`
@@ -64,6 +70,7 @@ prior part (``delta``, (Nf, n)) and the noise part (``z``, (Nf, N_d)).  A flat p
 from __future__ import annotations
 
 import dataclasses
+import logging
 from functools import partial
 from typing import ClassVar, NamedTuple
 
@@ -85,8 +92,9 @@ from .dataspace_large import (
     lag_blocks_by_m,
     logdet_no_grad,
 )
+from .dataspace_proxy import PROXY_ITERATIONS, pcg_solve, proxy_applies, proxy_memory_bytes, stationary_proxy
 from .dense import cholesky_logdet, cholesky_solve
-from .info import DrawInfo, SolveInfo, direct_info, exact_info
+from .info import DrawInfo, Result, SolveInfo, direct_info, exact_info
 from .options import DataSpaceOptions
 from .path import AUTO_MEMORY_FRACTION, EvidenceParts, SolverPath, is_traced
 
@@ -116,6 +124,8 @@ __all__ = [
     "time_chunk",
     "to_rows",
 ]
+
+log = logging.getLogger(__name__)
 
 
 class DataSpaceState(eqx.Module):
@@ -476,7 +486,10 @@ def materialize_rows(system: LinearSystem, options: DataSpaceOptions, budget: fl
 
 
 def _dataspace_wiener(system: LinearSystem, D, L, options: DataSpaceOptions):
-    """``a_wf = a0 + S Y^T D^-1 r~`` and its info from the true (matrix-free) primal residual."""
+    """``a_wf = a0 + S Y^T D^-1 r~`` and its info from the true (matrix-free) primal residual (on a proxy
+    state: :func:`_proxy_wiener`)."""
+    if options.proxy:
+        return _proxy_wiener(system, L, options)
     sqrt_w = _sqrt_w(system)
     s = 1.0 / system.prior.inv_var
     x = _d_solve(system, sqrt_w, D, L, _whitened_residual(system, sqrt_w))
@@ -559,6 +572,9 @@ def prepare_dataspace(system: LinearSystem, options: DataSpaceOptions | None = N
     and its factor fit (:func:`gcrsky.base.check_memory`, naming the alternative paths).
     Where D and its factor do not fit together but D alone does (``options.in_place``
     None), the in-place set-up of :mod:`gcrsky.solvers.dataspace_large` runs instead.
+    With a frame map and an isotropic prior (``options.proxy`` not False), the stationary
+    proxy's ``D0`` is factorised instead and every solve with D is CG preconditioned by it
+    (:mod:`gcrsky.solvers.dataspace_proxy`; the state's ``options.proxy`` is then True).
 
     Args:
         system: the linear system (every prior direction proper).
@@ -570,12 +586,16 @@ def prepare_dataspace(system: LinearSystem, options: DataSpaceOptions | None = N
         raise TypeError(f"the data-space path takes DataSpaceOptions, got {type(options).__name__}")
     lags = lag_structure(system) if options.stationary else None
     if is_traced(system):
-        if options.in_place:
-            raise ValueError("DataSpaceOptions(in_place=True) needs concrete arrays (its set-up runs on the host)")
+        if options.in_place or options.proxy:
+            raise ValueError("DataSpaceOptions(in_place=True) and (proxy=True) need concrete arrays (their set-up "
+                             "runs on the host)")
         return _prepare_dataspace(system, options, lags, bool(options.materialize))
     check_proper_prior(system)
     nd, nf = data_size(system), int(system.data.shape[0])
     budget = available_memory_bytes() if memory_budget is None else float(memory_budget)
+    proxy = _proxy_of(system, options) if lags is None else None
+    if proxy is not None:
+        return _prepare_proxy(system, proxy, options, budget)
     if use_in_place(system, options, lags, budget):
         check_memory(dataspace_large_bytes(system, int(lags.lags.shape[0])),
                      f"the in-place data-space set-up (D: {nf} x {nd} x {nd}, kept once)",
@@ -624,6 +644,97 @@ def _prepare_in_place(system: LinearSystem, options: DataSpaceOptions, lags: Lag
     return DataSpaceState(system, a_wf, info, None, L, None, options)
 
 
+# ---------------------------------------------------------------- the stationary proxy (a frame map)
+
+
+def _proxy_of(system: LinearSystem, options: DataSpaceOptions) -> LinearSystem | None:
+    """The stationary proxy (:func:`gcrsky.solvers.dataspace_proxy.stationary_proxy`) where ``options`` allow
+    it and it applies; ``ValueError`` naming why where ``options.proxy`` is True and it does not."""
+    if options.proxy is False or system.op.frame is None:
+        return None
+    why = "stationary=False forbids it" if not options.stationary else proxy_applies(system)
+    if why:
+        if options.proxy:
+            raise ValueError(f"DataSpaceOptions(proxy=True) does not apply: {why}")
+        log.debug("data space: no stationary proxy (%s): the general construction", why)
+        return None
+    return stationary_proxy(system)
+
+
+def _proxy_precond(L):
+    """``r (..., Nf, N_d) -> D0^-1 r`` through the proxy's factor (host or jnp), held fixed."""
+    if isinstance(L, HostFactor):
+        return L.solve
+    Lc = jax.lax.stop_gradient(L)
+
+    def solve(r):
+        return jnp.moveaxis(jax.vmap(triangular_solves)(Lc, jnp.moveaxis(r, -2, 0)), 0, -2)
+
+    return solve
+
+
+def _proxy_solve(system: LinearSystem, sqrt_w, L, b, options: DataSpaceOptions):
+    """``D^-1 b`` for rows b (..., Nf, N_d) by CG with the true matrix-free D, preconditioned by the proxy's
+    ``D0^-1``; stops per (draw, channel) on ``||b - D x||_2 <= options.tol`` (posterior sigma, a bound:
+    :mod:`gcrsky.solvers.dataspace_proxy`).  Returns ``(x, SolveInfo)`` with (...,  Nf) fields."""
+    def matvec(u):
+        flat = u.reshape((-1,) + u.shape[-2:])
+        return jax.vmap(lambda v: _d_matvec(system, sqrt_w, v))(flat).reshape(u.shape)
+
+    return pcg_solve(matvec, _proxy_precond(L), b, tol=options.tol, maxiter=options.maxiter)
+
+
+def _proxy_wiener(system: LinearSystem, L, options: DataSpaceOptions):
+    """The Wiener filter ``a0 + S Y^T D^-1 r~`` by the proxy's CG; its info: CG's iterations and the rigorous
+    bound ``||r||_2`` (posterior sigma) of the true data-space residual."""
+    sqrt_w = _sqrt_w(system)
+    x, info = _proxy_solve(system, sqrt_w, L, _whitened_residual(system, sqrt_w), options)
+    a_wf = system.prior.mean + _y_adjoint(system, sqrt_w, x) / system.prior.inv_var
+    finite = jnp.all(jnp.isfinite(jax.lax.stop_gradient(a_wf)), axis=-1)
+    code = jnp.where(finite, info.result, Result.NONFINITE)
+    info = info._replace(result=code, converged=code == Result.SUCCESS)
+    if options.throw:
+        a_wf = eqx.error_if(a_wf, ~info.converged, "gcrsky data space (stationary proxy): CG did not reach "
+                                                    "DataSpaceOptions.tol within maxiter, or a non-finite answer")
+    return a_wf, info
+
+
+@jax.jit
+def _proxy_jnp_factor(proxy: LinearSystem, lags: LagStructure) -> jax.Array:
+    """The lower Cholesky factor of the proxy's ``D0`` (Nf, N_d, N_d), by the stationary shortcut."""
+    return jnp.linalg.cholesky(_lag_matrix(proxy, lags))
+
+
+def _prepare_proxy(system: LinearSystem, proxy: LinearSystem, options: DataSpaceOptions,
+                   budget: float) -> DataSpaceState:
+    """The proxy set-up: ``D0`` of the stationary proxy factorised (in place on the host where the jnp factor
+    does not fit, or as ``options.in_place`` says), the Wiener filter by CG with the true D."""
+    check_float64(system.op.response, system.inv_noise)
+    lags = lag_structure(proxy)
+    if lags is None:  # the proxy is stationary by construction (isotropic prior, no frame map)
+        raise RuntimeError("the stationary proxy has no lag structure")
+    nlags, nf, nd = int(lags.lags.shape[0]), int(system.data.shape[0]), data_size(system)
+    in_place = options.in_place
+    if in_place is None:
+        in_place = proxy_memory_bytes(system, nlags, 1, False) > AUTO_MEMORY_FRACTION * budget
+    check_memory(proxy_memory_bytes(system, nlags, 1, in_place),
+                 f"the data-space path's stationary proxy (D0: {nf} x {nd} x {nd}, factor {'in place' if in_place else 'jnp'})",
+                 "use method='cg' with CGOptions(dense=False) (matrix-free), fewer times or baselines, or a "
+                 "lower lmax", budget=budget)
+    log.info("data space: stationary proxy of the frame map (%d lags, factor %s), CG with the true D to "
+             "||r|| <= %.1e", nlags, "in place" if in_place else "jnp", options.tol)
+    if in_place:
+        nt, nbl = system.data.shape[1:]
+        sw = _sqrt_w(proxy)
+        rows = np.asarray(jnp.concatenate([sw, sw], axis=-1).reshape(nf, nt * 2 * nbl))
+        L = factor_in_place(proxy, lag_blocks_by_m(proxy, lags.lags), np.asarray(lags.index), rows)
+    else:
+        L = _proxy_jnp_factor(proxy, lags)
+    options = dataclasses.replace(options, proxy=True, in_place=bool(in_place), materialize=False)
+    a_wf, info = _in_place_wiener(system, L, options)
+    return DataSpaceState(system, a_wf, info, None, L, None, options)
+
+
 @partial(jax.jit, static_argnames=("ndraws",))
 def draw_dataspace(key: jax.Array, state: DataSpaceState, ndraws: int):
     """``ndraws`` exact draws ``a_wf + delta - S Y^T D^-1 (Y delta + z)`` (Hoffman & Ribak).
@@ -631,6 +742,11 @@ def draw_dataspace(key: jax.Array, state: DataSpaceState, ndraws: int):
     Draw ``i`` uses ``k = jax.random.split(key, ndraws)[i]``; ``k_a, k_n = split(k)``
     give ``delta = S^1/2 N(0, I)`` (Nf, n) and ``z ~ N(0, I)`` (Nf, N_d) (masked to the
     unflagged rows, though flagged rows drop out of the product anyway).
+
+    On a stationary-proxy state (``state.options.proxy``) ``D^-1`` is CG preconditioned by the proxy's
+    factor, one solve per draw for the whole draw ``a0 + delta + S Y^T D^-1 (r~ - Y delta - z)`` (the same
+    draw, algebraically), so that ``draws`` reports each draw's iterations and its own rigorous bound
+    ``||r||_2`` on the draw's error (posterior sigma; not the Wiener solve's plus the fluctuation's).
 
     Returns:
         draws (Nf, ndraws, n); a :class:`~gcrsky.solvers.DrawInfo` (``wiener``, ``draws`` a SolveInfo over
@@ -655,13 +771,22 @@ def draw_dataspace(key: jax.Array, state: DataSpaceState, ndraws: int):
         u = jax.vmap(lambda dd: _y_apply(system, sqrt_w, dd))(delta) + z
     else:
         u = jnp.einsum("fak,dfk->dfa", Y, delta) + z
-    x = jax.vmap(lambda uu: _d_solve(system, sqrt_w, D, L, uu))(u)
+    base = a_wf
+    if state.options.proxy:  # one CG solve per draw, a = a0 + delta - S Y^T D^-1 (Y delta + z - r~): its own bound
+        base = system.prior.mean
+        x, dinfo = _proxy_solve(system, sqrt_w, L, u - _whitened_residual(system, sqrt_w), state.options)
+        dinfo = jax.tree_util.tree_map(lambda v: jnp.swapaxes(v, 0, 1), dinfo)  # (Nf, ndraws)
+    else:
+        x = jax.vmap(lambda uu: _d_solve(system, sqrt_w, D, L, uu))(u)
     if Y is None:
         corr = jax.vmap(lambda xx: s * _y_adjoint(system, sqrt_w, xx))(x)
     else:
         corr = s * jnp.einsum("fak,dfa->dfk", Y, x)
-    out = a_wf[:, None, :] + jnp.moveaxis(delta - corr, 0, 1)
+    out = base[:, None, :] + jnp.moveaxis(delta - corr, 0, 1)
     finite = jnp.all(jnp.isfinite(out), axis=-1)
+    if state.options.proxy:
+        code = jnp.where(finite, dinfo.result, Result.NONFINITE)
+        return out, DrawInfo(state.wiener, dinfo._replace(result=code, converged=code == Result.SUCCESS), a_wf)
     return out, DrawInfo(state.wiener, exact_info(state.wiener, finite, (nf, ndraws)), a_wf)
 
 
@@ -706,6 +831,22 @@ def _parts(system: LinearSystem, options: DataSpaceOptions, terms, q, logdet, fi
     return EvidenceParts(q, logdet, zeros, info)
 
 
+def _proxy_lags(system: LinearSystem, options: DataSpaceOptions) -> int | None:
+    """Distinct lags of the stationary proxy where :func:`prepare_dataspace` would take it (else None),
+    without forming the proxy (its lags depend only on the angles)."""
+    if options.proxy is False or not options.stationary or system.op.frame is None or proxy_applies(system):
+        return None
+    lags = lag_structure(system._replace(op=system.op._replace(frame=None)))
+    return None if lags is None else int(lags.lags.shape[0])
+
+
+def _proxy_memory(system: LinearSystem, options: DataSpaceOptions, nlags: int, ndraws: int) -> float:
+    """The proxy's estimate: in place, jnp factor, or the smaller (``options.in_place`` None)."""
+    if options.in_place is not None:
+        return proxy_memory_bytes(system, nlags, ndraws, options.in_place)
+    return min(proxy_memory_bytes(system, nlags, ndraws, b) for b in (False, True))
+
+
 class DataSpacePath(SolverPath):
     """Everything through ``D = I + W^1/2 X S X^T W^1/2`` (:func:`prepare_dataspace`): fewer data than
     parameters, a proper prior."""
@@ -720,7 +861,12 @@ class DataSpacePath(SolverPath):
     def memory_bytes(self, system, options, ndraws=1):
         """The set-up's estimated peak at its smallest chunk (1 time, or ``options.time_chunk``); without
         ``options.materialize`` the smaller of with and without ``Y`` (:func:`prepare_dataspace` falls back);
-        with the in-place set-up where it applies (``options.in_place`` not False), the smaller of that too."""
+        with the in-place set-up where it applies (``options.in_place`` not False), the smaller of that too;
+        with the stationary proxy where it applies (a frame map), its estimate
+        (:func:`gcrsky.solvers.dataspace_proxy.proxy_memory_bytes`: D0's factor and the CG vectors)."""
+        nlags = _proxy_lags(system, options)
+        if nlags is not None:
+            return _proxy_memory(system, options, nlags, ndraws)
         chunk = options.time_chunk or 1
         if options.materialize is not None:
             std = dataspace_memory_bytes(system, ndraws, options.materialize, chunk)
@@ -736,10 +882,22 @@ class DataSpacePath(SolverPath):
         """D (``4 Nf N_d^2 n``; on the stationary shortcut ``16 Nf (2 Nbl)^2 n`` for the per-order Grams plus
         ``4 Nf k (2 Nbl)^2 (lmax + 1)`` for ``k`` distinct lags) and its factor (``Nf N_d^3 / 3``), then per
         draw the products with X and ``X^T`` (``16 Nf Nt Nbl n`` plus ``~8 Nf Nt (lmax+1)^3`` for the
-        rotations; ``4 Nf N_d n`` with Y materialised) and two triangular solves (``2 Nf N_d^2``)."""
+        rotations; ``4 Nf N_d n`` with Y materialised) and two triangular solves (``2 Nf N_d^2``).  With the
+        stationary proxy: its D0 by the shortcut and its factor, then per solve (the Wiener filter and each
+        draw) ``PROXY_ITERATIONS + 1`` products with the true D, m-factorised (``16 Nf Nbl n_resp`` for the
+        response, ``32 Nf Nt Nbl lmax_out`` for the phases, ``~16 Nf lmax_out^3`` for the frame map's
+        rotations and aberration) and preconditioner solves (``2 Nf N_d^2``)."""
         nf, nt, nbl = (int(x) for x in system.data.shape)
         n = int(system.prior.mean.shape[-1])
         nd = 2.0 * nt * nbl
+        nlags = _proxy_lags(system, options)
+        if nlags is not None:
+            n_resp = int(system.op.response.shape[-1])
+            build = 16.0 * nf * (2.0 * nbl) ** 2 * n + 4.0 * nf * nlags * (2.0 * nbl) ** 2 * np.sqrt(n)
+            lout = np.sqrt(n_resp)
+            prod = 16.0 * nf * nbl * n_resp + 32.0 * nf * nt * nbl * lout + 16.0 * nf * lout**3
+            per_solve = (PROXY_ITERATIONS + 1) * (prod + 2.0 * nf * nd * nd)
+            return build + nf * nd**3 / 3.0 + (ndraws + 1) * per_solve
         lags = lag_structure(system) if options.stationary else None
         if lags is None:
             build = 4.0 * nf * nd * nd * n
@@ -754,16 +912,22 @@ class DataSpacePath(SolverPath):
         if nd >= n:
             return f"N_d = {nd} real data values per channel >= n = {n}"
         in_place = options.stationary and options.in_place is not False and lag_structure(system) is not None
+        in_place = in_place or _proxy_lags(system, options) is not None  # the proxy's factor: in place if need be
         cap = DATASPACE_IN_PLACE_MAX_ND if in_place else DATASPACE_MAX_ND
         if nd > cap:
             return f"N_d = {nd} > {cap} (DATASPACE_{'IN_PLACE_' if in_place else ''}MAX_ND)"
         mem = self.memory_bytes(system, options, ndraws)
         if mem > AUTO_MEMORY_FRACTION * budget:
-            return f"D + factor would need {format_bytes(mem)}, more than {AUTO_MEMORY_FRACTION:.0%} of " \
+            what = "D + factor" if _proxy_lags(system, options) is None else "the stationary proxy (D0's factor, CG)"
+            return f"{what} would need {format_bytes(mem)}, more than {AUTO_MEMORY_FRACTION:.0%} of " \
                    f"{format_bytes(budget)}"
         return ""
 
     def describe(self, system, options, memory):
+        if _proxy_lags(system, options) is not None:
+            return (f"N_d = {data_size(system)} real data values per channel < n = {int(system.prior.mean.shape[-1])}: "
+                    f"data space with a frame map: the stationary proxy's D0 factorised, CG with the true D "
+                    f"({format_bytes(memory)})")
         return (f"N_d = {data_size(system)} real data values per channel < n = {int(system.prior.mean.shape[-1])}: "
                 f"data space (D + factor {format_bytes(memory)})")
 
@@ -782,6 +946,11 @@ class DataSpacePath(SolverPath):
         return _parts(system, options, terms, q, logdet, finite)
 
     def state_evidence_parts(self, state, terms, *, slq=None, key=None):
+        if state.options.proxy:
+            raise ValueError("the evidence needs log det D, and a data-space state set up by the stationary proxy "
+                             "(a frame map: DataSpaceOptions(proxy) None or True) has only the proxy's D0, which "
+                             "differs from D by aberration; use gcrsky.inference.log_evidence_system (builds the "
+                             "exact D) or prepare with DataSpaceOptions(proxy=False)")
         sqrt_w = _sqrt_w(state.system)
         rt = _whitened_residual(state.system, sqrt_w)
         q = jnp.sum(rt * _d_solve(state.system, sqrt_w, state.gram, state.chol, rt), axis=-1)

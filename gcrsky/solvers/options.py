@@ -271,6 +271,16 @@ class DataSpaceOptions:
             ``~4x`` that; needs the stationary shortcut and concrete arrays); None: where the
             standard set-up does not fit the free memory and this one does.  Changes only speed
             and memory, and that ``log det D`` from such a state has no derivative.
+        proxy: with a frame map (a file's ICRS coefficients), factorise the *stationary proxy*'s
+            ``D0`` (the frame map's rotations without aberration: exact stationary structure for an
+            isotropic prior) and solve with the true D by CG preconditioned with ``D0^-1``
+            (:mod:`gcrsky.solvers.dataspace_proxy`: no rows, no exact D; stops on the rigorous bound
+            ``||r||_2 <= tol``); None: wherever it applies (a frame map, an isotropic prior,
+            concrete arrays); False: never (the general construction); True: required (``ValueError``
+            naming why where it does not apply).  The evidence needs ``log det D``, which such a
+            state does not have.
+        maxiter: iterations a proxy CG solve may take (both passes together) before it is reported
+            as not converged.
     """
 
     time_chunk: int | None = None
@@ -279,6 +289,8 @@ class DataSpaceOptions:
     materialize: bool | None = None
     tol: float = DEFAULT_TOL
     in_place: bool | None = None
+    proxy: bool | None = None
+    maxiter: int = 200
 
     method = "dataspace"
 
@@ -290,6 +302,9 @@ class DataSpaceOptions:
             raise ValueError(f"materialize must be None, True or False, got {self.materialize!r}")
         if self.in_place is not None and not isinstance(self.in_place, bool):
             raise ValueError(f"in_place must be None, True or False, got {self.in_place!r}")
+        if self.proxy is not None and not isinstance(self.proxy, bool):
+            raise ValueError(f"proxy must be None, True or False, got {self.proxy!r}")
+        _positive("maxiter", self.maxiter, integer=True)
         if self.time_chunk is not None:
             _positive("time_chunk", self.time_chunk, integer=True)
 
