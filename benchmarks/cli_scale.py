@@ -50,6 +50,42 @@ What the runs found (and what the branch changed):
   estimate ignores the operator's transients); ``--method dataspace`` passed 10 GiB RSS (killed).  The 37- and 61-antenna runs were stopped; 91 and 127 were not attempted.
 * The data checks flag the last 2-4 of 30 times as noise-excess outliers on these files
   (model + radiometer noise only, 16.5 min between LSTs): not investigated.
+
+The stationary proxy (branch ``proxy``, issue 24 item 3; :mod:`gcrsky.solvers.dataspace_proxy`): for
+a file's frame map and its isotropic GSM-C_l prior the data space now factorises the proxy's ``D0``
+(the frame map's rotations without aberration: the stationary shortcut applies) and solves every
+``D^-1 b`` by CG with the true matrix-free D, preconditioned by ``D0^-1``, stopping on the rigorous
+``||r||_2 <= tol`` (1e-6 posterior sigma).  Path ``dataspace+proxy`` in the rows below (the CLI's
+``method=auto`` takes it through the planner: no rows, no exact D).  Iterations per solve at small
+lmax (10-antenna hexagon, 6 times, ``/tmp`` script): 2 at lmax 10-40 for tol 1e-6, 3-4 for 1e-10.
+
+Measured 2026-12-03 10:45-11:20 UTC, same machine (2 cores shared with a test-suite run), float64, cache
+off, under ``ulimit -v 30000000`` and an RSS watchdog at 14 GB (``/proc/loadavg`` given per row):
+
+    ants  bls rows lmax (rule)   path              N_d      n | build set-up draws maps+files | wall    RSS     | chi2/dof | CG
+      37  666   63  226 (reach)  dataspace+proxy  3780  51529 |  21.8  36.8  269.2  1.5        | 335 s   8.21 GB | 0.984    | 3 it
+      (--n-side 4, budget 6 GB, batch 50 (the CLI's); Wiener 3 iterations, every draw 3, worst bound 2.1e-10 posterior
+      sigma (tol 1e-6: one iteration gains ~1e-3); sim 59 s; loadavg 2.73 3.36 3.66 at the start, 8.30 6.86 5.08 at the
+      end; the general construction was killed at 6.1 GiB after 11 min)
+      61 1830  108  287 (reach)  dataspace+proxy  6480  82944 | killed by the watchdog at 14.2 GB in the first draw batch
+      (--n-side 5, budget 8 GB, batch 10: the set-up (449 lags, jnp factor of D0, Wiener filter) took 20.6 s and peaked
+      at 6.5 GB; the draws of one batch of 10 took the process from 2.8 to >14 GB)
+      61 1830  108  287 (reach)  dataspace+proxy  6480  82944 | set-up 20.6; 182 of 200 draws in 1318 s | stopped | 6.82 GB | -   | 3 it
+      (--n-side 5, budget 8 GB, --batch 2: the same file; peak session RSS 6.82 GB; Wiener 3 iterations, bound 1.6e-10,
+      every draw 3, worst bound 5.2e-10, all converged; 7.2 s a draw under loadavg 9.4 (other runs); stopped by hand
+      at 11:26 for the report's deadline, so no maps, chi2 or wall time)
+     127 8001  234  409 (reach)  not run: the proxy's estimate at batch 10 is 12.4 GiB before the draws' unexplained
+      excess below (N_d 14040, n 168100; the frame map's Wigner blocks alone are 2.26 GB a real copy)
+
+Why the draws' memory is larger than estimated (found, not fixed): XLA's memory analysis of the proxy's draws at
+the 61-antenna shapes (``draw_dataspace.lower(...).compile().memory_analysis()``) is 3.62 GB of temporaries at 2
+draws and 3.75 GB at 10 (~16 MB a draw, as :func:`gcrsky.solvers.dataspace_proxy.proxy_draw_bytes` estimates:
+3.36 / 3.48 GB), but the process's peak grows by 3.4 GB for 2 draws and 6.3 GB for 10 (~0.36 GB a draw;
+standalone, arrays of those shapes), and more inside the CLI: memory outside XLA's buffers in the products with the
+frame map (:func:`gcrsky.sphere.rotate_euler` multiplies the real Wigner blocks into complex (l, m) grids; its
+complex promotion and slices are the first suspects), perhaps the same excess as the CG set-up's 6 GiB above.  At
+lmax 120 (14 rows, 30 times) XLA's analysis and the estimate agree (0.28 GB at 10 draws); the process peaked at
+1.69 GB in all, set-up included.
 """
 
 from __future__ import annotations
