@@ -22,10 +22,8 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import jax
@@ -336,33 +334,14 @@ print("RESULT " + json.dumps(out))
 '''
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("localhost", 0))
-        return s.getsockname()[1]
-
-
 @pytest.mark.slow
 def test_two_processes_equal_one(chol, cg, tmp_path):
+    from _processes import free_port, run_processes
+
     env = _env(1)
-    port = _free_port()
-    procs, t0 = [], time.time()
-    for pid in range(2):
-        cmd = [sys.executable, "-c", PROCESS, str(TIMEOUT_S), str(HERE), str(port), "2", str(pid),
-               str(tmp_path / f"p{pid}.npz")]
-        procs.append(subprocess.Popen(cmd, env=env, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                      text=True))
-    outs = []
-    try:
-        for p in procs:
-            so, se = p.communicate(timeout=max(1.0, TIMEOUT_S - (time.time() - t0)))
-            assert p.returncode == 0, se[-6000:]
-            outs.append(json.loads([ln for ln in so.splitlines() if ln.startswith("RESULT ")][-1][7:]))
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.communicate()
+    port = free_port()
+    args = [[TIMEOUT_S, HERE, port, 2, pid, tmp_path / f"p{pid}.npz"] for pid in range(2)]
+    outs = run_processes(PROCESS, args, env, TIMEOUT_S)
     assert [o["process_index"] for o in outs] == [0, 1]
     assert all(o["process_count"] == 2 and o["global_devices"] == 2 and o["local_devices"] == 1 for o in outs)
     for pid in range(2):

@@ -25,6 +25,18 @@ from gcrsky.parallel import host_devices_env
 ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT_S = 300
 
+#: The full-day problem both subprocess scripts build (10-antenna hexagon, lmax 12, 30 LSTs).
+SYSTEM = r'''
+lmax, nt = 12, 30
+arr = make_array(hex_array(), HERA_LATITUDE_DEG, gaussian_beam(14.0))
+n = (lmax + 1) ** 2
+prior = isotropic_prior((50.0 / (1.0 + np.arange(lmax + 1)) ** 2)[None], n)
+truth = np.asarray(prior.inv_var) ** -0.5 * np.random.default_rng(0).standard_normal((1, n))
+prob = build_problem(arr, [100e6], np.arange(nt) * 2 * np.pi / nt, lmax, 32, a_true=truth, sigma=0.05,
+                     prior=prior, key=jax.random.PRNGKey(0))
+system = prob.system()
+'''
+
 CHECK = r'''
 import json, sys
 import jax, numpy as np
@@ -34,15 +46,7 @@ from gcrsky.model import build_problem, isotropic_prior, precision_matrix, wiene
 from gcrsky.parallel.mblocks import draw_mmode_on, prepare_mmode_on
 from gcrsky.solvers import MModeOptions, draw_mmode, prepare_mmode
 
-lmax, nt = 12, 30
-arr = make_array(hex_array(), HERA_LATITUDE_DEG, gaussian_beam(14.0))
-n = (lmax + 1) ** 2
-prior = isotropic_prior((50.0 / (1.0 + np.arange(lmax + 1)) ** 2)[None], n)
-truth = np.asarray(prior.inv_var) ** -0.5 * np.random.default_rng(0).standard_normal((1, n))
-prob = build_problem(arr, [100e6], np.arange(nt) * 2 * np.pi / nt, lmax, 32, a_true=truth, sigma=0.05,
-                     prior=prior, key=jax.random.PRNGKey(0))
-system = prob.system()
-opts = MModeOptions(bucket=4)
+''' + SYSTEM + r'''opts = MModeOptions(bucket=4)
 one = prepare_mmode(system, opts)
 d1, i1 = draw_mmode(jax.random.PRNGKey(3), one, 6)
 devs = jax.local_devices()
@@ -94,15 +98,7 @@ from gcrsky.model import build_problem, isotropic_prior
 from gcrsky.parallel.mblocks import draw_mmode_on, prepare_mmode_processes
 from gcrsky.solvers import MModeOptions, draw_mmode, prepare_mmode
 
-lmax, nt = 12, 30
-arr = make_array(hex_array(), HERA_LATITUDE_DEG, gaussian_beam(14.0))
-n = (lmax + 1) ** 2
-prior = isotropic_prior((50.0 / (1.0 + np.arange(lmax + 1)) ** 2)[None], n)
-truth = np.asarray(prior.inv_var) ** -0.5 * np.random.default_rng(0).standard_normal((1, n))
-prob = build_problem(arr, [100e6], np.arange(nt) * 2 * np.pi / nt, lmax, 32, a_true=truth, sigma=0.05,
-                     prior=prior, key=jax.random.PRNGKey(0))
-system = prob.system()
-opts = MModeOptions(bucket=4)
+''' + SYSTEM + r'''opts = MModeOptions(bucket=4)
 one = prepare_mmode(system, opts)  # the single-process reference, computed by each process itself
 d1, _ = draw_mmode(jax.random.PRNGKey(3), one, 6)
 split = prepare_mmode_processes(system, opts)
@@ -121,31 +117,12 @@ print("RESULT " + json.dumps(dict(processes=jax.process_count(), index=jax.proce
 def test_two_processes_equal_one(tmp_path):
     """Two ``jax.distributed`` localhost processes, each holding every other bucket: both end with the
     Wiener filter and draws of one process (1e-13 relative: the same operations on the same inputs)."""
-    import socket
-    import time
-
     import numpy as np
+    from _processes import free_port, run_processes
 
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("localhost", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    procs, t0 = [], time.time()
-    for pid in range(2):
-        cmd = [sys.executable, "-c", PROCESS, str(TIMEOUT_S), str(port), str(pid), str(tmp_path / f"p{pid}.npz")]
-        procs.append(subprocess.Popen(cmd, env=env, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                      text=True))
-    outs = []
-    try:
-        for p in procs:
-            so, se = p.communicate(timeout=max(1.0, TIMEOUT_S - (time.time() - t0)))
-            assert p.returncode == 0, se[-6000:]
-            outs.append(json.loads([ln for ln in so.splitlines() if ln.startswith("RESULT ")][-1][7:]))
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.communicate()
+    outs = run_processes(PROCESS, [[TIMEOUT_S, port, pid, tmp_path / f"p{pid}.npz"] for pid in range(2)], env, TIMEOUT_S)
     assert [o["index"] for o in outs] == [0, 1] and all(o["processes"] == 2 for o in outs)
     nb = outs[0]["buckets"]
     assert nb >= 3 and outs[0]["mine"] == list(range(0, nb, 2)) and outs[1]["mine"] == list(range(1, nb, 2))
