@@ -53,7 +53,9 @@ from .info import Result, SolveInfo, result_code
 from .path import is_traced
 
 __all__ = [
+    "PROXY_ABERRATION_COPIES",
     "PROXY_ITERATIONS",
+    "PROXY_WIGNER_COPIES",
     "anisotropy",
     "batched_pcg",
     "pcg_solve",
@@ -70,9 +72,13 @@ log = logging.getLogger(__name__)
 #: the aberration's relative size grows like lmax, so a few more at lmax ~300).
 PROXY_ITERATIONS = 10
 #: Transient copies of the frame map's Wigner blocks (``8 (lmax_out+1) (2 lmax_out+1)^2`` bytes each) a batch of
-#: products with the true D holds: :func:`gcrsky.sphere.rotate_euler` slices the blocks and multiplies them
-#: into complex grids (a complex copy is two).  XLA's memory analysis of the draws at lmax 40: ~4 (margin: 4.5).
-PROXY_WIGNER_COPIES = 4.5
+#: products with the true D holds: :func:`gcrsky.sphere.rotate_euler` slices the blocks by degree band and the
+#: dots pack them (outside XLA's buffers).  Measured at lmax 200 (60 rows, 30 times, 2 and 10 draws): XLA's
+#: temporaries ~2.0 copies beyond the factor's, the process's peak ~2.4 (margin: 3).
+PROXY_WIGNER_COPIES = 3.0
+#: Transient copies of the frame map's aberration blocks (``8 (lmax_out+1)^2 (lmax_in+1)`` bytes each): with
+#: the Wigner copies above they bound XLA's fixed temporaries at lmax 12 as well (where they are ~3.3 Wigner copies).
+PROXY_ABERRATION_COPIES = 2.0
 #: Parameter-sized (``8 Nf n_resp``) arrays per draw of a batch of products with the true D (the frame map's
 #: complex (l, m) grids, the rotations' results, CG's products): XLA's memory analysis at lmax 40: ~22.
 PROXY_PARAM_VECTORS = 24.0
@@ -151,11 +157,10 @@ def _dot(u, v):
     return jnp.sum(u * v, axis=-1)
 
 
-def _pcg_pass(matvec, precond, b, x, k0, thresh, maxiter):
-    """One batched PCG pass from ``x`` (true residual first), lanes frozen once ``||r|| <= thresh``.
+def _pcg_pass(matvec, precond, x, r, k0, thresh, maxiter):
+    """One batched PCG pass from ``x`` with its true residual ``r``, lanes frozen once ``||r|| <= thresh``.
 
     Returns ``(k, iterations (batch), x, broke (batch))`` with ``k`` the loop's count (all lanes)."""
-    r = b - matvec(x)
     z = precond(r)
     rz = _dot(r, z)
     active = jnp.sqrt(_dot(r, r)) > thresh
@@ -191,7 +196,8 @@ def batched_pcg(matvec, precond, b, *, tol: float, maxiter: int, rtol: float = 0
 
     Each lane (every leading index of ``b``) stops when its residual's 2-norm
     ``||b - A x||_2 <= max(tol, rtol ||b||_2)``; after the loop CG restarts once from the true residual
-    (residual replacement), so the reported residual is that of the returned x.
+    (residual replacement), so the reported residual is that of the returned x.  Products with A: the
+    iterations, plus one true residual (plus one more only where the restart iterates).
 
     Args:
         matvec: x (..., N) -> A x, acting lane by lane (A block-diagonal over the lanes, SPD).
@@ -206,9 +212,13 @@ def batched_pcg(matvec, precond, b, *, tol: float, maxiter: int, rtol: float = 0
         ``||b - A x||_2``, ``rel_residual`` = that over ``||b||_2``, the result code.
     """
     thresh = jnp.maximum(tol, rtol * jnp.sqrt(_dot(b, b)))
-    k, it1, x, broke1 = _pcg_pass(matvec, precond, b, jnp.zeros_like(b), jnp.asarray(0), thresh, maxiter)
-    _, it2, x, broke2 = _pcg_pass(matvec, precond, b, x, k, thresh, maxiter)
-    r = b - matvec(x)
+    k, it1, x, broke1 = _pcg_pass(matvec, precond, jnp.zeros_like(b), b, jnp.asarray(0), thresh, maxiter)
+    r = b - matvec(x)  # the true residual of the first pass's x
+    _, it2, x2, broke2 = _pcg_pass(matvec, precond, x, r, k, thresh, maxiter)
+    # the second pass usually stops at once (its true residual already meets the stop): then x and r are final
+    # and no further product is needed; otherwise the true residual of its x (``cond``: one product or none)
+    r = jax.lax.cond(jnp.any(it2 > 0), lambda: b - matvec(x2), lambda: r)
+    x = x2
     err = jnp.sqrt(_dot(r, r))
     rel = err / jnp.maximum(jnp.sqrt(_dot(b, b)), jnp.finfo(b.dtype).tiny)
     finite = jnp.isfinite(err) & jnp.all(jnp.isfinite(x), axis=-1)
@@ -246,13 +256,15 @@ def proxy_draw_bytes(system: LinearSystem, ndraws: int = 1) -> float:
     (``8 Nf N_d`` each: x, r, z, p, A p, the batch's right-hand side and temporaries),
     :data:`PROXY_PARAM_VECTORS` parameter-sized ones (``8 Nf n_resp``) and, where the operator
     is not m-factorised (:func:`gcrsky.model.operator.uses_mfactor`), its rotated copies
-    (``2 x 8 Nf Nt n_resp``); plus transient copies of the frame map's Wigner blocks
-    (:data:`PROXY_WIGNER_COPIES`; the system holds one more)."""
+    (``2 x 8 Nf Nt n_resp``); plus transient copies of the frame map's Wigner and aberration blocks
+    (:data:`PROXY_WIGNER_COPIES`, :data:`PROXY_ABERRATION_COPIES`; the system holds one more of each)."""
     nf, nt, nbl = (int(x) for x in system.data.shape)
     n = int(system.prior.mean.shape[-1])
     n_resp = int(system.op.response.shape[-1])
     u = getattr(getattr(system.op.frame, "blocks", None), "u", None)
     wigner = 0.0 if u is None else PROXY_WIGNER_COPIES * 8.0 * float(np.prod(u.shape))
+    ab = getattr(system.op.frame, "aberration", None)
+    wigner += 0.0 if ab is None else PROXY_ABERRATION_COPIES * 8.0 * float(np.prod(ab.shape))
     per_draw = 10.0 * 8 * nf * 2 * nt * nbl + PROXY_PARAM_VECTORS * 8 * nf * max(n, n_resp)
     if not uses_mfactor(system.op):
         per_draw += 2.0 * 8 * nf * nt * n_resp
