@@ -327,3 +327,84 @@ def test_use_safe_cpu_threading_sizes_the_pool(monkeypatch):
     jax.devices()  # this process's backend has started: too late to change it
     with pytest.raises(RuntimeError, match="before JAX"):
         use_host_devices(4)
+
+
+# ---------------------------------------------------------------- 2 processes (jax.distributed)
+
+PROCESS = r'''
+import faulthandler, json, sys
+faulthandler.dump_traceback_later(float(sys.argv[1]) - 20.0, exit=True)
+port, pid = int(sys.argv[2]), int(sys.argv[3])
+import jax, jax.numpy as jnp, numpy as np
+jax.config.update("jax_enable_x64", True)
+from gcrsky.parallel import init_distributed
+init_distributed(f"localhost:{port}", 2, pid, initialization_timeout=120)
+from jax.experimental.multihost_utils import process_allgather
+from gcrsky.instrument import HERA_LATITUDE_DEG, antpairs, gaussian_beam, hex_array, make_array, response_matrix
+from gcrsky.sphere import n_params
+from gcrsky.model import LinearSystem, VisOperator, adjoint, apply, isotropic_prior, precision_apply
+from gcrsky.inference import sample_system
+from gcrsky.solvers import CGOptions
+from gcrsky.parallel import baseline_mesh, pad_baselines, shard_system
+lmax, nside, nf, nt = 6, 32, 2, 4
+n = n_params(lmax)
+arr = make_array(hex_array(), HERA_LATITUDE_DEG, gaussian_beam(14.0))
+pairs = antpairs(arr.positions_enu_m.shape[0])
+resp = jnp.asarray(response_matrix(arr, pairs, np.array([100e6, 102e6]), lmax, nside))
+nbl = resp.shape[1]
+op = VisOperator(resp, jnp.linspace(0.0, 1.5, nt))
+rng = np.random.default_rng(0)
+cl = np.broadcast_to(100.0 / (1.0 + np.arange(lmax + 1)) ** 2, (nf, lmax + 1))
+prior = isotropic_prior(cl, n)
+a_true = rng.standard_normal((nf, n)) / np.sqrt(prior.inv_var)
+sigma = 0.05 * float(jnp.max(jnp.abs(apply(op, jnp.asarray(a_true)))))
+data = apply(op, jnp.asarray(a_true)) + sigma * (rng.standard_normal((nf, nt, nbl)) + 1j * rng.standard_normal((nf, nt, nbl)))
+w = rng.uniform(0.5, 1.0, (nf, nt, nbl)); w[:, :, 3] = 0.0  # one flagged baseline
+system = LinearSystem(op, jnp.asarray(data), jnp.asarray(w / sigma**2), prior)
+ssys = shard_system(system, baseline_mesh())  # every process's device: the baselines split over the processes
+psys = pad_baselines(system, 2)  # the one-process reference: the same padded system, computed here
+a = jnp.asarray(rng.standard_normal((nf, n)))
+v = jnp.asarray(rng.standard_normal(psys.data.shape) + 1j * rng.standard_normal(psys.data.shape))
+def rel(x, y):
+    x, y = np.asarray(x), np.asarray(y)
+    return float(np.max(np.abs(x - y)) / np.max(np.abs(y)))
+gather = lambda x: process_allgather(x, tiled=True)
+from gcrsky.parallel.sharding import _place
+v_sh = _place(v, ssys.data.sharding)
+out = {"processes": jax.process_count(), "index": jax.process_index(), "devices": jax.device_count(),
+       "nbl_padded": int(ssys.op.response.shape[1]),
+       "local_shard": [list(s.data.shape) for s in ssys.op.response.addressable_shards],
+       "response_addressable": bool(ssys.op.response.is_fully_addressable)}
+out["apply"] = rel(gather(apply(ssys.op, a)), apply(psys.op, a))
+out["adjoint"] = rel(gather(adjoint(ssys.op, v_sh)), adjoint(psys.op, v))
+out["precision_apply"] = rel(gather(jax.jit(precision_apply)(ssys, a)), jax.jit(precision_apply)(psys, a))
+kw = dict(options=CGOptions(tol=1e-8, dense=False, preconditioner="nystrom", sketch_size=32))
+key = jax.random.PRNGKey(7)
+d_s, i_s = sample_system(key, ssys, 3, **kw)
+d_p, i_p = sample_system(key, psys, 3, **kw)
+out["wiener_cg"] = rel(gather(i_s.a_wf), i_p.a_wf)
+out["draws"] = rel(gather(d_s), d_p)
+out["iters"] = [np.asarray(gather(i_s.draws.iterations)).tolist(), np.asarray(i_p.draws.iterations).tolist()]
+out["converged"] = bool(np.all(gather(i_s.wiener.converged)) and np.all(gather(i_s.draws.converged)))
+print("RESULT " + json.dumps(out), flush=True)
+'''
+
+
+@pytest.mark.slow
+def test_two_processes_equal_one_process():
+    """The baselines split over two ``jax.distributed`` localhost processes (one CPU device each): the
+    products and the matrix-free CG's Wiener filter and draws equal one process's on the same padded
+    system (tolerances of the 4-device check above: 1e-13 for a product, 1e-11 through CG)."""
+    from _processes import free_port, run_processes
+
+    env = dict(os.environ, JAX_ENABLE_X64="1", PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    port = free_port()
+    outs = run_processes(PROCESS, [[TIMEOUT_S, port, pid] for pid in range(2)], env, TIMEOUT_S)
+    assert [o["index"] for o in outs] == [0, 1] and all(o["processes"] == 2 == o["devices"] for o in outs)
+    for o in outs:
+        assert o["nbl_padded"] == 46 and o["local_shard"] == [[2, 23, 49]]  # half the baselines each
+        assert not o["response_addressable"]  # the response really is split over the processes
+        for name in ("apply", "adjoint", "precision_apply"):
+            assert o[name] < 1e-13, (name, o[name])
+        assert o["converged"] and o["iters"][0] == o["iters"][1]
+        assert o["wiener_cg"] < 1e-11 and o["draws"] < 1e-11, o

@@ -35,6 +35,15 @@ The helpers raise the pool to :data:`gcrsky.parallel.POOL_THREADS_PER_DEVICE` th
 per device (``PJRT_NPROC``); see :mod:`gcrsky.parallel.runtime`.  :func:`baseline_mesh` warns
 when the environment gives the pool fewer threads than that.
 
+Processes.  The mesh may span ``jax.distributed`` processes (:func:`gcrsky.parallel.init_distributed`,
+then ``baseline_mesh()`` over ``jax.devices()``, every process's devices): every process builds the
+same system and :func:`shard_system` places only its own baselines (``jax.make_array_from_callback``),
+so each process holds ``Nbl / P`` rows of the response, and the same jitted products and CG run as one
+SPMD program, the adjoint's partial sums combined across processes.  Results that XLA keeps
+replicated are read on any process; sharded ones through
+:func:`jax.experimental.multihost_utils.process_allgather`.  Tested with two localhost processes
+(``tests/test_sharding.py``): products, Wiener filter and draws equal one process's.
+
 Padding.  ``jax.device_put`` needs the sharded axis to be a multiple of the device
 count, so :func:`shard_system` appends ``(-Nbl) % ndev`` *dummy baselines* with zero
 response, zero data and zero inverse noise.  A dummy baseline adds exactly zero to
@@ -93,9 +102,10 @@ def baseline_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
     devs = jax.devices() if devices is None else list(devices)
     if len(devs) == 0:
         raise ValueError("baseline_mesh needs at least one device")
-    ncpu = sum(d.platform == "cpu" for d in devs)
+    me = jax.process_index()  # the pool is per process: count this process's CPU devices
+    ncpu = sum(d.platform == "cpu" and d.process_index == me for d in devs)
     if ncpu > 1:
-        n_all = len(jax.devices("cpu"))
+        n_all = len(jax.local_devices(backend="cpu"))
         have, want = effective_pool_size(n_all), safe_pool_size(n_all)
         if have < want:
             warnings.warn(
@@ -139,10 +149,20 @@ def pad_baselines(system: LinearSystem, multiple: int) -> LinearSystem:
     )
 
 
+def _place(x, sharding: NamedSharding):
+    """``x`` placed with ``sharding``: ``jax.device_put`` where this process addresses every device of the
+    mesh, else (a mesh over ``jax.distributed`` processes) each process places only its own shards from its
+    own full copy of ``x`` (:func:`jax.make_array_from_callback`; every process must pass the same ``x``)."""
+    if sharding.is_fully_addressable:
+        return jax.device_put(x, sharding)
+    host = np.asarray(x)
+    return jax.make_array_from_callback(host.shape, sharding, lambda idx: host[idx])
+
+
 def _replicate(tree, mesh: Mesh):
     rep = NamedSharding(mesh, P())
     return jax.tree_util.tree_map(
-        lambda x: jax.device_put(x, rep) if isinstance(x, (np.ndarray, jax.Array)) else x, tree
+        lambda x: _place(x, rep) if isinstance(x, (np.ndarray, jax.Array)) else x, tree
     )
 
 
@@ -172,13 +192,13 @@ def shard_system(system: LinearSystem, mesh: Mesh) -> LinearSystem:
     resp_sh = NamedSharding(mesh, P(None, axis))
     vis_sh = NamedSharding(mesh, P(None, None, axis))
     op = system.op._replace(
-        response=jax.device_put(system.op.response, resp_sh),
+        response=_place(system.op.response, resp_sh),
         angles=_replicate(system.op.angles, mesh),
         frame=_replicate(system.op.frame, mesh),
     )
     return LinearSystem(
         op=op,
-        data=jax.device_put(system.data, vis_sh),
-        inv_noise=jax.device_put(system.inv_noise, vis_sh),
+        data=_place(system.data, vis_sh),
+        inv_noise=_place(system.inv_noise, vis_sh),
         prior=_replicate(system.prior, mesh),
     )
