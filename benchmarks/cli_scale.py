@@ -77,15 +77,19 @@ off, under ``ulimit -v 30000000`` and an RSS watchdog at 14 GB (``/proc/loadavg`
      127 8001  234  409 (reach)  not run: the proxy's estimate at batch 10 is 12.4 GiB before the draws' unexplained
       excess below (N_d 14040, n 168100; the frame map's Wigner blocks alone are 2.26 GB a real copy)
 
-Why the draws' memory is larger than estimated (found, not fixed): XLA's memory analysis of the proxy's draws at
-the 61-antenna shapes (``draw_dataspace.lower(...).compile().memory_analysis()``) is 3.62 GB of temporaries at 2
-draws and 3.75 GB at 10 (~16 MB a draw, as :func:`gcrsky.solvers.dataspace_proxy.proxy_draw_bytes` estimates:
-3.36 / 3.48 GB), but the process's peak grows by 3.4 GB for 2 draws and 6.3 GB for 10 (~0.36 GB a draw;
-standalone, arrays of those shapes), and more inside the CLI: memory outside XLA's buffers in the products with the
-frame map (:func:`gcrsky.sphere.rotate_euler` multiplies the real Wigner blocks into complex (l, m) grids; its
-complex promotion and slices are the first suspects), perhaps the same excess as the CG set-up's 6 GiB above.  At
-lmax 120 (14 rows, 30 times) XLA's analysis and the estimate agree (0.28 GB at 10 draws); the process peaked at
-1.69 GB in all, set-up included.
+Why the draws' memory was larger than estimated (found and fixed 2026-12-03 afternoon): a heap profile of the
+proxy's draws (memray with native stacks; lmax 200, 60 rows, 30 times, 10 draws) put the excess over XLA's
+buffer assignment (1.3 GB of temporaries) in Eigen's contraction packing buffers, 1.4 GB more: ``rotate_euler``
+promoted the real Wigner blocks to complex and ran one batched dot over every degree padded to ``2 lmax + 1``,
+and XLA's CPU runtime packs all those blocks at once, outside its buffers.  The rotations now run in real
+arithmetic by degree bands cut to their own width (exact), and the proxy's CG skips two redundant products per
+solve.  Same shapes: 10 draws 8.4 s -> 2.1 s, the peak over the set-up 2.29 -> 0.74 GiB.  Then, on the same
+machine (load 0.7-1.4, nothing else running), budget 14 GB, the CLI's batch:
+
+    ants  bls rows lmax (rule)   path              N_d      n | build set-up draws maps+files | wall    RSS     | chi2/dof | CG
+      61 1830  108  287 (reach)  dataspace+proxy  6480  82944 |  34.5  20.0   92.5   3.2        | 156 s   6.84 GB | 0.969    | 3 it
+      (--n-side 5; Wiener 3 iterations, every draw 3, worst bound 5.8e-10 posterior sigma; sim 66 s; before the fix
+      the same draws passed 14 GB at batch 10, and at batch 2 took 7.2 s a draw)
 """
 
 from __future__ import annotations

@@ -83,6 +83,7 @@ from ..base.dtypes import check_float64
 from ..base.memory import available_memory_bytes, check_memory, format_bytes
 from ..model.operator import adjoint, apply, response_at
 from ..model.system import LinearSystem, precision_apply, wiener_rhs
+from ..sphere.rotation import wigner_nbytes
 from .blocked import triangular_solves
 from .dataspace_large import (
     HostFactor,
@@ -189,9 +190,8 @@ WIGNER_COPIES = 4.0
 
 
 def _wigner_bytes(system: LinearSystem) -> float:
-    frame = system.op.frame
-    u = getattr(getattr(frame, "blocks", None), "u", None)
-    return 0.0 if u is None else 8.0 * float(np.prod(u.shape))
+    blocks = getattr(system.op.frame, "blocks", None)
+    return 0.0 if blocks is None else wigner_nbytes(blocks)
 
 
 def dataspace_memory_bytes(system: LinearSystem, ndraws: int = 1, materialize: bool = False,

@@ -48,12 +48,14 @@ from ..model.operator import VisOperator, uses_mfactor
 from ..model.system import LinearSystem
 from ..sphere.frames import FrameMap, frame_lmax
 from ..sphere.modes import mode_table
+from ..sphere.rotation import wigner_nbytes
 from .dataspace_large import dataspace_large_bytes
 from .info import Result, SolveInfo, result_code
 from .path import is_traced
 
 __all__ = [
     "PROXY_ABERRATION_COPIES",
+    "PROXY_FIXED_PARAM_VECTORS",
     "PROXY_ITERATIONS",
     "PROXY_WIGNER_COPIES",
     "anisotropy",
@@ -71,14 +73,17 @@ log = logging.getLogger(__name__)
 #: Iterations per solve the planner's cost model assumes (measured 3-6 at lmax 8-20, tol 1e-6..1e-10;
 #: the aberration's relative size grows like lmax, so a few more at lmax ~300).
 PROXY_ITERATIONS = 10
-#: Transient copies of the frame map's Wigner blocks (``8 (lmax_out+1) (2 lmax_out+1)^2`` bytes each) a batch of
-#: products with the true D holds: :func:`gcrsky.sphere.rotate_euler` slices the blocks by degree band and the
-#: dots pack them (outside XLA's buffers).  Measured at lmax 200 (60 rows, 30 times, 2 and 10 draws): XLA's
-#: temporaries ~2.0 copies beyond the factor's, the process's peak ~2.4 (margin: 3).
+#: Transient copies of the frame map's Wigner blocks (:func:`gcrsky.sphere.wigner_nbytes` bytes each) a batch of
+#: products with the true D holds: the dots of :func:`gcrsky.sphere.rotate_euler` pack them (outside XLA's
+#: buffers), a band cut to a smaller lmax is sliced.  Measured at lmax 200 (60 rows, 30 times, 2 and 10 draws):
+#: XLA's temporaries and the process's peak beyond the factor's ~1.8 copies (margin: 3).
 PROXY_WIGNER_COPIES = 3.0
 #: Transient copies of the frame map's aberration blocks (``8 (lmax_out+1)^2 (lmax_in+1)`` bytes each): with
 #: the Wigner copies above they bound XLA's fixed temporaries at lmax 12 as well (where they are ~3.3 Wigner copies).
 PROXY_ABERRATION_COPIES = 2.0
+#: Parameter-sized (``8 Nf n_resp``) temporaries a batch holds whatever its size (the rotations' (l, m) grids,
+#: the Wiener parts): what dominates XLA's fixed temporaries at small lmax (~77 measured at lmax 12).
+PROXY_FIXED_PARAM_VECTORS = 100.0
 #: Parameter-sized (``8 Nf n_resp``) arrays per draw of a batch of products with the true D (the frame map's
 #: complex (l, m) grids, the rotations' results, CG's products): XLA's memory analysis at lmax 40: ~22.
 PROXY_PARAM_VECTORS = 24.0
@@ -257,14 +262,16 @@ def proxy_draw_bytes(system: LinearSystem, ndraws: int = 1) -> float:
     :data:`PROXY_PARAM_VECTORS` parameter-sized ones (``8 Nf n_resp``) and, where the operator
     is not m-factorised (:func:`gcrsky.model.operator.uses_mfactor`), its rotated copies
     (``2 x 8 Nf Nt n_resp``); plus transient copies of the frame map's Wigner and aberration blocks
-    (:data:`PROXY_WIGNER_COPIES`, :data:`PROXY_ABERRATION_COPIES`; the system holds one more of each)."""
+    (:data:`PROXY_WIGNER_COPIES`, :data:`PROXY_ABERRATION_COPIES`; the system holds one more of each) and
+    :data:`PROXY_FIXED_PARAM_VECTORS` parameter-sized ones."""
     nf, nt, nbl = (int(x) for x in system.data.shape)
     n = int(system.prior.mean.shape[-1])
     n_resp = int(system.op.response.shape[-1])
-    u = getattr(getattr(system.op.frame, "blocks", None), "u", None)
-    wigner = 0.0 if u is None else PROXY_WIGNER_COPIES * 8.0 * float(np.prod(u.shape))
+    blocks = getattr(system.op.frame, "blocks", None)
+    wigner = 0.0 if blocks is None else PROXY_WIGNER_COPIES * wigner_nbytes(blocks)
     ab = getattr(system.op.frame, "aberration", None)
     wigner += 0.0 if ab is None else PROXY_ABERRATION_COPIES * 8.0 * float(np.prod(ab.shape))
+    wigner += PROXY_FIXED_PARAM_VECTORS * 8 * nf * max(n, n_resp)
     per_draw = 10.0 * 8 * nf * 2 * nt * nbl + PROXY_PARAM_VECTORS * 8 * nf * max(n, n_resp)
     if not uses_mfactor(system.op):
         per_draw += 2.0 * 8 * nf * nt * n_resp

@@ -53,7 +53,10 @@ from .rotation import (
     rotate_matrix,
     rotation_matrix_zyz,
     to_lm_grid,
+    wigner_band_edges,
     wigner_blocks,
+    wigner_lmax,
+    wigner_nbytes,
 )
 
 __all__ = [
@@ -93,5 +96,8 @@ __all__ = [
     "to_lm_grid",
     "transpose_frame",
     "unrealify",
+    "wigner_band_edges",
     "wigner_blocks",
+    "wigner_lmax",
+    "wigner_nbytes",
 ]

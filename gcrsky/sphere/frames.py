@@ -40,6 +40,7 @@ from .rotation import (
     rotate_euler_transpose,
     to_lm_grid,
     wigner_blocks,
+    wigner_lmax,
 )
 
 __all__ = [
@@ -316,7 +317,7 @@ def icrs_to_cirs_map(lmax: int, obstime, *, pad: int = 4, blocks: WignerBlocks |
     ex /= np.linalg.norm(ex)
     r_v = np.stack([ex, np.cross(vhat, ex), vhat])
     bpn = np.asarray(astrom["bpn"], np.float64)
-    if blocks is None or blocks.u.shape[0] - 1 < lout:
+    if blocks is None or wigner_lmax(blocks) < lout:
         blocks = wigner_blocks(lout)
     return FrameMap(
         blocks=blocks,
