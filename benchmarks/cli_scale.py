@@ -74,22 +74,34 @@ off, under ``ulimit -v 30000000`` and an RSS watchdog at 14 GB (``/proc/loadavg`
       (--n-side 5, budget 8 GB, --batch 2: the same file; peak session RSS 6.82 GB; Wiener 3 iterations, bound 1.6e-10,
       every draw 3, worst bound 5.2e-10, all converged; 7.2 s a draw under loadavg 9.4 (other runs); stopped by hand
       at 11:26 for the report's deadline, so no maps, chi2 or wall time)
-     127 8001  234  409 (reach)  not run: the proxy's estimate at batch 10 is 12.4 GiB before the draws' unexplained
-      excess below (N_d 14040, n 168100; the frame map's Wigner blocks alone are 2.26 GB a real copy)
+     127 8001  234  409 (reach)  not run in this session: the proxy's estimate at batch 10 was 12.4 GiB before the draws'
+      excess below (N_d 14040, n 168100; the frame map's Wigner blocks alone were 2.26 GB a real copy); see below
 
 Why the draws' memory was larger than estimated (found and fixed 2026-12-03 afternoon): a heap profile of the
 proxy's draws (memray with native stacks; lmax 200, 60 rows, 30 times, 10 draws) put the excess over XLA's
 buffer assignment (1.3 GB of temporaries) in Eigen's contraction packing buffers, 1.4 GB more: ``rotate_euler``
 promoted the real Wigner blocks to complex and ran one batched dot over every degree padded to ``2 lmax + 1``,
 and XLA's CPU runtime packs all those blocks at once, outside its buffers.  The rotations now run in real
-arithmetic by degree bands cut to their own width (exact), and the proxy's CG skips two redundant products per
-solve.  Same shapes: 10 draws 8.4 s -> 2.1 s, the peak over the set-up 2.29 -> 0.74 GiB.  Then, on the same
-machine (load 0.7-1.4, nothing else running), budget 14 GB, the CLI's batch:
+arithmetic by degree bands cut to their own width (exact), the proxy's CG skips two redundant products per
+solve, and the Wigner blocks are stored by band (0.37 of the padded table).  Same shapes: 10 draws 8.4 s ->
+1.7 s, the peak over the set-up 2.29 -> 0.41 GiB, XLA's temporaries 1.30 -> 0.32 GB.  Then, on the same
+machine (load 0.7-1.4, nothing else running), budget 14 GB, the CLI's batch (the 61-antenna row ran before the
+banded storage):
 
     ants  bls rows lmax (rule)   path              N_d      n | build set-up draws maps+files | wall    RSS     | chi2/dof | CG
       61 1830  108  287 (reach)  dataspace+proxy  6480  82944 |  34.5  20.0   92.5   3.2        | 156 s   6.84 GB | 0.969    | 3 it
       (--n-side 5; Wiener 3 iterations, every draw 3, worst bound 5.8e-10 posterior sigma; sim 66 s; before the fix
       the same draws passed 14 GB at batch 10, and at batch 2 took 7.2 s a draw)
+     127 8001  234  409 (reach)  cg (auto)        14040 168100 | build ~140 s, then the set-up ran a complex product at
+      15.2 GB for 10 min (stopped): the planner had refused the proxy (10.24 GiB at batch 10, over 75 % of the 14 GB
+      budget), the frame map's padded Wigner table (2.28 GB at lmax 413) counted 3x
+     127 8001  234  409 (reach)  dataspace+proxy 14040 168100 | 143.9  84.5  221.2   8.7        | 466 s   13.9 GB | 1.02     | 3 it
+      (after the Wigner blocks were stored by degree band, 0.83 GB: the planner's estimate 7.62 GiB at batch 50; the same
+      file, by hand: GCRSKY_MEMORY_BUDGET_GB=14 gcrsky run --data hex7.uvh5 --dish-diameter 14 --nside 256 --nsamples 200
+      --no-plots --flux-scale accept, under /usr/bin/time -v; batches of 50 draws: 102 s (compile included), 38, 39,
+      41 s; compile 65.6 s in all; Wiener 3 iterations, every draw 3, worst bound 1.1e-8 posterior sigma; sim 5 min;
+      a 4-minute test run shared the cores during the set-up and the first batch.  Goal of issue 24 item 3 (set-up and
+      200 draws < 30 min, peak < 16 GB): met)
 """
 
 from __future__ import annotations
