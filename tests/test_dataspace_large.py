@@ -50,18 +50,47 @@ def system():
     return s
 
 
-@pytest.mark.parametrize("n, block", [(300, 64), (257, 100), (64, 64), (50, 1000)])
-def test_blocked_cholesky_equals_numpy(n, block):
+@pytest.mark.parametrize("n, block, threads", [(300, 64, None), (257, 100, 2), (64, 64, 1), (50, 1000, None)])
+def test_blocked_cholesky_equals_numpy(n, block, threads):
     rng = np.random.default_rng(n)
     G = rng.standard_normal((n, n // 2))
     A = G @ G.T + np.eye(n)
     ref = np.linalg.cholesky(A)
     work = np.ascontiguousarray(np.tril(A) + np.triu(rng.standard_normal((n, n)), 1))  # upper triangle: garbage
-    L = blocked_cholesky(work, block)
+    L = blocked_cholesky(work, block, threads=threads)
     assert L is work  # in place
     np.testing.assert_allclose(L, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
     x = np.asarray(triangular_solves(jnp.asarray(L), jnp.ones((2, n))))
     np.testing.assert_allclose(x, np.linalg.solve(A, np.ones((n, 2))).T, rtol=1e-10)
+
+
+def test_blocked_cholesky_threads_only_inside_the_call(monkeypatch):
+    """The BLAS threads are raised for the factorisation only: the process's setting (gcrsky's CPU set-up keeps
+    one thread for the BLAS calls inside XLA's pool) is back after the call, and after a failed one."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from gcrsky.solvers.blocked import THREADS_ENV, blas_threads
+
+    def blas():
+        return sorted(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        before = blas()
+        blocked_cholesky(np.eye(64) * 2.0, 16, threads=2)
+        assert blas() == before == [1] * len(before)
+        bad = np.eye(8)
+        bad[5, 5] = -1.0
+        with pytest.raises(ValueError, match="not positive definite"):
+            blocked_cholesky(bad, 4, threads=2)
+        assert blas() == before
+    monkeypatch.setenv(THREADS_ENV, "3")
+    assert blas_threads() == 3
+    for bad_value in ("0", "two"):
+        monkeypatch.setenv(THREADS_ENV, bad_value)
+        with pytest.raises(ValueError, match=THREADS_ENV):
+            blas_threads()
+    monkeypatch.delenv(THREADS_ENV)
+    assert blas_threads() >= 1
 
 
 def test_blocked_cholesky_refuses_bad_input():
