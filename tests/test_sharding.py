@@ -55,6 +55,27 @@ ROOT = Path(__file__).resolve().parents[1]
 #: cores and up to ~170 s under heavy load; a deadlocked one never ends.
 TIMEOUT_S = 300
 
+#: The system both subprocess checks build (10 antennas: 45 baselines, 2 channels, 4 times, lmax 6, one
+#: flagged baseline); each snippet imports what it uses.
+SYSTEM = r'''
+lmax, nside, nf, nt = 6, 32, 2, 4
+n = n_params(lmax)
+arr = make_array(hex_array(), HERA_LATITUDE_DEG, gaussian_beam(14.0))
+pairs = antpairs(arr.positions_enu_m.shape[0])
+resp = jnp.asarray(response_matrix(arr, pairs, np.array([100e6, 102e6]), lmax, nside))
+nbl = resp.shape[1]
+angles = jnp.linspace(0.0, 1.5, nt)
+op = VisOperator(resp, angles)
+rng = np.random.default_rng(0)
+cl = np.broadcast_to(100.0 / (1.0 + np.arange(lmax + 1)) ** 2, (nf, lmax + 1))
+prior = isotropic_prior(cl, n)
+a_true = rng.standard_normal((nf, n)) / np.sqrt(prior.inv_var)
+sigma = 0.05 * float(jnp.max(jnp.abs(apply(op, jnp.asarray(a_true)))))
+data = apply(op, jnp.asarray(a_true)) + sigma * (rng.standard_normal((nf, nt, nbl)) + 1j * rng.standard_normal((nf, nt, nbl)))
+w = rng.uniform(0.5, 1.0, (nf, nt, nbl)); w[:, :, 3] = 0.0  # one flagged baseline
+system = LinearSystem(op, jnp.asarray(data), jnp.asarray(w / sigma**2), prior)
+'''
+
 CHECK = r'''
 import faulthandler, json, os, sys, time, warnings
 t0 = time.time()
@@ -77,23 +98,7 @@ from gcrsky.solvers import CGOptions
 from gcrsky.parallel import baseline_mesh, pad_baselines, shard_system
 
 assert jax.device_count() == 4, jax.devices()
-lmax, nside, nf, nt = 6, 32, 2, 4
-n = n_params(lmax)
-arr = make_array(hex_array(), HERA_LATITUDE_DEG, gaussian_beam(14.0))
-pairs = antpairs(arr.positions_enu_m.shape[0])
-resp = jnp.asarray(response_matrix(arr, pairs, np.array([100e6, 102e6]), lmax, nside))
-nbl = resp.shape[1]
-angles = jnp.linspace(0.0, 1.5, nt)
-op = VisOperator(resp, angles)
-rng = np.random.default_rng(0)
-cl = np.broadcast_to(100.0 / (1.0 + np.arange(lmax + 1)) ** 2, (nf, lmax + 1))
-prior = isotropic_prior(cl, n)
-a_true = rng.standard_normal((nf, n)) / np.sqrt(prior.inv_var)
-sigma = 0.05 * float(jnp.max(jnp.abs(apply(op, jnp.asarray(a_true)))))
-data = apply(op, jnp.asarray(a_true)) + sigma * (rng.standard_normal((nf, nt, nbl)) + 1j * rng.standard_normal((nf, nt, nbl)))
-w = rng.uniform(0.5, 1.0, (nf, nt, nbl)); w[:, :, 3] = 0.0  # one flagged baseline
-system = LinearSystem(op, jnp.asarray(data), jnp.asarray(w / sigma**2), prior)
-
+''' + SYSTEM + r'''
 from gcrsky.parallel import effective_pool_size
 stage("setup")
 with warnings.catch_warnings(record=True) as caught:
@@ -346,22 +351,7 @@ from gcrsky.model import LinearSystem, VisOperator, adjoint, apply, isotropic_pr
 from gcrsky.inference import sample_system
 from gcrsky.solvers import CGOptions
 from gcrsky.parallel import baseline_mesh, pad_baselines, shard_system
-lmax, nside, nf, nt = 6, 32, 2, 4
-n = n_params(lmax)
-arr = make_array(hex_array(), HERA_LATITUDE_DEG, gaussian_beam(14.0))
-pairs = antpairs(arr.positions_enu_m.shape[0])
-resp = jnp.asarray(response_matrix(arr, pairs, np.array([100e6, 102e6]), lmax, nside))
-nbl = resp.shape[1]
-op = VisOperator(resp, jnp.linspace(0.0, 1.5, nt))
-rng = np.random.default_rng(0)
-cl = np.broadcast_to(100.0 / (1.0 + np.arange(lmax + 1)) ** 2, (nf, lmax + 1))
-prior = isotropic_prior(cl, n)
-a_true = rng.standard_normal((nf, n)) / np.sqrt(prior.inv_var)
-sigma = 0.05 * float(jnp.max(jnp.abs(apply(op, jnp.asarray(a_true)))))
-data = apply(op, jnp.asarray(a_true)) + sigma * (rng.standard_normal((nf, nt, nbl)) + 1j * rng.standard_normal((nf, nt, nbl)))
-w = rng.uniform(0.5, 1.0, (nf, nt, nbl)); w[:, :, 3] = 0.0  # one flagged baseline
-system = LinearSystem(op, jnp.asarray(data), jnp.asarray(w / sigma**2), prior)
-ssys = shard_system(system, baseline_mesh())  # every process's device: the baselines split over the processes
+''' + SYSTEM + r'''ssys = shard_system(system, baseline_mesh())  # every process's device: the baselines split over the processes
 psys = pad_baselines(system, 2)  # the one-process reference: the same padded system, computed here
 a = jnp.asarray(rng.standard_normal((nf, n)))
 v = jnp.asarray(rng.standard_normal(psys.data.shape) + 1j * rng.standard_normal(psys.data.shape))
