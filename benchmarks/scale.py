@@ -270,6 +270,14 @@ load 4-6 inside the full m-mode run; the SHT route there is MEASURED 41.5 s here
   the factorisation runs on one core (``OPENBLAS_NUM_THREADS=1``, which the threaded ``dpotrf`` crash
   above N = 14000 imposes; the blocked factorisation calls only ``dpotrf`` on 1024-wide blocks, so its
   GEMMs could take both cores).
+* Done 2026-12-03 afternoon: ``blocked_cholesky`` raises the BLAS threads for its own call (threadpoolctl; the
+  cores, or ``GCRSKY_BLAS_THREADS``).  MEASURED 14:28-14:34 UTC, the ``ds`` column alone (a script that sets
+  ``HERA_SPEC[...]["paths"] = ["ds"]`` and calls ``run_one``; load 0.5 at the start, ~2 at the set-up's end:
+  a 1-minute test run shared the cores): set-up 470.2 -> 297.5 s (1.58x), 200 draws 15.1 s (76 ms a draw;
+  the 131 ms above was under load 5-6), set-up + 200 draws 313 s; Wiener filter 2.4e-8 posterior sigma;
+  the set-up's peak 13.86 GB (MiB: 13857) as before, the process's peak over the row 15.8 GiB (15839 MiB,
+  ``/usr/bin/time``: 16.2 GB): without the CG column, so the draws' phase holds ~2 GB above the set-up
+  (where exactly: not profiled).
 """
 
 from __future__ import annotations
