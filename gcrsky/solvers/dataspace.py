@@ -185,7 +185,9 @@ def from_rows(u: jax.Array, nt: int, nbl: int) -> jax.Array:
 #: process's peak on this CPU grows by 39 per time of a chunk (lmax 100, 171 baselines; the runtime's
 #: matrix-product scratch is not in XLA's buffers): ``benchmarks/dataspace_memory.py``.
 RESPONSE_TRANSIENT = 40.0
-#: Copies of the frame map's Wigner blocks a chunk's rows hold (measured: ~3.4).
+#: Copies of the frame map's Wigner blocks (:func:`gcrsky.sphere.wigner_nbytes`) a chunk's rows hold (measured
+#: ~3.4 copies of the padded table before the blocks were stored by band; not re-measured since: the banded real
+#: products hold no complex copy and no slices of it, so the 4 copies of the smaller table are kept as the margin).
 WIGNER_COPIES = 4.0
 
 
