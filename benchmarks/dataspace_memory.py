@@ -31,6 +31,16 @@ Measured (2026-12-03, this shared 2-core CPU; times under load)::
     mid        2,20,171  10201     4   n     12.80     5.70     9.64   403.4
     issue      2,20,171  34596     1   y     15.39     8.42    12.90   401.8
 
+After the Wigner blocks were stored by degree band and the rotations made real (2026-12-03 afternoon, same
+machine, the docs build of a fresh clone alongside), the estimate still bounds the peak, which fell::
+
+    small       2,20,21   3721     1   y      0.21     0.11     0.15    16.7
+    small       2,20,21   3721     8   y      0.61     0.29     0.37    18.1
+    small       2,20,21   3721     1   n      0.17     0.08     0.10    36.4
+    small       2,20,21   3721     8   n      0.97     0.35     0.45    22.8
+    mid        2,20,171  10201     1   y      6.49     3.57     3.84   102.3
+    mid        2,20,171  10201     8   y     14.93     7.04     7.87    80.5
+
 With Y materialised the chunk changes only the memory (69-94 s at lmax 100 whatever the chunk), so
 the set-up takes 1 time at once; without it every pair of chunks forms its rows again (46 s at
 1 time against 13 s at 8 in the small case, and > 13 min at 1 time in the mid one), so it takes

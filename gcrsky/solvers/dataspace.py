@@ -186,8 +186,8 @@ def from_rows(u: jax.Array, nt: int, nbl: int) -> jax.Array:
 #: matrix-product scratch is not in XLA's buffers): ``benchmarks/dataspace_memory.py``.
 RESPONSE_TRANSIENT = 40.0
 #: Copies of the frame map's Wigner blocks (:func:`gcrsky.sphere.wigner_nbytes`) a chunk's rows hold (measured
-#: ~3.4 copies of the padded table before the blocks were stored by band; not re-measured since: the banded real
-#: products hold no complex copy and no slices of it, so the 4 copies of the smaller table are kept as the margin).
+#: ~3.4 copies of the padded table before the blocks were stored by band; with the banded real products the
+#: estimate still bounds the measured peaks, which fell: ``benchmarks/dataspace_memory.py``).
 WIGNER_COPIES = 4.0
 
 
