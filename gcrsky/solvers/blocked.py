@@ -29,14 +29,10 @@ against a matrix-free product (:func:`factor_solve`), so the matrix itself is no
 
 from __future__ import annotations
 
-import logging
 import os
-from contextlib import nullcontext
 
 import jax
 import numpy as np
-
-log = logging.getLogger(__name__)
 
 __all__ = ["BLOCK", "THREADS_ENV", "blas_threads", "blocked_cholesky", "blocked_cholesky_bytes", "factor_solve",
            "triangular_solves"]
@@ -62,13 +58,10 @@ def blas_threads() -> int:
 
 
 def _blas_limits(threads: int):
-    """A context that runs BLAS with ``threads`` threads (threadpoolctl), whatever ``OPENBLAS_NUM_THREADS``
-    the process started with; a no-op, logged, where threadpoolctl is missing."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - a declared dependency
-        log.debug("threadpoolctl is not installed: blocked_cholesky keeps the process's BLAS threads")
-        return nullcontext()
+    """A context that runs BLAS with ``threads`` threads, whatever ``OPENBLAS_NUM_THREADS`` the process started
+    with (threadpoolctl, imported here: it loads the BLAS libraries it controls)."""
+    from threadpoolctl import threadpool_limits
+
     return threadpool_limits(limits=int(threads), user_api="blas")
 
 

@@ -268,14 +268,14 @@ def proxy_draw_bytes(system: LinearSystem, ndraws: int = 1) -> float:
     n = int(system.prior.mean.shape[-1])
     n_resp = int(system.op.response.shape[-1])
     blocks = getattr(system.op.frame, "blocks", None)
-    wigner = 0.0 if blocks is None else PROXY_WIGNER_COPIES * wigner_nbytes(blocks)
+    fixed = 0.0 if blocks is None else PROXY_WIGNER_COPIES * wigner_nbytes(blocks)
     ab = getattr(system.op.frame, "aberration", None)
-    wigner += 0.0 if ab is None else PROXY_ABERRATION_COPIES * 8.0 * float(np.prod(ab.shape))
-    wigner += PROXY_FIXED_PARAM_VECTORS * 8 * nf * max(n, n_resp)
+    fixed += 0.0 if ab is None else PROXY_ABERRATION_COPIES * 8.0 * float(np.prod(ab.shape))
+    fixed += PROXY_FIXED_PARAM_VECTORS * 8 * nf * max(n, n_resp)
     per_draw = 10.0 * 8 * nf * 2 * nt * nbl + PROXY_PARAM_VECTORS * 8 * nf * max(n, n_resp)
     if not uses_mfactor(system.op):
         per_draw += 2.0 * 8 * nf * nt * n_resp
-    return wigner + max(1, ndraws) * per_draw
+    return fixed + max(1, ndraws) * per_draw
 
 
 def proxy_memory_bytes(system: LinearSystem, nlags: int, ndraws: int = 1, in_place: bool = True) -> float:
