@@ -135,13 +135,19 @@ def _run_data(args) -> int:
 
     compile0 = setup_jax(args)
     from ..paper.report import PaperReport
-    from ..run import RunExistsError, existing_run_files
+    from ..run import RunExistsError, check_unlocked, existing_run_files
 
     _gain_inputs(args)
     selection = data_kwargs(args)
     spec = run_spec(args, nsamples=args.nsamples or DEFAULT_NSAMPLES, method=args.method or "auto",
                     tol=args.tol or DEFAULT_TOL, extra=_data_settings(args, selection))
     out = spec.output.out
+    if not args.process_id:
+        try:
+            check_unlocked(out)  # another run writes there (execute's lock is what excludes)
+        except RunExistsError as e:
+            print(refusal_message(e, resume=args.resume), file=sys.stderr)
+            return EXIT_REFUSED
     if spec.output.existing == "refuse" and not args.process_id:
         taken = existing_run_files(out)
         if taken:

@@ -104,7 +104,7 @@ def _run(args) -> int:
 
     compile0 = setup_jax(args)
     from ..paper.pipeline import paper_hooks
-    from ..run import ResumeError, RunExistsError, check_output
+    from ..run import ResumeError, RunExistsError, check_output, check_unlocked
     from ..sim.config import Config
     from ..sim.standard import problem_from_config
 
@@ -113,6 +113,8 @@ def _run(args) -> int:
     spec = run_spec(args, nsamples=nsamples, method=method, tol=tol, scenario=scen)
     worker = bool(args.process_id)  # a jax.distributed process other than 0: computes, writes nothing
     try:  # refuse (or resume) before the problem is built: the check needs only the settings
+        if not worker:
+            check_unlocked(spec.output.out)  # another run writes there (execute's lock is what excludes)
         state = None if worker else check_output(spec.output.out, spec.settings(config), spec.output.existing)
     except (RunExistsError, ResumeError) as e:
         print(refusal_message(e, resume=args.resume), file=sys.stderr)

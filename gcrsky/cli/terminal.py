@@ -184,8 +184,10 @@ OPTION_OF = {
 
 def refusal_message(e, *, resume: bool) -> str:
     """The message of a refused run (:class:`~gcrsky.run.RunExistsError` / :class:`~gcrsky.run.ResumeError`)."""
-    from ..run import ResumeError
+    from ..run import ResumeError, RunLockedError
 
+    if isinstance(e, RunLockedError):
+        return f"gcrsky: {e}."
     if isinstance(e, ResumeError) and e.differences:
         what = ", ".join(f"{OPTION_OF.get(k, k)} (recorded {a!r}, now {b!r})" for k, a, b in e.differences)
         return (f"gcrsky: --resume: the run in {e.out} was made with other settings: {what}. Give the recorded "

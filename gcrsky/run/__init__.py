@@ -19,10 +19,12 @@ and figures through report hooks (:class:`ReportHook`; the paper's are in
 - ``products``: :func:`write_products`: HEALPix FITS, healpy alm, pyradiosky skyh5;
 - ``summary``: :class:`RunSummary` (``summary.json``), :class:`RunProducts`, the solver block;
 - ``fit``: :func:`goodness_of_fit`, the posterior predictive check every run writes;
+- ``lock``: :func:`run_lock`, one run per output directory;
 - ``runner``: :func:`execute`, the stages in order.
 """
 
 from .fit import goodness_of_fit
+from .lock import LOCK_FILE, RunLockedError, check_unlocked, lock_owner, run_lock
 from .maps import RunMaps, mode_z_scores, parameter_frame, run_maps
 from .output import (
     FIGURE_FILES,
@@ -48,6 +50,7 @@ __all__ = [
     "CHANNEL_MODES",
     "EXISTING",
     "FIGURE_FILES",
+    "LOCK_FILE",
     "METHODS",
     "PRODUCT_FILES",
     "RESULTS_FILE",
@@ -60,6 +63,7 @@ __all__ = [
     "ReportHook",
     "ResumeError",
     "RunExistsError",
+    "RunLockedError",
     "RunMaps",
     "RunProducts",
     "RunSpec",
@@ -69,15 +73,18 @@ __all__ = [
     "StageTimer",
     "Watch",
     "check_output",
+    "check_unlocked",
     "execute",
     "existing_run_files",
     "goodness_of_fit",
     "info_stats",
+    "lock_owner",
     "mode_z_scores",
     "open_run",
     "parameter_frame",
     "read_summary",
     "remove_run_files",
+    "run_lock",
     "run_maps",
     "run_settings",
     "settings_differences",

@@ -32,6 +32,7 @@ from .channels import channel_draws, worker_channels
 from .draws import joint_draws
 from .fit import run_fit
 from .gains import gain_draws, gain_summary, gained_problem, stored_gain_factor, write_gain_products
+from .lock import run_lock
 from .maps import RunMaps, parameter_frame, run_maps, stored_maps
 from .output import PRODUCT_FILES, RESULTS_FILE, SUMMARY_FILE, OpenRun, existing_run_files, open_run
 from .products import write_products
@@ -76,12 +77,21 @@ def execute(prob, spec: RunSpec, *, hooks: Sequence[ReportHook] = (), watch: Wat
     Raises:
         RunExistsError, ResumeError: the output directory holds a run that this one may not
             touch or cannot continue (:func:`~gcrsky.run.output.check_output`).
+        RunLockedError: another run is writing to the output directory (:func:`~gcrsky.run.lock.run_lock`,
+            held from before the directory is looked at until the last file is written).
     """
     compile0 = compile_stats() if compile_since is None else compile_since
     watch = watch or Watch()
     if spec.channels == "processes" and jax.process_index() != 0:
         worker_channels(prob, spec, watch)
         return None
+    with run_lock(spec.output.out, spec.argv):  # one run per directory, from its first look to its last file
+        return _execute_locked(prob, spec, hooks, watch, build_s, compile0)
+
+
+def _execute_locked(prob, spec: RunSpec, hooks, watch: Watch, build_s: float, compile0: CompileStats
+                    ) -> tuple[RunSummary, RunProducts]:
+    """:func:`execute` in process 0, holding the output directory's lock."""
     run = open_run(prob, spec)
     st = StageTimer(watch.on_stage)
     st.times["build"] = build_s
