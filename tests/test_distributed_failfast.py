@@ -175,3 +175,13 @@ def test_cli_process_0_alone_exits_with_a_message(tmp_path):
     proc, elapsed, addr = _run_alone(tmp_path, 0)
     _check_message(proc, elapsed, addr, 0)
     assert "process 1 did not join" in proc.stderr
+
+
+def test_process_0_on_a_busy_port_says_so():
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        addr = f"127.0.0.1:{busy.getsockname()[1]}"
+        with pytest.raises(DistributedInitError, match="process 0 of 2 cannot listen on the coordinator port") as e:
+            rendezvous(addr, 2, 0, 5)
+        assert addr in str(e.value) and not isinstance(e.value, TimeoutError)
