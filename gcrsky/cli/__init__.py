@@ -53,17 +53,24 @@ printed and ``summary.json`` records it: check ``solver.all_converged``), and fo
 values (results are still written for diagnosis); 2 for bad arguments (argparse);
 3 when the output directory holds results that the command refuses to touch
 (neither ``--resume`` nor ``--overwrite``) or ``--resume`` cannot continue
-(different settings or inputs, unreadable ``results.h5``).
+(different settings or inputs, unreadable ``results.h5``); 4 when the ``jax.distributed``
+processes (``--coordinator``/``--num-processes``/``--process-id``) could not start
+together: the coordinator could not be reached, or a process did not join, within
+``--dist-timeout`` seconds (default 120), or process 0 cannot listen on the coordinator's
+port or refuses a process (another ``--num-processes``, a process id taken); each waiting
+process prints one line naming the address, its process id, the number of processes and
+the timeout, with no traceback (:func:`gcrsky.parallel.init_distributed`).
 """
 
 from __future__ import annotations
 
 import sys
 
+from .options import EXIT_DIST
 from .parser import build_parser
 from .runs import EXIT_REFUSED
 
-__all__ = ["EXIT_REFUSED", "build_parser", "main"]
+__all__ = ["EXIT_DIST", "EXIT_REFUSED", "build_parser", "main"]
 
 #  One module per command, the parser and what they share:
 #  - ``parser``: :func:`build_parser`, one builder per command (``set_defaults(func=...)``);
@@ -84,4 +91,11 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     args._argv = list(sys.argv[1:] if argv is None else argv)
     setup_logging(args.verbose)
-    return args.func(args, parser)
+    from ..parallel.rendezvous import DistributedInitError
+
+    try:
+        return args.func(args, parser)
+    except DistributedInitError as e:  # the processes did not start together: a message, not a traceback
+        hint = "; --dist-timeout SECONDS sets how long to wait" if isinstance(e, TimeoutError) else ""
+        print(f"gcrsky: jax.distributed: {e}{hint}", file=sys.stderr)
+        return EXIT_DIST

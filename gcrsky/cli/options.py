@@ -6,11 +6,14 @@ import argparse
 import math
 import os
 
+from ..parallel.rendezvous import DEFAULT_DIST_TIMEOUT
+
 __all__ = [
     "DEFAULT_BATCH",
     "DEFAULT_NSAMPLES",
     "DEFAULT_OUT",
     "DEFAULT_SUITE_OUT",
+    "EXIT_DIST",
     "add_channel_options",
     "add_compile_cache_options",
     "add_data_options",
@@ -33,6 +36,9 @@ DEFAULT_OUT = os.path.join("runs", "standard")
 DEFAULT_SUITE_OUT = os.path.join("runs", "paper")
 DEFAULT_NSAMPLES = 200
 DEFAULT_BATCH = 50
+
+#: Exit status when the ``jax.distributed`` processes could not start together (see :mod:`gcrsky.cli`).
+EXIT_DIST = 4
 
 
 # ---------------------------------------------------------------- argument types
@@ -137,6 +143,10 @@ def add_channel_options(p) -> None:
                    help="jax.distributed coordinator address (process 0 listens there)")
     g.add_argument("--num-processes", type=int_at_least(1, "num-processes"), default=None, metavar="N")
     g.add_argument("--process-id", type=int_at_least(0, "process-id"), default=None, metavar="I")
+    g.add_argument("--dist-timeout", type=positive_float("dist-timeout"), default=None, metavar="SECONDS",
+                   help="with --coordinator: how long the processes wait for each other at start-up (default "
+                   f"{DEFAULT_DIST_TIMEOUT:g}); a coordinator that cannot be reached, or a process that does not "
+                   f"join, in that time ends every waiting process with a message and exit status {EXIT_DIST}")
 
 
 def channel_mode(args) -> str | None:
@@ -155,6 +165,8 @@ def check_channel_options(parser, args) -> None:
         parser.error("--coordinator, --num-processes and --process-id go together")
     if args.process_id is not None and args.process_id >= args.num_processes:
         parser.error(f"--process-id {args.process_id} must be below --num-processes {args.num_processes}")
+    if getattr(args, "dist_timeout", None) is not None and args.coordinator is None:
+        parser.error("--dist-timeout goes with --coordinator")
 
 
 def add_data_options(g, *, with_data: bool) -> None:

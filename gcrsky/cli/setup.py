@@ -18,7 +18,9 @@ def setup_logging(verbose: int) -> None:
 
 def setup_jax(args=None):
     """Process settings before JAX's first computation: the safe CPU pool, float64, the compilation cache
-    (and ``--devices`` host devices, ``jax.distributed``).
+    (and ``--devices`` host devices, ``jax.distributed``: the processes meet within ``--dist-timeout``
+    seconds, else :class:`gcrsky.parallel.DistributedInitError`, which :func:`gcrsky.cli.main` turns into a
+    message and exit status 4).
 
     Returns the :func:`gcrsky.parallel.compile_stats` snapshot to count the command's compilation from.
     """
@@ -32,9 +34,10 @@ def setup_jax(args=None):
     jax.config.update("jax_enable_x64", True)
     setup_compile_cache(args)
     if getattr(args, "coordinator", None):
-        from ..parallel.channels import init_distributed
+        from ..parallel.channels import DEFAULT_DIST_TIMEOUT, init_distributed
 
-        init_distributed(args.coordinator, args.num_processes, args.process_id)
+        timeout = getattr(args, "dist_timeout", None) or DEFAULT_DIST_TIMEOUT
+        init_distributed(args.coordinator, args.num_processes, args.process_id, timeout=timeout)
     return compile_stats()
 
 

@@ -3,12 +3,14 @@
 - ``sharding``: :func:`shard_system`: baselines padded and sharded over a mesh, identical results
 - ``channels``: frequency channels one at a time (:func:`sample_channels`), over a device mesh (:func:`sample_channels_sharded`) and over ``jax.distributed`` processes (:func:`distributed_channels`), with a per-channel key scheme that makes the split invisible
 - ``mblocks``: the m-mode path's buckets of orders built, factorised and solved over several devices (:func:`prepare_mmode_on`, :func:`draw_mmode_on`) and ``jax.distributed`` processes (:func:`prepare_mmode_processes`), equal to one device
+- ``rendezvous``: the ``jax.distributed`` processes meet on the coordinator's port before JAX starts (:func:`init_distributed` calls it), so that an unreachable coordinator or a process that never joins raises :class:`DistributedTimeoutError` instead of hanging and aborting
 - ``runtime``: XLA CPU-thread settings (the safe single-threaded Eigen pool, forced host devices sized so batched LAPACK cannot deadlock); JAX's persistent compilation cache (:func:`use_compile_cache`, which the CLI calls and importing gcrsky never does) and the compile time and cache use of a run (:func:`compile_stats`)
 """
 
 
 from .channels import (
     CHANNEL_KEY_SCHEME,
+    DEFAULT_DIST_TIMEOUT,
     FREQ_AXIS,
     ChannelDraws,
     channel_blocks,
@@ -29,6 +31,7 @@ from .mblocks import (
     prepare_mmode_processes,
     process_buckets,
 )
+from .rendezvous import DistributedInitError, DistributedTimeoutError
 from .runtime import (
     COMPILE_CACHE_ENV,
     POOL_THREADS_PER_DEVICE,
@@ -63,6 +66,9 @@ __all__ = [
     "prepare_mmode_processes",
     "process_buckets",
     "CHANNEL_KEY_SCHEME",
+    "DEFAULT_DIST_TIMEOUT",
+    "DistributedInitError",
+    "DistributedTimeoutError",
     "FREQ_AXIS",
     "ChannelDraws",
     "channel_blocks",

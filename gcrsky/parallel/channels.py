@@ -61,6 +61,7 @@ one process runs, and the gather moves bits.
 from __future__ import annotations
 
 import logging
+import math
 import time
 import zlib
 from collections.abc import Callable, Sequence
@@ -80,10 +81,12 @@ from ..solvers.cg import freq_slice
 from ..solvers.info import SolveInfo
 from ..solvers.plan import choose_path
 from ..solvers.registry import SolverOptions, path_of
+from .rendezvous import DEFAULT_DIST_TIMEOUT, rendezvous
 from .runtime import effective_pool_size, safe_pool_size
 
 __all__ = [
     "CHANNEL_KEY_SCHEME",
+    "DEFAULT_DIST_TIMEOUT",
     "FREQ_AXIS",
     "ChannelDraws",
     "channel_blocks",
@@ -408,7 +411,8 @@ def sample_channels_sharded(
 # ---------------------------------------------------------------- processes
 
 
-def init_distributed(coordinator_address: str, num_processes: int, process_id: int, **kwargs) -> None:
+def init_distributed(coordinator_address: str, num_processes: int, process_id: int, *,
+                     timeout: float | None = DEFAULT_DIST_TIMEOUT, **kwargs) -> None:
     """``jax.distributed.initialize`` for CPU processes (gloo collectives), before any JAX computation.
 
     Sets ``jax_cpu_collectives_implementation = "gloo"`` (JAX 0.10's default; set here so
@@ -416,7 +420,29 @@ def init_distributed(coordinator_address: str, num_processes: int, process_id: i
     collectives, which :func:`distributed_channels` needs to gather), then calls
     ``jax.distributed.initialize(coordinator_address, num_processes, process_id, **kwargs)``.
     Process 0 hosts the coordinator at ``coordinator_address`` (``"host:port"``).
+
+    Timeout.  JAX cannot fail a start cleanly: when its ``initialization_timeout``
+    (default 300 s) passes with the coordinator unreachable or a peer missing, the C++
+    client aborts the process (``LOG(QFATAL)``, a stack trace, no Python exception).
+    So with ``timeout`` (seconds, default :data:`DEFAULT_DIST_TIMEOUT`) the processes
+    first meet in :func:`gcrsky.parallel.rendezvous.rendezvous` (process 0 listens on
+    the coordinator's port, the others connect and wait for its go-ahead), which raises
+    :class:`~gcrsky.parallel.rendezvous.DistributedTimeoutError` (a ``TimeoutError`` and
+    ``ConnectionError``) naming the address, the process id, the number of processes and
+    the timeout when the coordinator cannot be reached or a process does not join within
+    ``timeout`` seconds, before JAX is touched; a refused peer (another number of
+    processes, a process id taken) or a port process 0 cannot listen on raises its base
+    class :class:`~gcrsky.parallel.rendezvous.DistributedInitError`.  Every process
+    must then call this function (with a timeout), as they all meet there.  JAX's own
+    ``initialization_timeout`` is set to ``timeout`` too (rounded up to whole seconds;
+    ``kwargs`` may override it), which bounds the wait should a process die between the
+    rendezvous and JAX's registration (that one still aborts).  ``timeout=None`` skips
+    the rendezvous: plain ``jax.distributed.initialize`` with ``kwargs``.
     """
+    if timeout is not None:
+        rendezvous(coordinator_address, num_processes, process_id, timeout,
+                   bind_address=kwargs.get("coordinator_bind_address"))
+        kwargs.setdefault("initialization_timeout", max(1, math.ceil(timeout)))
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
     jax.distributed.initialize(coordinator_address=coordinator_address, num_processes=int(num_processes),
                                process_id=int(process_id), **kwargs)
