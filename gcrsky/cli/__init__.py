@@ -50,7 +50,11 @@ compiles its XLA programs; later processes load them (:func:`gcrsky.parallel.use
 Exit status: 0 on success, also when some solves did not converge (a warning is
 printed and ``summary.json`` records it: check ``solver.all_converged``), and for a
 ``--resume`` of a run that was already complete; 1 if the draws contain non-finite
-values (results are still written for diagnosis); 2 for bad arguments (argparse);
+values (results are still written for diagnosis); 2 for bad arguments (argparse) and every
+other user error -- a file that is missing, empty, corrupt or of another kind, an option out of
+range, an output path that is a file or cannot be written, a full disk, too little memory for
+the problem -- with one message naming the cause and what to do (``-v`` adds the traceback;
+:mod:`gcrsky.cli.errors`);
 3 when the output directory holds results that the command refuses to touch
 (neither ``--resume`` nor ``--overwrite``) or ``--resume`` cannot continue
 (different settings or inputs, unreadable ``results.h5``); 4 when the ``jax.distributed``
@@ -66,11 +70,12 @@ from __future__ import annotations
 
 import sys
 
+from .errors import EXIT_USAGE, USER_ERRORS, report_user_error
 from .options import EXIT_DIST
 from .parser import build_parser
 from .runs import EXIT_REFUSED
 
-__all__ = ["EXIT_DIST", "EXIT_REFUSED", "build_parser", "main"]
+__all__ = ["EXIT_DIST", "EXIT_REFUSED", "EXIT_USAGE", "build_parser", "main"]
 
 #  One module per command, the parser and what they share:
 #  - ``parser``: :func:`build_parser`, one builder per command (``set_defaults(func=...)``);
@@ -99,3 +104,5 @@ def main(argv=None) -> int:
         hint = "; --dist-timeout SECONDS sets how long to wait" if isinstance(e, TimeoutError) else ""
         print(f"gcrsky: jax.distributed: {e}{hint}", file=sys.stderr)
         return EXIT_DIST
+    except USER_ERRORS as e:  # a bad file, option or path, a full disk, too little memory: a message, exit 2
+        return report_user_error(e, getattr(args, "command", None) or "", getattr(args, "verbose", 0))

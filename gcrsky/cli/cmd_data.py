@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+from ..io.files import check_input_file
 from ..solvers.options import DEFAULT_TOL
 from .options import DEFAULT_NSAMPLES, beam_prior_kwargs, check_kwargs, data_kwargs, gain_sampling
 from .runs import EXIT_REFUSED, execute_with_bars, report_run, run_spec
@@ -49,10 +50,16 @@ def _check_data_options(parser, args) -> None:
                      "Gaussian beam of that dish), one of them")
     if args.prior not in ("gsm", "flat") and not Path(args.prior).exists():
         parser.error(f"--prior {args.prior!r}: neither 'gsm', 'flat' nor an existing file")
-    if not Path(args.data).exists():
-        parser.error(f"--data {args.data!r}: no such file")
-    if args.cal is not None and not Path(args.cal).exists():
-        parser.error(f"--cal {args.cal!r}: no such file")
+    files = [("--data", args.data, "visibility file", True), ("--cal", args.cal, "calibration file", False),
+             ("--beam", args.beam, "beam file", False)]
+    if args.prior not in ("gsm", "flat"):
+        files.append(("--prior", args.prior, "prior file", False))
+    for option, path, what, ms in files:
+        if path is not None:
+            try:  # exists, a regular non-empty file (a Measurement Set may be a directory), readable
+                check_input_file(path, what, measurement_set=ms)
+            except (OSError, ValueError) as e:
+                parser.error(f"{option}: {e}")
     check_gain_options(parser, args)
 
 
@@ -135,7 +142,7 @@ def _run_data(args) -> int:
 
     compile0 = setup_jax(args)
     from ..paper.report import PaperReport
-    from ..run import RunExistsError, check_unlocked, existing_run_files
+    from ..run import RunExistsError, check_out_dir, check_unlocked, existing_run_files
 
     _gain_inputs(args)
     selection = data_kwargs(args)
@@ -143,6 +150,7 @@ def _run_data(args) -> int:
                     tol=args.tol or DEFAULT_TOL, extra=_data_settings(args, selection))
     out = spec.output.out
     if not args.process_id:
+        check_out_dir(out)  # a writable directory (the message says what is wrong)
         try:
             check_unlocked(out)  # another run writes there (execute's lock is what excludes)
         except RunExistsError as e:

@@ -104,7 +104,7 @@ def _run(args) -> int:
 
     compile0 = setup_jax(args)
     from ..paper.pipeline import paper_hooks
-    from ..run import ResumeError, RunExistsError, check_output, check_unlocked
+    from ..run import ResumeError, RunExistsError, check_out_dir, check_output, check_unlocked
     from ..sim.config import Config
     from ..sim.standard import problem_from_config
 
@@ -114,6 +114,7 @@ def _run(args) -> int:
     worker = bool(args.process_id)  # a jax.distributed process other than 0: computes, writes nothing
     try:  # refuse (or resume) before the problem is built: the check needs only the settings
         if not worker:
+            check_out_dir(spec.output.out)  # a writable directory (the message says what is wrong)
             check_unlocked(spec.output.out)  # another run writes there (execute's lock is what excludes)
         state = None if worker else check_output(spec.output.out, spec.settings(config), spec.output.existing)
     except (RunExistsError, ResumeError) as e:

@@ -51,13 +51,18 @@ def _number(s: str, what: str, kind, noun: str):
         raise argparse.ArgumentTypeError(f"{what} must be {noun}, got {s!r}") from None
 
 
-def int_at_least(lo: int, what: str):
-    """An integer option ``>= lo`` (``what``: its name in the message)."""
+#: Largest seed (a signed 64-bit integer: what results.h5 records and JAX's PRNGKey takes).
+MAX_SEED = 2**63 - 1
+
+
+def int_at_least(lo: int, what: str, hi: int | None = None):
+    """An integer option ``>= lo`` (and ``<= hi`` if given; ``what``: its name in the message)."""
 
     def conv(s: str) -> int:
         v = _number(s, what, int, "an integer")
-        if v < lo:
-            raise argparse.ArgumentTypeError(f"{what} must be >= {lo}, got {v}")
+        if v < lo or (hi is not None and v > hi):
+            raise argparse.ArgumentTypeError(f"{what} must be >= {lo}" + ("" if hi is None else f" and <= {hi}")
+                                             + f", got {v}")
         return v
 
     return conv

@@ -11,6 +11,7 @@ from .options import (
     DEFAULT_NSAMPLES,
     DEFAULT_OUT,
     DEFAULT_SUITE_OUT,
+    MAX_SEED,
     add_channel_options,
     add_compile_cache_options,
     add_data_options,
@@ -76,7 +77,7 @@ def _add_run_parser(sub) -> None:
     r.add_argument("--out", default=DEFAULT_OUT, help="output directory (created if needed)")
     r.add_argument("--nsamples", type=int_at_least(1, "nsamples"), default=None,
                    help=f"number of posterior draws (default {DEFAULT_NSAMPLES}, or the scenario's)")
-    r.add_argument("--seed", type=int_at_least(0, "seed"), default=0,
+    r.add_argument("--seed", type=int_at_least(0, "seed", MAX_SEED), default=0,
                    help="seed of the posterior draws (see --batch)")
     _add_simulation_options(r, _defaults())
     r.add_argument("--method", choices=("auto", *METHODS), default=None,
@@ -110,7 +111,7 @@ def _add_run_parser(sub) -> None:
 
 def _add_simulation_options(r, d) -> None:
     """The options of ``gcrsky run`` that mirror :class:`gcrsky.sim.Config` fields (defaults ``d``)."""
-    r.add_argument("--data-seed", type=int_at_least(0, "data-seed"), default=d.seed,
+    r.add_argument("--data-seed", type=int_at_least(0, "data-seed", MAX_SEED), default=d.seed,
                    help="seed of the simulated noise and prior mean (Config.seed)")
     r.add_argument("--lmax", type=int_at_least(1, "lmax"), default=None,
                    help=f"maximum degree l (default: {d.lmax} for a simulation; with --data the reach of every used "
@@ -177,7 +178,7 @@ def _add_scenarios_parser(sub) -> None:
     sc.add_argument("--nsamples", type=int_at_least(1, "nsamples"), default=None,
                     help="draws per scenario (default: 200, 5000 for A1)")
     sc.add_argument("--nside", type=nside_arg, default=_defaults().nside, help="HEALPix nside (quick runs: 32)")
-    sc.add_argument("--seed", type=int_at_least(0, "seed"), default=0, help="seed of the posterior draws")
+    sc.add_argument("--seed", type=int_at_least(0, "seed", MAX_SEED), default=0, help="seed of the posterior draws")
     sc.add_argument("--batch", type=int_at_least(1, "batch"), default=DEFAULT_BATCH, help="draws per batch")
     add_run_flags(sc, plots_help="skip all PNG figures")
     sc.add_argument("--overwrite", action="store_true",

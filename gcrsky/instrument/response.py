@@ -51,6 +51,7 @@ __all__ = [
     "analytic_response",
     "equatorial_to_enu",
     "response_matrix",
+    "check_response_memory",
     "sky_grid",
 ]
 
@@ -231,8 +232,8 @@ def response_matrix(
     """
     freqs, pairs, method = _checked_inputs(array, pairs, freqs_hz, lmax, method, beam_floor)
     pols = normalise_pols(pols, pairs.shape[0])
+    check_response_memory(array, pairs, freqs, lmax, nside, pols, copies=1 if method == "ducc" else 2)
     grid = sky_grid(nside, array.latitude_rad, lst_ref_rad)
-    _check_response_memory(array, pairs, freqs, lmax, grid, pols, copies=1 if method == "ducc" else 2)
     if method == "ducc":
         from .response_ducc import response_matrix_ducc
 
@@ -280,8 +281,14 @@ def _checked_inputs(array: AntennaArray, pairs, freqs_hz, lmax: int, method: str
     return freqs, pairs, method
 
 
-def _check_response_memory(array: AntennaArray, pairs, freqs, lmax: int, grid: SkyGrid, pols, copies: int = 2) -> None:
-    """Refuse a response (result, accumulator, chunk, kernels) larger than the free memory.
+#: Bytes per pixel of the full-sky HEALPix grid while the quadrature grid is built (``pix2ang`` indices and
+#: angles, ENU vectors, the above-horizon mask and its index), before the kernels.
+GRID_BYTES_PER_PIXEL = 80
+
+
+def check_response_memory(array: AntennaArray, pairs, freqs, lmax: int, nside: int, pols, copies: int = 2) -> None:
+    """Refuse a response (result, accumulator, chunk, kernels, sky grid) larger than the free memory, before
+    anything of it is allocated.
 
     ``copies``: full-size results held at once (2: the result and the accumulator or the
     NumPy buffer JAX copies; 1: the ducc route, whose buffer JAX adopts).
@@ -289,9 +296,11 @@ def _check_response_memory(array: AntennaArray, pairs, freqs, lmax: int, grid: S
     out_bytes = 16.0 * freqs.size * pairs.shape[0] * n_params(lmax)
     bidx = unique_beams(array.beams)[1]
     nkern = len(set(zip(bidx[pairs[:, 0]].tolist(), bidx[pairs[:, 1]].tolist(), pols or (None,) * len(pairs))))
-    check_memory(
-        copies * out_bytes + 16e6 + 32.0 * freqs.size * nkern * grid.theta.size,  # result, accumulator, chunk, kernels
-        f"the response ({freqs.size} freqs x {pairs.shape[0]} baselines x {n_params(lmax)} modes, complex128)",
+    npix = 12.0 * int(nside) ** 2  # the grid keeps the pixels above the horizon, about half
+    check_memory(  # result, accumulator, chunk, kernels; the grid while it is built
+        copies * out_bytes + 16e6 + max(32.0 * freqs.size * nkern * npix / 2, GRID_BYTES_PER_PIXEL * npix),
+        f"the response ({freqs.size} freqs x {pairs.shape[0]} baselines x {n_params(lmax)} modes, complex128, on "
+        f"the nside {int(nside)} grid of {npix:.3g} pixels)",
         "build only the distinct baselines of a redundant array (gcrsky.redundant_responses) or fewer "
         "frequencies per call",
     )

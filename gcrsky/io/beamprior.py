@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from pathlib import Path
 
 import numpy as np
 
@@ -47,9 +46,12 @@ def feed_pol_of(data, pol) -> tuple[object, dict | None]:
     if isinstance(data, UVData):
         tel = data.telescope
     else:
-        if not Path(data).exists():
-            raise FileNotFoundError(f"no visibility file at {data}")
-        tel = UVData.from_file(os.fspath(data), read_data=False).telescope
+        from .files import check_input_file, reading
+        from .observation import VIS_FORMATS
+
+        path = check_input_file(data, "visibility file", measurement_set=True)
+        with reading(path, "a visibility file", VIS_FORMATS):
+            tel = UVData.from_file(os.fspath(path), read_data=False).telescope
     xo = tel.get_x_orientation_from_feeds()
     out = feed_pol(pol, xo)
     try:

@@ -28,7 +28,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import warnings
-from pathlib import Path
 
 import numpy as np
 
@@ -78,15 +77,15 @@ def read_calibration(path, *, location=None):
     """
     from pyuvdata import UVCal
 
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"no calibration file at {path}")
+    from .files import READ_ERRORS, check_input_file
+
+    path = check_input_file(path, "calibration file")
     with _offline_sites(), warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
             uvc = UVCal.from_file(str(path))
-        except (OSError, KeyError, ValueError) as err:
-            raise ValueError(f"{path}: not a calibration file pyuvdata reads ({err})") from None
+        except READ_ERRORS as err:
+            raise ValueError(f"{path}: not a calibration file pyuvdata reads ({type(err).__name__}: {err})") from err
     for w in caught:
         log.info("reading %s: %s", path, w.message)
     offset = None

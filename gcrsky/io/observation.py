@@ -27,13 +27,13 @@ Observation into the inference problem.
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
 from ..base.memory import check_memory, format_bytes
 from ..model.observation import HISTORY_CHARS, Observation, parse_products
+from .files import check_input_file, reading
 
 __all__ = ["read_observation", "read_uvdata"]
 
@@ -154,6 +154,10 @@ def read_bytes(nblts: int, nfreqs: int, npols: int) -> float:
     return float(nblts * nfreqs * npols) * _BYTES_PER_SAMPLE * 3
 
 
+#: What a visibility file may be, for read errors.
+VIS_FORMATS = "UVH5, UVFITS or Measurement Set (anything pyuvdata's UVData reads)"
+
+
 def read_uvdata(data, *, pol="pI", freq_chans=None, freq_range_hz=None, times_jd=None, lst_range_hours=None,
                 antennas=None, bls=None, autos: bool = True, memory_budget: float | None = None):
     """Read the selected part of a visibility file (or select from a ``UVData``): ``(UVData, source, selection)``.
@@ -170,10 +174,10 @@ def read_uvdata(data, *, pol="pI", freq_chans=None, freq_range_hz=None, times_jd
     if isinstance(data, UVData):
         meta, source = data, "<UVData object>"
     else:
-        path = Path(data)
-        if not path.exists():
-            raise FileNotFoundError(f"no visibility file at {path}")
-        meta, source = UVData.from_file(str(path), read_data=False), str(path)
+        path = check_input_file(data, "visibility file", measurement_set=True)
+        with reading(path, "a visibility file", VIS_FORMATS):
+            meta = UVData.from_file(str(path), read_data=False)
+        source = str(path)
     kw = _selection_kwargs(meta, freq_chans=freq_chans, freq_range_hz=freq_range_hz, times_jd=times_jd,
                            lst_range_hours=lst_range_hours, antennas=antennas, bls=bls, raw=raw, autos=autos)
     samples, nbytes = _estimate_bytes(meta, kw)
@@ -183,7 +187,8 @@ def read_uvdata(data, *, pol="pI", freq_chans=None, freq_range_hz=None, times_jd
     if isinstance(data, UVData):
         uvd = data.select(**kw, inplace=False) if kw else data.copy()
     else:
-        uvd = UVData.from_file(source, **kw)
+        with reading(source, "a visibility file", VIS_FORMATS):
+            uvd = UVData.from_file(source, **kw)
     selection = {k: (np.asarray(v).tolist() if not isinstance(v, list) else v) for k, v in kw.items()}
     return uvd, source, selection
 

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..model.bandlimit import observation_lmax
+from ..model.bandlimit import check_quadrature, observation_lmax, observation_reach
 from ..model.observation import POLS, Observation, parse_products
 from ..model.observed import (
     COMPRESS_RTOL,
@@ -46,6 +46,7 @@ from ..model.prior import Prior, flat_prior, isotropic_prior
 from ..model.problem import Problem
 from ..model.skyprior import check_gsm_cl_frequencies, gsm_cl
 from ..sphere.modes import n_params
+from .files import check_input_file, reading
 from .observation import read_bytes, read_uvdata
 
 __all__ = [
@@ -165,6 +166,10 @@ def _fits_mean(path: Path, nf: int, lmax: int) -> np.ndarray:
     return np.broadcast_to(a, (nf, n_params(lmax)))
 
 
+#: What a prior file may be, for read errors.
+PRIOR_FORMATS = "HEALPix map or alm FITS file, .npy or text C_l file"
+
+
 def _resolve_prior(prior, prior_scale, freqs, lmax) -> tuple[Prior, str]:
     """The prior and its description (module docstring of :func:`from_uvdata`)."""
     nf, n = freqs.size, n_params(lmax)
@@ -179,15 +184,17 @@ def _resolve_prior(prior, prior_scale, freqs, lmax) -> tuple[Prior, str]:
     if isinstance(prior, str) and prior == "flat":
         return flat_prior(nf, n), "flat (S^-1 = 0: the posterior may be improper where the data are blind)"
     if isinstance(prior, (str, Path)):
-        path = Path(prior)
-        if not path.exists():
+        if not Path(prior).exists():
             raise ValueError(f"prior {prior!r} is neither 'gsm', 'flat' nor an existing file")
+        path = check_input_file(prior, "prior file")
         if path.suffix.lower() in (".fits", ".fit", ".fz") or path.name.endswith(".fits.gz"):
-            mean = _fits_mean(path, nf, lmax)
+            with reading(path, "a prior (HEALPix map or alm FITS, ICRS, K)", PRIOR_FORMATS):
+                mean = _fits_mean(path, nf, lmax)
             cl = prior_scale * gsm_cl(freqs, lmax)
             return isotropic_prior(cl, n, mean=mean), (f"mean from {path} (HEALPix map or alm, ICRS), variance "
                                                        f"{prior_scale:g} x the GSM's C_l")
-        cl = prior_scale * _read_cl_file(path, nf, lmax)
+        with reading(path, "a prior's C_l (.npy, or text: l and C_l per frequency)", PRIOR_FORMATS):
+            cl = prior_scale * _read_cl_file(path, nf, lmax)
         return isotropic_prior(cl, n), f"isotropic, zero mean, C_l from {path} x {prior_scale:g}"
     cl = np.asarray(prior, np.float64)
     if cl.ndim not in (1, 2) or cl.shape[-1] != lmax + 1 or (cl.ndim == 2 and cl.shape[0] not in (1, nf)):
@@ -320,6 +327,7 @@ def from_uvdata(
     lmax, band_note = observation_lmax(obs, beams, lmax, n_products=len(parse_products(pol)[0]),
                                        frame_pad=frame_pad, budget_bytes=memory_budget,
                                        compress=compress and band_limit != "marginalise")
+    check_quadrature(observation_reach(obs, beams, isotropic=True)[0], lmax, nside, band_limit, frame_pad=frame_pad)
     prior_obj, prior_note, prior_rec = apply_prior_mean(*_resolve_prior(prior, prior_scale, obs.freqs_hz, lmax),
                                                         prior_mean, prior, obs.freqs_hz, lmax)
     prob = problem_from_observation(obs, beams, lmax=lmax, nside=nside, pol=pol, prior=prior_obj, noise=noise,

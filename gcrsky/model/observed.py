@@ -224,6 +224,43 @@ def modelled_product(obs: Observation, prod: str, var: dict) -> tuple[np.ndarray
     return d, v, ok
 
 
+def noise_causes(obs: Observation, raw, noise, bad) -> str:
+    """Why the samples ``bad`` (one (Nf, Nt, Nbl) mask per feed product of ``raw``) have no noise estimate:
+    the file's channel widths, integration times, nsamples or autocorrelations, counted and named."""
+    hit = np.any(bad, axis=0)
+    reasons = []
+    if noise_kind(noise) == "autos":
+        width = np.asarray(obs.channel_width_hz, np.float64)
+        chans = np.flatnonzero(~(np.isfinite(width) & (width > 0)) & hit.any(axis=(1, 2)))
+        if chans.size:
+            reasons.append(f"the channel width is {width[chans[0]]:g} Hz at {chans.size} channel(s) (first "
+                           f"{chans[:5].tolist()}): the radiometer equation needs a positive width")
+        dt = np.asarray(obs.integration_time_s, np.float64)
+        times = ~(np.isfinite(dt) & (dt > 0)) & hit.any(axis=0)
+        if times.any():
+            reasons.append(f"the integration time is {dt[times][0]:g} s at {int(times.sum())} baseline-time(s): "
+                           "the radiometer equation needs a positive time")
+        autos = 0
+        for r, b in zip(raw, bad):
+            amp = _auto_amplitudes(obs, r[0] * 2)
+            amq = amp if r[1] == r[0] else _auto_amplitudes(obs, r[1] * 2)
+            ai, aj = amp[:, :, obs.antpairs[:, 0]], amq[:, :, obs.antpairs[:, 1]]
+            autos += int(np.sum(b & ~(np.isfinite(ai) & np.isfinite(aj))))
+            zero = int(np.sum(b & np.isfinite(ai) & np.isfinite(aj) & ((ai == 0) | (aj == 0))))
+            if zero:
+                reasons.append(f"{zero} samples' autocorrelations are exactly 0")
+        if autos:
+            reasons.append(f"{autos} samples' autocorrelations are flagged or missing")
+    ns = sum(np.sum(b & ~(obs.nsamples[obs.pol_index(r)] > 0)) for r, b in zip(raw, bad))
+    if ns:
+        reasons.append(f"{int(ns)} samples have nsample <= 0")
+    if noise_kind(noise) == "diff":
+        reasons.append("time-differenced noise needs a time-adjacent unflagged pair")
+    reasons = reasons or ["the noise variance is not finite and positive"]
+    fix = "; fix the file, or give --noise diff or a per-component sigma" if noise_kind(noise) == "autos" else ""
+    return "; ".join(reasons) + fix
+
+
 def _data_rows(obs: Observation, prods, raw, noise):
     """``(data K sr, sigma K sr, weights)`` (Nf, Nt, Nrow) and the rows' ``(pairs, products)``."""
     var = {r: raw_variance(obs, r, noise) for r in raw}
@@ -235,10 +272,15 @@ def _data_rows(obs: Observation, prods, raw, noise):
         rows_v.append(np.where(ok, v, 1.0) * to_ksr**2)
         rows_ok.append(ok)
         row_pols += [p] * obs.n_baselines
-    n_bad = int(sum(np.sum(~np.isfinite(var[r]) & ~obs.flags[obs.pol_index(r)]) for r in raw))
+    unflagged = [~obs.flags[obs.pol_index(r)] for r in raw]
+    bad = [(~np.isfinite(var[r]) | ~(var[r] > 0)) & u for r, u in zip(raw, unflagged)]
+    n_bad = int(sum(np.sum(b) for b in bad))
     if n_bad:
-        log.warning("%d unflagged samples have no noise estimate (a missing or flagged autocorrelation, or no "
-                    "time-adjacent pair): weight 0", n_bad)
+        causes = noise_causes(obs, raw, noise, bad)
+        if not any(np.any(ok) for ok in rows_ok):
+            raise ValueError(f"no unflagged sample has a noise estimate ({n_bad} samples): {causes}; nothing "
+                             "constrains the sky")
+        log.warning("%d unflagged samples have no noise estimate (%s): weight 0", n_bad, causes)
     data = np.concatenate(rows_d, axis=2)
     sigma = np.sqrt(np.concatenate(rows_v, axis=2))
     weights = np.concatenate(rows_ok, axis=2).astype(np.float64)

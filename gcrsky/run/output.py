@@ -9,10 +9,16 @@ Files of other names are never touched.
 
 from __future__ import annotations
 
+import errno
 import logging
+import os
+import shutil
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import numpy as np
+
+from ..base.memory import format_bytes
 from ..io.atomic import is_temporary
 from ..io.results import read_results_state
 from .resume import ResumeError, check_resumable, settings_differences
@@ -29,6 +35,7 @@ __all__ = [
     "OpenRun",
     "RunExistsError",
     "check_output",
+    "check_out_dir",
     "clear_output",
     "existing_run_files",
     "open_run",
@@ -77,6 +84,47 @@ class RunExistsError(FileExistsError):
         super().__init__(message or (
             f"{out} already holds results of a run ({', '.join(self.files)}); resume it or overwrite it"
         ))
+
+
+def check_out_dir(out) -> Path:
+    """Make sure ``out`` is, or can be made, a directory this process can write; returns it.
+
+    Created (with its parents) if missing; a probe file is written and removed, so a read-only
+    directory or file system, a full disk or a quota is found before any work, not after the draws.
+
+    Raises:
+        NotADirectoryError: ``out``, or one of its parents, is a file.
+        FileNotFoundError: ``out`` is a symbolic link to nothing.
+        PermissionError, OSError: it cannot be created or written (the message names the path and says
+            what to do).
+    """
+    out = Path(out)
+    if out.is_symlink() and not out.exists():
+        raise FileNotFoundError(f"--out {out} is a symbolic link to {os.readlink(out)}, which does not exist: create "
+                                "the target directory or choose another --out")
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(f"--out {out} is a file, not a directory: choose another --out")
+    for parent in out.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise NotADirectoryError(f"--out {out} cannot be created: {parent} is a file, not a directory")
+            break
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / f".gcrsky-write-probe-{os.getpid()}"
+        with open(probe, "wb") as fh:
+            fh.write(b"\0" * 4096)
+            fh.flush()
+            os.fsync(fh.fileno())
+        probe.unlink()
+    except OSError as e:
+        try:
+            probe.unlink(missing_ok=True)
+        except (OSError, UnboundLocalError):
+            pass
+        raise type(e)(e.errno, f"--out {out} cannot be written ({e.strerror or e}): choose a writable directory "
+                               "with free space", str(out)) from e
+    return out
 
 
 def existing_run_files(out) -> list[str]:
@@ -166,6 +214,23 @@ def clear_output(out, existing: str) -> None:
         p.unlink(missing_ok=True)
 
 
+def draws_bytes(prob, nsamples: int) -> float:
+    """Bytes the draws of a run take in ``results.h5``: ``Nf x nsamples x n`` float64."""
+    return 8.0 * int(np.shape(prob.data)[0]) * int(nsamples) * int(prob.n)
+
+
+def check_disk_space(out, nbytes: float) -> None:
+    """Refuse a run whose draws cannot fit on the disk of ``out`` (before the first draw).
+
+    Raises:
+        OSError: ``ENOSPC``, naming the size, the free space and what to do.
+    """
+    free = shutil.disk_usage(out).free
+    if nbytes > free:
+        raise OSError(errno.ENOSPC, f"the draws need {format_bytes(nbytes)} but the disk of {out} has "
+                                    f"{format_bytes(free)} free: fewer draws (--nsamples), or another --out", str(out))
+
+
 class OpenRun(NamedTuple):
     """An output directory a run may write to (:func:`open_run`).
 
@@ -201,6 +266,7 @@ def open_run(prob, spec) -> OpenRun:
     out.mkdir(parents=True, exist_ok=True)
     settings = spec.settings(prob.config)
     state = check_output(out, settings, spec.output.existing)
+    check_disk_space(out, draws_bytes(prob, spec.draws.nsamples))
     clear_output(out, spec.output.existing)
     if state is not None:
         check_resumable(out, state, prob, versions()["gcrsky"])

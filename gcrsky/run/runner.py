@@ -34,7 +34,7 @@ from .fit import run_fit
 from .gains import gain_draws, gain_summary, gained_problem, stored_gain_factor, write_gain_products
 from .lock import run_lock
 from .maps import RunMaps, parameter_frame, run_maps, stored_maps
-from .output import PRODUCT_FILES, RESULTS_FILE, SUMMARY_FILE, OpenRun, existing_run_files, open_run
+from .output import PRODUCT_FILES, RESULTS_FILE, SUMMARY_FILE, OpenRun, check_out_dir, existing_run_files, open_run
 from .products import write_products
 from .report import ReportHook, RunView, collect_figures, collect_metrics
 from .spec import RunSpec
@@ -85,6 +85,7 @@ def execute(prob, spec: RunSpec, *, hooks: Sequence[ReportHook] = (), watch: Wat
     if spec.channels == "processes" and jax.process_index() != 0:
         worker_channels(prob, spec, watch)
         return None
+    check_out_dir(spec.output.out)  # a writable directory, before any work
     with run_lock(spec.output.out, spec.argv):  # one run per directory, from its first look to its last file
         return _execute_locked(prob, spec, hooks, watch, build_s, compile0)
 

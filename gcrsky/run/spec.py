@@ -36,10 +36,10 @@ EXISTING = ("refuse", "overwrite", "resume")
 CHANNEL_MODES = ("loop", "devices", "processes")
 
 
-def _integer(obj, name: str, where: str, lo: int) -> None:
+def _integer(obj, name: str, where: str, lo: int, hi: int = 2**63 - 1) -> None:
     value = getattr(obj, name)
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < lo:
-        raise ValueError(f"{where} must be an integer >= {lo}, got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not lo <= value <= hi:
+        raise ValueError(f"{where} must be an integer >= {lo} and <= {hi} (a signed 64-bit integer), got {value!r}")
     object.__setattr__(obj, name, int(value))
 
 

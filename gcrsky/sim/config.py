@@ -7,6 +7,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..base.units import SPEED_OF_LIGHT
 from ..instrument.antennas import HERA_HEIGHT_M, HERA_LATITUDE_DEG, HERA_LONGITUDE_DEG
 
 __all__ = ["Config"]
@@ -76,7 +77,35 @@ class Config:
                 raise ValueError(f"obs_date {self.obs_date!r} is not a date astropy understands: {e}") from None
         if 3 * self.nside - 1 < self.lmax:
             raise ValueError(f"nside={self.nside} cannot resolve lmax={self.lmax} (need 3*nside-1 >= lmax)")
+        if not 1e-150 < self.noise_scale < 1e150:  # its inverse square must be a normal float64
+            raise ValueError(f"noise_scale {self.noise_scale:g} is outside (1e-150, 1e150): the inverse noise "
+                             "variance would overflow or vanish in float64")
+        if not 0 <= int(self.seed) < 2**63:
+            raise ValueError(f"seed must be in [0, 2**63), got {self.seed}")
+        self._check_beam_resolution()
         return self
+
+    def _check_beam_resolution(self) -> None:
+        """The beam is narrower than the sky and wider than two pixels of the quadrature grid."""
+        import healpy as hp
+
+        freqs = np.asarray(self.freqs_hz, np.float64)
+        if self.beam_fwhm_deg is not None:  # exactly this FWHM at the first frequency, as 1 / frequency
+            widest, narrowest = (np.radians(self.beam_fwhm_deg) * freqs[0] / f for f in (freqs.min(), freqs.max()))
+        else:  # pyuvdata's GaussianBeam(diameter=D): FWHM ~ lambda / D
+            widest, narrowest = (SPEED_OF_LIGHT / f / self.dish_diameter for f in (freqs.min(), freqs.max()))
+            if widest >= np.pi:
+                raise ValueError(
+                    f"dish_diameter {self.dish_diameter:g} m gives a beam FWHM (lambda / D) of "
+                    f"{np.degrees(widest):.3g} deg at {freqs.min() / 1e6:g} MHz: wider than the sky; the dish "
+                    f"must be wider than lambda / pi = {SPEED_OF_LIGHT / freqs.min() / np.pi:.3g} m")
+        pixel = hp.nside2resol(int(self.nside))
+        if narrowest < 2 * pixel:
+            fit = 1 << int(np.ceil(np.log2(hp.nside2resol(1) / (narrowest / 2))))
+            raise ValueError(
+                f"the beam's FWHM, {np.degrees(narrowest):.3g} deg at {freqs.max() / 1e6:g} MHz, is narrower than "
+                f"two pixels of the nside {self.nside} grid ({np.degrees(pixel):.3g} deg each): the quadrature "
+                f"cannot resolve it; use nside >= {fit} or a wider beam (a smaller dish)")
 
     @property
     def lsts_hours(self) -> np.ndarray:

@@ -15,8 +15,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..instrument.antennas import hex_array, make_array
+from ..instrument.antennas import antpairs, hex_array, make_array
 from ..instrument.beams import gaussian_beam
+from ..instrument.response import check_response_memory
 from ..model.prior import flat_prior, paper_prior
 from ..model.problem import Problem, build_problem
 from ..sphere.frames import hours_to_rad
@@ -91,9 +92,12 @@ def problem_from_config(cfg: Config, *, response_cache: dict | None = None) -> P
     from .sky import sky_truth  # pyradiosky / pygdsm only when a truth is made
 
     freqs = np.asarray(cfg.freqs_hz, np.float64)
+    array = make_array(hex_array(cfg.rows, cfg.antenna_spacing), cfg.latitude_deg, beam_for_config(cfg))
+    if response_cache is None or instrument_key(cfg) not in response_cache:  # refuse before the sky is made
+        nant = array.positions_enu_m.shape[0]
+        check_response_memory(array, antpairs(nant), freqs, cfg.lmax, cfg.nside, None)
     truth = sky_truth(freqs, cfg.lmax, source=cfg.sky_source, extend_seed=cfg.extend_seed)
     log.info("sky truth: %s", truth.note)
-    array = make_array(hex_array(cfg.rows, cfg.antenna_spacing), cfg.latitude_deg, beam_for_config(cfg))
     k_noise, k_prior = jax.random.split(jax.random.PRNGKey(cfg.seed))
     a_true = jnp.asarray(truth.alm)
     if cfg.flat_prior:

@@ -1,0 +1,59 @@
+"""What the command prints for an error the user can fix: one message naming the cause, exit status 2.
+
+A bad file, option or path, a full disk or too little memory is a *user error*: the command
+prints ``gcrsky CMD: error: ...`` (what is wrong, where, and what to do) and returns
+:data:`EXIT_USAGE`, with the traceback only under ``-v``.  Anything else is a bug and keeps
+its traceback.
+"""
+
+from __future__ import annotations
+
+import errno
+import sys
+import traceback
+
+__all__ = ["EXIT_USAGE", "USER_ERRORS", "error_message", "report_user_error"]
+
+#: Exit status of a user error (as argparse's for bad arguments).
+EXIT_USAGE = 2
+
+#: The exceptions that mean the input, an option, a path, the disk or the memory is at fault.
+USER_ERRORS = (ValueError, OSError, MemoryError)
+
+_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+_DENIED = (errno.EACCES, errno.EPERM, errno.EROFS)
+
+
+def _full_disk(e: BaseException) -> bool:
+    text = str(e)
+    return getattr(e, "errno", None) in _FULL or "No space left" in text or "File too large" in text or (
+        "Disk quota" in text)
+
+
+def error_message(e: BaseException) -> str:
+    """The one-paragraph message of a user error (:data:`USER_ERRORS`): the cause, the path, what to do."""
+    if isinstance(e, OSError):
+        where = f" {e.filename}" if getattr(e, "filename", None) else ""
+        what = e.strerror or str(e)
+        if _full_disk(e):
+            if "--" in what:  # the message already says what to do (e.g. the draws' size checked up front)
+                return f"no space left on the device of{where}: {what}"
+            return (f"no space left writing{where or ' the output'} ({what}): free some space or choose another "
+                    "--out; the batches of draws already written are kept, and --resume continues the run")
+        if getattr(e, "errno", None) in _DENIED:
+            return f"cannot write{where} ({what}): choose a directory you can write (--out)"
+        if where and e.strerror and e.strerror not in str(e.filename):
+            return f"{e.filename}: {what}"
+        return str(e)
+    if isinstance(e, MemoryError):
+        return str(e) or "out of memory: choose a smaller problem (--lmax, --nside, fewer channels or baselines)"
+    return str(e)
+
+
+def report_user_error(e: BaseException, command: str, verbose: int) -> int:
+    """Print the message of a user error to stderr (the traceback too under ``-v``); :data:`EXIT_USAGE`."""
+    if verbose:
+        traceback.print_exception(e)
+    print(f"gcrsky {command}: error: {error_message(e)}"
+          + ("" if verbose else "  (-v shows where it happened)"), file=sys.stderr)
+    return EXIT_USAGE
