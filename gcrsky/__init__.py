@@ -90,8 +90,19 @@ __all__ = [
 __version__ = "0.1.0"
 
 
+#: Subpackages reachable as attributes (``gcrsky.parallel.use_safe_cpu_threading()`` right after ``import gcrsky``),
+#: imported on first use so that ``import gcrsky`` stays light.
+SUBPACKAGES = ("base", "checks", "cli", "inference", "instrument", "io", "model", "paper", "parallel", "run", "sim",
+               "solvers", "sphere")
+
+
 def __getattr__(name):
-    """``gcrsky.prepare_sampler``: the old name of :func:`prepare_system` (deprecated; not in ``__all__``)."""
+    """A subpackage on first use (:data:`SUBPACKAGES`); ``gcrsky.prepare_sampler``: the old name of
+    :func:`prepare_system` (deprecated; not in ``__all__``)."""
+    if name in SUBPACKAGES:
+        import importlib
+
+        return importlib.import_module(f"{__name__}.{name}")
     if name == "prepare_sampler":
         from .inference.posterior import prepare_sampler
 
