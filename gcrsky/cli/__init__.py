@@ -53,7 +53,9 @@ printed and ``summary.json`` records it: check ``solver.all_converged``), and fo
 values (results are still written for diagnosis); 2 for bad arguments (argparse);
 3 when the output directory holds results that the command refuses to touch
 (neither ``--resume`` nor ``--overwrite``) or ``--resume`` cannot continue
-(different settings or inputs, unreadable ``results.h5``).
+(different settings or inputs, unreadable ``results.h5``); 4 when the run failed after
+its draws (the maps, products, figures or summary): the draws are kept in
+``results.h5`` and ``--resume`` redoes the rest from them.
 """
 
 from __future__ import annotations
