@@ -32,8 +32,8 @@ response needs, with a JSON-friendly record of what it found and did (copied int
 * **Interpolated power stays >= 0.**  The power is interpolated with pyuvdata's cubic
   spline in direction (``az_za_map_coordinates``, matvis' choice; cubic in frequency
   between four or more E-field channels), which rings slightly below 0 next to nulls
-  (matvis' HERA dipole beam at 101 MHz: 10 of 520,000 directions, at za 17.25 deg, down
-  to 3e-6 of the peak); those values are clipped to 0 where the power is evaluated
+  (matvis' HERA dipole beam from 100.8 to 101 MHz, next to a null at az 90 deg, za 17.3
+  deg: down to 1.1e-5 of the peak); those values are clipped to 0 where the power is evaluated
   (:func:`gcrsky.instrument.beams.clip_power`), so the power equals the spline wherever
   the spline is >= 0.  The first clipping of each beam in a process is logged as a
   warning (the fraction clipped and its depth relative to the peak), later ones at debug
