@@ -239,3 +239,19 @@ def test_failure_after_the_draws_then_resume_finishes(uvh5, tmp_path, capsys, mo
     assert read_draws(out / "results.h5").draws.tobytes() == kept
     for f in ("summary.json", "posterior_mean.fits", "posterior_std.fits", "posterior_mean_alm.fits"):
         assert (out / f).exists(), f
+
+
+@pytest.mark.slow
+def test_run_with_a_beam_that_never_falls_to_half_finishes(uvh5, tmp_path, capsys):
+    """A flat (uniform) power beam is valid but has no FWHM: the run finishes without beam-region metrics."""
+    import json
+
+    p = _power(cross=True)
+    d = np.zeros_like(p.data_array)
+    d[0, :2] = 1.0  # xx, yy uniform; cross polarisations 0
+    p.data_array = d
+    out = tmp_path / "run"
+    assert cli.main(_run_args(uvh5, _write(p, tmp_path / "flat.beamfits"), out)) == 0
+    m = json.loads((out / "summary.json").read_text())["per_frequency"][0]
+    assert m["fwhm_deg"] is None and "no beam-region metrics" in m["fwhm_note"] and "std_fwhm_median" not in m
+    assert (out / "fig4_sky_maps.png").exists()
