@@ -8,8 +8,9 @@ direction cosines ``l`` (east, RA increasing) and ``m`` (north) give ``za = arcs
 and pyuvdata's azimuth ``az = atan2(m, l)`` (east = 0, north = pi/2).  A file pyuvdata cannot read
 completely, or whose values cannot be a beam (:func:`check_beam_values`: NaN or infinite values, a
 channel whose power is nowhere positive, power more negative than :data:`NEGATIVE_POWER_TOL` of
-its peak), is a ``ValueError`` naming the file and the problem, when it is read: before any
-response is built or draw made.  This module imports nothing
+its peak or negative at more than :data:`NEGATIVE_POWER_MAX_FRACTION` of its values), is a
+``ValueError`` naming the file and the problem, when it is read: before any response is built or
+draw made.  This module imports nothing
 of gcrsky's, so both the beam evaluation (:mod:`gcrsky.instrument.beams`) and the preparation
 (:mod:`gcrsky.instrument.beamprep`) can use it.
 """
@@ -22,8 +23,16 @@ import warnings
 
 import numpy as np
 
-__all__ = ["IMAGE_EDGE_MAX", "NEGATIVE_POWER_MAX_FRACTION", "NEGATIVE_POWER_TOL", "check_beam_values", "image_beam", "is_image_beam", "read_beam",
-           "same_feed_pols"]
+__all__ = [
+    "IMAGE_EDGE_MAX",
+    "NEGATIVE_POWER_MAX_FRACTION",
+    "NEGATIVE_POWER_TOL",
+    "check_beam_values",
+    "image_beam",
+    "is_image_beam",
+    "read_beam",
+    "same_feed_pols",
+]
 
 log = logging.getLogger(__name__)
 
@@ -155,8 +164,10 @@ def image_beam(path, *, n_za: int = 181, n_az: int = 361):
 def read_beam(path, **read_kwargs):
     """``(beam, record)`` from a beam file: a UVBeam file (``UVBeam.from_file``) or a SIN beam image.
 
-    A file pyuvdata cannot read completely (e.g. an image without ``data_normalization``)
-    is a ``ValueError`` naming the file and what is needed.
+    A file pyuvdata cannot read completely (e.g. an image without ``data_normalization``),
+    or not at all (not FITS, another format), is a ``ValueError`` naming the file and what
+    is needed; so is a UVBeam whose values cannot be a beam (:func:`check_beam_values`,
+    whose record the returned one includes).  A missing file is a ``FileNotFoundError``.
     """
     from pyuvdata import UVBeam
 

@@ -268,7 +268,9 @@ def load_beam(beam, *, peak_normalize: bool = False, **read_kwargs):
 
     Raises:
         TypeError: neither a beam object nor a path; read options with a beam object.
-        ValueError: a UVBeam that is neither an E-field nor a power beam.
+        ValueError: a UVBeam that is neither an E-field nor a power beam; a file that is not a
+            beam file or whose values cannot be a beam
+            (:func:`gcrsky.instrument.beamfiles.check_beam_values`), naming the file.
     """
     from pyuvdata import BeamInterface, UVBeam
     from pyuvdata.analytic_beam import AnalyticBeam
