@@ -63,7 +63,8 @@ together: the coordinator could not be reached, or a process did not join, withi
 ``--dist-timeout`` seconds (default 120), or process 0 cannot listen on the coordinator's
 port or refuses a process (another ``--num-processes``, a process id taken); each waiting
 process prints one line naming the address, its process id, the number of processes and
-the timeout, with no traceback (:func:`gcrsky.parallel.init_distributed`).
+the timeout, with no traceback (:func:`gcrsky.parallel.init_distributed`); 5 when the run failed after its draws (the maps, products, figures or summary): the draws are kept in
+``results.h5`` and ``--resume`` redoes the rest from them.
 """
 
 from __future__ import annotations

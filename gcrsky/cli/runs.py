@@ -8,10 +8,12 @@ import sys
 from .options import channel_mode
 from .terminal import StageBar, batch_bar, channel_bar, print_summary, refusal_message, stage_names
 
-__all__ = ["EXIT_REFUSED", "execute_with_bars", "existing_mode", "report_run", "run_spec"]
+__all__ = ["EXIT_AFTER_DRAWS", "EXIT_REFUSED", "execute_with_bars", "existing_mode", "report_run", "run_spec"]
 
 #: Exit status when the output directory's results are not ours to touch (see :mod:`gcrsky.cli`).
 EXIT_REFUSED = 3
+#: Exit status when a run failed after its draws (kept in results.h5; ``--resume`` finishes it).
+EXIT_AFTER_DRAWS = 5
 
 
 def existing_mode(args) -> str:
@@ -31,7 +33,7 @@ def run_spec(args, *, nsamples: int, method: str, tol: float, scenario: str | No
 def execute_with_bars(args, prob, spec, hooks, *, build_s: float, compile_since):
     """:func:`gcrsky.run.execute` with the command's bars: ``(summary, products)``, or an exit status
     (a refused run; a ``jax.distributed`` process other than 0, which writes nothing)."""
-    from ..run import ResumeError, RunExistsError, Watch, execute
+    from ..run import PostDrawError, ResumeError, RunExistsError, Watch, execute
 
     disable = True if args.no_progress else None  # tqdm's None: bars only on a terminal
     bar = StageBar(stage_names(spec.output.plots), disable)
@@ -41,6 +43,9 @@ def execute_with_bars(args, prob, spec, hooks, *, build_s: float, compile_since)
     except (RunExistsError, ResumeError) as e:  # e.g. the inputs differ from the recorded ones
         print(refusal_message(e, resume=args.resume), file=sys.stderr)
         return EXIT_REFUSED
+    except PostDrawError as e:  # the draws are kept: a message with what to do, not a traceback
+        print(f"gcrsky: {e}", file=sys.stderr)
+        return EXIT_AFTER_DRAWS
     finally:
         bar.close()
     if done is None:

@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..base.units import SPEED_OF_LIGHT
+from .beamfiles import NEGATIVE_POWER_TOL  # beamfiles imports nothing of gcrsky's
 
 log = logging.getLogger(__name__)
 
@@ -154,12 +155,14 @@ def beam_fwhm_rad(beam, freq_hz: float, *, n_grid: int = 20001) -> float:
     azimuths 0 and pi/2 (UVBeam convention); the half-power angle is found by
     linear interpolation on a ``n_grid`` grid over [0, pi/2] and the two cuts are
     averaged (FWHM = 2 x mean half-power zenith angle).  Raises ``ValueError`` if the
-    power never falls to half of its zenith value above the horizon.
+    power at the zenith is not positive or never falls to half of it above the horizon.
     """
     za = np.linspace(0.0, np.pi / 2, n_grid)
     half = []
     for az in (0.0, np.pi / 2):
         p = beam_amplitude(beam, np.full_like(za, az), za, np.array([float(freq_hz)]))[0] ** 2
+        if not (np.isfinite(p[0]) and p[0] > 0):
+            raise ValueError(f"beam power at the zenith is {p[0]:g} at {freq_hz:g} Hz: no FWHM about the zenith")
         below = np.flatnonzero(p <= 0.5 * p[0])
         if below.size == 0:
             raise ValueError(f"beam power does not fall to half above the horizon at {freq_hz:g} Hz")
@@ -214,8 +217,8 @@ def beam_amplitude(beam, az_uvbeam_rad: np.ndarray, za_rad: np.ndarray, freqs_hz
     return np.sqrt(clip_power(power, _name(bi.beam)))
 
 
-#: Undershoot (relative to the peak) beyond which clipping an interpolated power to 0 is logged as a warning.
-NEGATIVE_POWER_TOL = 0.01
+#: Beams (by name) whose interpolated power was clipped in this process: the first time is a warning.
+_CLIPPED: set = set()
 
 
 def clip_power(power: np.ndarray, name: str = "beam") -> np.ndarray:
@@ -223,9 +226,13 @@ def clip_power(power: np.ndarray, name: str = "beam") -> np.ndarray:
 
     Cubic interpolation (pyuvdata's spatial spline; its frequency interpolation with four or
     more channels) of a power beam that is clipped to 0 or drops steeply undershoots below
-    0 next to the drop; power is never negative, so those values are 0.  Undershoot deeper
-    than ``NEGATIVE_POWER_TOL`` x the peak is logged as a warning (the beam's sampling is
-    coarse for its structure), shallower at debug level.
+    0 next to the drop; power is never negative, so those values are 0, and the result
+    equals the interpolant wherever that is >= 0 (why clipping rather than another
+    interpolant: :mod:`gcrsky.instrument.beamprep`, with the undershoot measured on matvis'
+    HERA dipole beam).  The first clipping of each beam (by ``name``) in a process is logged as
+    a warning with the fraction clipped and its depth relative to the peak; later ones at
+    debug level, unless deeper than ``NEGATIVE_POWER_TOL`` x the peak (the beam's sampling
+    is coarse for its structure).
     """
     power = np.asarray(power, np.float64)
     neg = power < 0
@@ -233,8 +240,10 @@ def clip_power(power: np.ndarray, name: str = "beam") -> np.ndarray:
         return power
     peak = np.max(np.abs(power))
     deep = np.min(power) < -NEGATIVE_POWER_TOL * peak
-    log.log(logging.WARNING if deep else logging.DEBUG, "%s: %d interpolated power values below 0 (min %.3g of the "
-            "peak) clipped to 0", name, int(neg.sum()), np.min(power) / peak)
+    first = name not in _CLIPPED
+    _CLIPPED.add(name)
+    log.log(logging.WARNING if deep or first else logging.DEBUG, "%s: %d interpolated power values below 0 (%.3g %% "
+            "of them, min %.3g of the peak) clipped to 0", name, int(neg.sum()), 100 * neg.mean(), np.min(power) / peak)
     return np.where(neg, 0.0, power)
 
 
@@ -259,7 +268,9 @@ def load_beam(beam, *, peak_normalize: bool = False, **read_kwargs):
 
     Raises:
         TypeError: neither a beam object nor a path; read options with a beam object.
-        ValueError: a UVBeam that is neither an E-field nor a power beam.
+        ValueError: a UVBeam that is neither an E-field nor a power beam; a file that is not a
+            beam file or whose values cannot be a beam
+            (:func:`gcrsky.instrument.beamfiles.check_beam_values`), naming the file.
     """
     from pyuvdata import BeamInterface, UVBeam
     from pyuvdata.analytic_beam import AnalyticBeam

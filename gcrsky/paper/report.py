@@ -5,6 +5,8 @@ frequency (:mod:`gcrsky.paper.metrics`):
 
 - with a configuration (the observed strip, :func:`gcrsky.run.maps.observed_region`): the
   beam FWHM ``fwhm_deg`` and the posterior std by region (``std_*``, no truth needed);
+  none of the region metrics where the FWHM is undefined (a beam whose power does not
+  fall to half above the horizon: ``fwhm_deg`` None and a ``fwhm_note``);
 - with a truth too: ``|mean - truth| / truth`` on the beam-centre ring and in the +-1 FWHM
   band, for the draws' mean and the Wiener filter (``frac_diff_*``, ``wiener_frac_diff_*``);
 - with a truth: the per-mode z-scores' statistics (``mode_z``);
@@ -63,7 +65,15 @@ class PaperReport(ReportHook):
         centre_dec, ra_range = maps.centre_dec_deg, maps.ra_range_deg
         m = {}
         if cfg is not None:
-            m["fwhm_deg"] = fwhm = self._fwhm(cfg, f)
+            fwhm = self._fwhm(cfg, f)
+            if not (np.isfinite(fwhm) and fwhm > 0):  # a beam that never falls to half above the horizon:
+                m["fwhm_deg"] = None  # no +-1 FWHM band, so no region metrics (the run's products are not lost)
+                m["fwhm_note"] = (f"no beam-region metrics: the beam's FWHM is {fwhm} (its power does not fall "
+                                  "to half above the horizon)")
+                cfg = None
+            else:
+                m["fwhm_deg"] = fwhm
+        if cfg is not None:
             if bool(np.isfinite(maps.std_maps[f]).all()):  # metrics that need no truth: where the data constrain
                 m.update(M.std_metrics(maps.std_maps[f], centre_dec, fwhm, ra_range))
             if maps.truth_maps is not None:
@@ -80,7 +90,8 @@ class PaperReport(ReportHook):
     def figures(self, view: RunView, out: Path, *, only_missing: bool) -> FigureReport:
         """Figs. 3-7 with a truth, the posterior maps without one; a note when neither applies."""
         maps = view.maps
-        if view.finite and maps.truth_maps is not None and maps.centre_dec_deg is not None:
+        if (view.finite and maps.truth_maps is not None and maps.centre_dec_deg is not None
+                and view.per_freq[0].get("fwhm_deg") is not None):
             return FigureReport(run_figures(out, view, only_missing=only_missing), [])
         if view.finite and maps.truth_maps is None and maps.centre_dec_deg is not None:
             return FigureReport(data_figures(out, view, only_missing=only_missing), [])
@@ -161,7 +172,7 @@ def data_figures(out: Path, view: RunView, *, only_missing: bool = False) -> dic
 
     out, prob, draws, ms, f0 = Path(out), view.problem, view.draws, view.maps, view.per_freq[0]
     lab = f"{np.asarray(prob.freqs_hz)[0] / 1e6:g} MHz, {draws.shape[1]} draws"
-    region = (ms.centre_dec_deg, f0["fwhm_deg"], ms.ra_range_deg)
+    region = None if f0.get("fwhm_deg") is None else (ms.centre_dec_deg, f0["fwhm_deg"], ms.ra_range_deg)
     fig = lambda key, plot: _atomic_figure(out, key, plot, only_missing)  # noqa: E731
     names = {"fig4": fig("fig4", lambda p: P.plot_posterior_maps(
         ms.wiener_maps[0], ms.std_maps[0], p, region=region,

@@ -33,6 +33,7 @@ __all__ = [
     "RUN_FILES",
     "SUMMARY_FILE",
     "OpenRun",
+    "PostDrawError",
     "RunExistsError",
     "check_output",
     "check_out_dir",
@@ -125,6 +126,25 @@ def check_out_dir(out) -> Path:
         raise type(e)(e.errno, f"--out {out} cannot be written ({e.strerror or e}): choose a writable directory "
                                "with free space", str(out)) from e
     return out
+
+
+class PostDrawError(RuntimeError):
+    """A run failed after its draws were stored: ``results.h5`` keeps them, ``resume`` finishes the run.
+
+    The maps, products, figures and summary are redone by a resumed run (the same settings,
+    ``--resume``): it finds every batch drawn, skips the set-up and the draws, and writes
+    what is missing.  Raised from the original error (``__cause__``).
+
+    Attributes:
+        out: the directory; stage: the stage that failed; ndraws: the draws kept.
+    """
+
+    def __init__(self, out, stage: str, ndraws: int, cause: BaseException):
+        self.out, self.stage, self.ndraws = Path(out), stage, int(ndraws)
+        super().__init__(
+            f"the run failed after its draws, in stage {stage!r}: {type(cause).__name__}: {cause}. Its {ndraws} draws "
+            f"are kept in {Path(out) / RESULTS_FILE}: remove the cause and run the same command with --resume to redo "
+            "the maps, products, figures and summary from them (or --overwrite to start again)")
 
 
 def existing_run_files(out) -> list[str]:

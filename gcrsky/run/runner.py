@@ -12,7 +12,10 @@
    data (:func:`gcrsky.run.fit.goodness_of_fit`; a rejected fit is a warning).
 
 Every file is written atomically; a resumed run writes only the files that are missing
-and keeps the summary its run wrote.  Stage timings are recorded by a
+and keeps the summary its run wrote.  A failure after the draws (steps 3 and 4) is a
+:class:`~gcrsky.run.output.PostDrawError`: the draws stay in ``results.h5`` (not yet
+finished), and a resumed run (same settings) skips the set-up and the draws and redoes
+those steps.  Stage timings are recorded by a
 :class:`~gcrsky.run.stages.StageTimer`, and the run's XLA compilation (seconds,
 persistent-cache hits and misses) by :func:`gcrsky.parallel.compile_stats`; the caller
 watches the stages and batches through a :class:`~gcrsky.run.stages.Watch`.  Nothing
@@ -34,7 +37,16 @@ from .fit import run_fit
 from .gains import gain_draws, gain_summary, gained_problem, stored_gain_factor, write_gain_products
 from .lock import run_lock
 from .maps import RunMaps, parameter_frame, run_maps, stored_maps
-from .output import PRODUCT_FILES, RESULTS_FILE, SUMMARY_FILE, OpenRun, check_out_dir, existing_run_files, open_run
+from .output import (
+    PRODUCT_FILES,
+    RESULTS_FILE,
+    SUMMARY_FILE,
+    OpenRun,
+    PostDrawError,
+    check_out_dir,
+    existing_run_files,
+    open_run,
+)
 from .products import write_products
 from .report import ReportHook, RunView, collect_figures, collect_metrics
 from .spec import RunSpec
@@ -79,6 +91,7 @@ def execute(prob, spec: RunSpec, *, hooks: Sequence[ReportHook] = (), watch: Wat
             touch or cannot continue (:func:`~gcrsky.run.output.check_output`).
         RunLockedError: another run is writing to the output directory (:func:`~gcrsky.run.lock.run_lock`,
             held from before the directory is looked at until the last file is written).
+        PostDrawError: a stage after the draws failed (the draws are kept; resume finishes).
     """
     compile0 = compile_stats() if compile_since is None else compile_since
     watch = watch or Watch()
@@ -100,6 +113,15 @@ def _execute_locked(prob, spec: RunSpec, hooks, watch: Watch, build_s: float, co
     method = draw_stage(prob, spec, run, st, watch)  # leaves the "draws" stage running
     stored = read_draws(run.h5)
     st.stop()
+    try:
+        return _after_draws(prob, spec, run, st, stored, method, hooks, compile0)
+    except Exception as err:  # the draws are safe in results.h5: say so, and how to finish
+        raise PostDrawError(run.out, st.current or "fit", stored.draws.shape[1], err) from err
+
+
+def _after_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, stored, method: str, hooks,
+                 compile0: CompileStats) -> tuple[RunSummary, RunProducts]:
+    """Everything after the draws: maps, metrics, figures, fit, products, ``results.h5`` finished, summary."""
     solver, warnings = solver_summary(method, spec.solver.tol, stored.wiener_info, stored.info, None, prob.n,
                                       rank=stored.rank)
     if not np.isfinite(stored.draws).all():

@@ -46,9 +46,15 @@ class StageTimer:
         if self._on:
             self._on(name, "start")
 
+    @property
+    def current(self) -> str | None:
+        """The stage running now (started, not yet stopped), or None."""
+        return self._name
+
     def stop(self) -> None:
         dt = time.perf_counter() - self._t0
         self.times[self._name] = dt
         log.info("stage %s done in %.2f s", self._name, dt)
         if self._on:
             self._on(self._name, "stop")
+        self._name = None
