@@ -92,7 +92,7 @@ def test_bad_data_options_are_refused(uvh5, tmp_path, capsys):
     assert "--n-lst" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         cli.main(["run", "--data", str(tmp_path / "missing.uvh5"), "--dish-diameter", "14"])
-    assert "no such file" in capsys.readouterr().err
+    assert "no visibility file at" in capsys.readouterr().err
     rc = cli.main(["run", "--data", str(uvh5), "--dish-diameter", "14", "--pol", "I", "--out", str(tmp_path / "c")])
     assert rc == 2 and "pol must be" in capsys.readouterr().err
     assert cli.main(["inspect", str(tmp_path / "missing.uvh5")]) == 2

@@ -1,8 +1,9 @@
 """``gcrsky inspect`` and ``gcrsky run --data`` with the data checks: the real HERA files, small and fast.
 
-H1C with its omnical solutions end to end (3 channels, lmax 4, nside 16, 10 draws): the solutions
-apply offline, the ORBCOMM channel is flagged, the flux scale (~0.004: redundant solutions leave
-the amplitude free) is refused, then accepted with ``--flux-scale accept``.
+H1C with its omnical solutions end to end (3 channels, lmax 4, nside 64 -- the quadrature must
+resolve the kept baselines' fringes, which reach l ~164 -- 10 draws): the solutions apply offline,
+the ORBCOMM channel is flagged, the flux scale (~0.004: redundant solutions leave the amplitude
+free) is refused, then accepted with ``--flux-scale accept``.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from gcrsky import cli
 pytestmark = pytest.mark.skipif(not H1C.exists(), reason="the real HERA files are not there")
 RUN = ["run", "--data", str(H1C), "--cal", str(CAL), "--dish-diameter", "14", "--chans", "20,24,30", "--lmax", "4",
        "--band-limit", "marginalise",  # every baseline reaches l > 80: the sky above lmax 4 as noise
-       "--nside", "16", "--nsamples", "10", "--batch", "5", "--no-progress", "--no-plots"]
+       "--nside", "64", "--nsamples", "10", "--batch", "5", "--no-progress", "--no-plots"]
 
 
 def test_h1c_with_its_solutions_end_to_end(tmp_path, capsys):

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from ..io.files import check_input_file
 from ..solvers.options import DEFAULT_TOL
+from .errors import report_user_error
 from .options import DEFAULT_NSAMPLES, beam_prior_kwargs, check_kwargs, data_kwargs, gain_sampling
 from .runs import EXIT_REFUSED, execute_with_bars, report_run, run_spec
 from .terminal import band_limit_line, refusal_message
@@ -35,8 +36,7 @@ def data_command(args, parser) -> int:
         try:
             return _run_data(args)
         except (ValueError, FileNotFoundError) as e:  # the file or the options: a message, not a traceback
-            print(f"gcrsky run --data: {e}", file=sys.stderr)
-            return 2
+            return report_user_error(e, "run --data", args.verbose)
 
 
 def _check_data_options(parser, args) -> None:

@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import sys
-
+from .errors import report_user_error
 from .options import data_kwargs
 
 __all__ = ["inspect_command"]
@@ -13,9 +12,8 @@ def inspect_command(args, parser) -> int:
     """Print the report (or ``--json``); a file that cannot be used: a message, exit 2."""
     try:
         return _inspect(args)
-    except (ValueError, FileNotFoundError) as e:
-        print(f"gcrsky inspect: {e}", file=sys.stderr)
-        return 2
+    except (ValueError, FileNotFoundError) as e:  # a message, not a traceback (-v adds it)
+        return report_user_error(e, "inspect", getattr(args, "verbose", 0))
 
 
 def _inspect(args) -> int:

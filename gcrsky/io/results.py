@@ -46,16 +46,19 @@ Layout (``layout_version`` 2):
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import math
 import os
+import shutil
 import time
 from pathlib import Path
 from typing import NamedTuple, Optional
 
 import numpy as np
 
+from ..base.memory import format_bytes
 from ..solvers.info import SolveInfo
 from .atomic import atomic_path, temporary_name
 
@@ -300,6 +303,39 @@ def _open_for_append(path, wait_s: float):
             time.sleep(0.25)
 
 
+def file_size_limit() -> float:
+    """The largest file this process may write (``ulimit -f``, ``RLIMIT_FSIZE``), bytes; inf if unlimited."""
+    try:
+        import resource
+    except ImportError:  # not on POSIX
+        return float("inf")
+    soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    return float("inf") if soft == resource.RLIM_INFINITY else float(soft)
+
+
+def check_room(path, nbytes: float, what: str) -> None:
+    """Refuse to write ``nbytes`` more into ``path`` when the disk or ``ulimit -f`` has no room for them.
+
+    HDF5 left in the middle of a failed write cannot be closed cleanly (h5py raises
+    ``RuntimeError`` on flush and close, and the process can then crash at exit), so a write
+    that cannot fit is refused before it starts.
+
+    Raises:
+        OSError: ``ENOSPC`` (the disk) or ``EFBIG`` (the file-size limit), naming the sizes; the file
+            is untouched, so what it holds (the batches written so far) is kept.
+    """
+    path = Path(path)
+    size = path.stat().st_size if path.exists() else 0
+    free = shutil.disk_usage(path.parent).free
+    limit = file_size_limit()
+    if nbytes > free:
+        raise OSError(errno.ENOSPC, f"{what} needs ~{format_bytes(nbytes)} but the disk has {format_bytes(free)} free",
+                      str(path))
+    if size + nbytes > limit:
+        raise OSError(errno.EFBIG, f"{what} would take the file to ~{format_bytes(size + nbytes)}, beyond this "
+                                   f"process's file-size limit (ulimit -f) of {format_bytes(limit)}", str(path))
+
+
 def append_batch(path, b: int, draws, info: SolveInfo | None = None, *, seconds: float | None = None,
                  wait_s: float = 120.0, extra: dict | None = None, replace: dict | None = None) -> int:
     """Append batch ``b`` (draws ``b * batch`` onwards) to a ``results.h5`` of :func:`create_results_h5`.
@@ -325,6 +361,8 @@ def append_batch(path, b: int, draws, info: SolveInfo | None = None, *, seconds:
         the number of complete batches now in the file (``b + 1``).
     """
     draws = np.asarray(draws, np.float64)
+    check_room(path, 2 * draws.nbytes + sum(np.asarray(v).nbytes for v in (extra or {}).values()) + (1 << 20),
+               f"batch {b} of draws")
     with _open_for_append(path, wait_s) as h:
         done, batch, nsamples = (int(h.attrs[k]) for k in ("batches_complete", "batch", "nsamples"))
         if b != done:

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..base.memory import format_bytes
 from ..io.atomic import is_temporary
-from ..io.results import read_results_state
+from ..io.results import file_size_limit, read_results_state
 from .resume import ResumeError, check_resumable, settings_differences
 from .spec import EXISTING
 from .summary import versions
@@ -240,15 +240,21 @@ def draws_bytes(prob, nsamples: int) -> float:
 
 
 def check_disk_space(out, nbytes: float) -> None:
-    """Refuse a run whose draws cannot fit on the disk of ``out`` (before the first draw).
+    """Refuse a run whose draws cannot fit on the disk of ``out``, or in a file under ``ulimit -f`` (before the
+    first draw; each batch is checked again as it is appended, :func:`gcrsky.io.results.check_room`).
 
     Raises:
-        OSError: ``ENOSPC``, naming the size, the free space and what to do.
+        OSError: ``ENOSPC`` (the disk) or ``EFBIG`` (the file-size limit), naming the sizes and what to do.
     """
     free = shutil.disk_usage(out).free
     if nbytes > free:
         raise OSError(errno.ENOSPC, f"the draws need {format_bytes(nbytes)} but the disk of {out} has "
                                     f"{format_bytes(free)} free: fewer draws (--nsamples), or another --out", str(out))
+    limit = file_size_limit()
+    if nbytes > limit:
+        raise OSError(errno.EFBIG, f"the draws need {format_bytes(nbytes)} in {RESULTS_FILE} but this process may "
+                                   f"write files of at most {format_bytes(limit)} (ulimit -f): fewer draws "
+                                   "(--nsamples), or raise the limit", str(out))
 
 
 class OpenRun(NamedTuple):
