@@ -8,8 +8,9 @@ autocorrelations, zero or negative channel widths or integration times) gave pri
 (``--lmax 8 --nside 16``) was 182 % off without a word.  Here every such input must give exit
 status 2 (:data:`gcrsky.cli.EXIT_USAGE`), a message on stderr that names the cause, no
 exception escaping :func:`gcrsky.cli.main` (in-process, a traceback would be an exception),
-and nothing written into ``--out``.  A full disk (``RLIMIT_FSIZE``, the platform's small
-filesystem) must end with a message and leave draws that ``--resume`` completes.
+and nothing written into ``--out``.  A full disk must end with a message and leave the batches
+written, which ``--resume`` completes to exactly an uninterrupted run's draws; a file-size limit
+(``ulimit -f``) too small for the draws is refused before the first draw.
 
 Also here and elsewhere: concurrent runs into one directory (``tests/test_run_lock.py``), NaN
 and negative inputs to the pure tier (``tests/test_pure_checks.py``), an unreachable
