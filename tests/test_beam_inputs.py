@@ -28,7 +28,7 @@ from gcrsky.instrument.beams import beam_amplitude, beam_fwhm_rad  # noqa: E402
 from gcrsky.instrument.polarization import cross_power_kernel  # noqa: E402
 
 F_MID = np.array([100.9e6])  # between the dipole's channels (100, 101 MHz)
-LMAX, NSIDE = 4, 16
+LMAX, NSIDE = 4, 32  # nside 32: the quadrature resolves the fringes (reach ~80 <= 3 nside - 1)
 
 
 def _dipole():

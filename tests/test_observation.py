@@ -146,7 +146,7 @@ def test_a_sample_stored_twice_is_refused(h1c):
 
 # ---------------------------------------------------------------- a simulated file: noise and the Problem
 
-LMAX, NSIDE = 4, 16
+LMAX, NSIDE = 4, 32  # nside 32: the quadrature resolves the fringes (reach ~93 <= 3 nside - 1)
 FREQS = np.array([100e6, 101e6])
 
 
