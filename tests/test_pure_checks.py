@@ -208,6 +208,12 @@ def test_throw_names_every_input(clean, case):
         jax.block_until_ready(_evidence(make(clean), options=_with_throw("cholesky")))
 
 
+def test_throw_on_traced_new_data(clean):
+    prepared = prepare_system(clean, options=_with_throw("cholesky"))
+    with pytest.raises(Exception, match="bad input: data"):
+        jax.block_until_ready(jax.jit(lambda d: condition(prepared, d).a_wf)(_nan_datum(clean).data))
+
+
 def test_throw_on_clean_inputs_does_not_raise(clean):
     _, info = _wiener(clean, options=_with_throw("cholesky"))
     assert np.all(np.asarray(info.converged))

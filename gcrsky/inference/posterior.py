@@ -158,7 +158,7 @@ def condition(prepared, data: jax.Array, *, check: bool = True):
     system = prepared.system._replace(data=data)
     if check:
         check_system(system)
-    system, bad = guard_inputs(system, prepared.options)
+    system, bad = guard_inputs(system, getattr(prepared, "options", None))  # a state need not keep its options
     return _fold_state(path.condition(prepared, system.data), bad)
 
 
