@@ -234,7 +234,8 @@ def check_system(system: LinearSystem) -> LinearSystem:
     are finite wherever ``inv_noise > 0`` (flagged samples may hold anything only if
     they were cleaned, i.e. are finite: NaN times a zero weight is NaN); the prior's
     mean is finite and its inverse variance finite and ``>= 0``; angles finite.
-    Traced systems are passed through unchecked (call it outside ``jit``); the value checks
+    Traced systems are passed through unchecked (call it outside ``jit``), and the values of a
+    system spread over processes (arrays not fully addressable here) are not read; the value checks
     have a traceable twin, :func:`input_faults`, which the system tier folds into its result
     codes there (:data:`gcrsky.solvers.Result.BAD_INPUT`).  Cheap: host NumPy on the data,
     noise, prior and angles (the response's dtype is read without copying it).
@@ -264,6 +265,9 @@ def check_system(system: LinearSystem) -> LinearSystem:
         if tuple(np.shape(getattr(system.prior, name))) != (nf, n):
             raise ValueError(f"prior.{name} has shape {np.shape(getattr(system.prior, name))}, expected (Nf, n) = "
                              f"{(nf, n)}")
+    values = (system.data, system.inv_noise, system.prior.mean, system.prior.inv_var, op.angles)
+    if not all(getattr(x, "is_fully_addressable", True) for x in values):
+        return system  # spread over processes (multi-host sharding): the values are judged in the computation
     w = np.asarray(system.inv_noise)
     bad = ~np.isfinite(w) | (w < 0)
     if bad.any():
