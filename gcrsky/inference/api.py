@@ -14,8 +14,9 @@ Under ``jax.jit`` / ``jax.vmap`` / ``jax.grad`` (a traced system) the same funct
 once the path is fixed: choose it on concrete inputs (``opts = gcrsky.choose_path(problem)``)
 and pass ``options=opts``, or pass ``method=``; ``method="auto"`` alone is refused with
 that advice.  The host-side checks are skipped there (the paths judge their own accuracy:
-see :class:`~gcrsky.solvers.SolveInfo`), and unconverged solves are logged from inside the
-computation (``jax.debug.callback``).
+see :class:`~gcrsky.solvers.SolveInfo`; bad inputs are reported
+:data:`~gcrsky.solvers.Result.BAD_INPUT`, :mod:`gcrsky.inference.posterior`), and unconverged
+solves are logged from inside the computation (``jax.debug.callback``).
 """
 
 from __future__ import annotations
@@ -59,7 +60,7 @@ def wiener_filter(
     """
     system = as_system(problem)
     opts = fixed_path(system, method, options=options, tol=tol, memory_budget=memory_budget)
-    a, info = wiener_filter_system(system, options=opts)
+    a, info = wiener_filter_system(system, options=opts, check=False)  # as_system checked it
     warn_unconverged(info, "Wiener filter")
     return (a, info) if return_info else a
 
@@ -135,7 +136,7 @@ def prepare(
     """
     system = as_system(problem)
     opts = fixed_path(system, method, options=options, tol=tol, ndraws=int(ndraws), memory_budget=memory_budget)
-    prepared = prepare_system(system, options=opts)
+    prepared = prepare_system(system, options=opts, check=False)  # as_system checked it
     warn_unconverged(prepared.wiener, "Wiener filter")
     return prepared
 

@@ -57,6 +57,14 @@ case at lmax 10 with the prior variances times 1e12), the value is NaN and the
 :func:`log_evidence` raises a ``ValueError`` naming the channels and the cause instead.
 Under a trace (``jit``, ``grad``, an optimiser) it cannot raise: check ``solve.converged``
 (with ``options.throw`` an error is raised from inside the computation).
+
+Bad inputs, as in :mod:`gcrsky.inference.posterior`: on concrete arrays
+:func:`log_evidence_system` (and :func:`log_evidence`) raise a ``ValueError`` naming them
+(:func:`gcrsky.model.check_system`; ``check=False`` skips it); under a trace a channel with a
+non-finite datum, a non-finite or negative ``inv_noise``, a non-finite prior mean or a
+non-finite or negative prior ``inv_var`` has the value NaN (its gradient stays finite in the
+other channels) and ``solve.result`` :data:`~gcrsky.solvers.Result.BAD_INPUT`, and with
+``options.throw`` it is an error naming the input.
 """
 
 from __future__ import annotations
@@ -68,12 +76,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model.operator import adjoint, apply
-from ..model.system import LinearSystem
-from ..solvers.info import SolveInfo
+from ..model.system import LinearSystem, check_system
+from ..solvers.info import SolveInfo, fold_bad_input
 from ..solvers.options import EighOptions, SLQOptions
 from ..solvers.path import EvidenceParts, is_traced
 from ..solvers.registry import SolverOptions, path_of
 from .api import as_system, fixed_path
+from .posterior import bad_channels, guard_inputs
 
 __all__ = ["EvidenceInfo", "evidence_terms", "log_evidence", "log_evidence_system"]
 
@@ -132,12 +141,18 @@ def _assemble(terms: dict, parts: EvidenceParts):
     return value, info
 
 
+def _fold_bad_input(value, info: EvidenceInfo, bad):
+    """NaN and ``BAD_INPUT`` in the channels whose inputs are bad (the module's docstring)."""
+    return jnp.where(bad, jnp.nan, value), info._replace(solve=fold_bad_input(info.solve, bad))
+
+
 def log_evidence_system(
     system: LinearSystem,
     *,
     options: SolverOptions,
     slq: SLQOptions | None = None,
     key: jax.Array | None = None,
+    check: bool = True,
 ):
     """``(log p(d) (Nf,), EvidenceInfo)`` on the path of ``options`` (pure; usable inside ``jit``).
 
@@ -148,13 +163,21 @@ def log_evidence_system(
         slq: SLQ settings (``"cg"`` only); default :class:`~gcrsky.solvers.SLQOptions`.
         key: PRNG key of the SLQ probes (default ``PRNGKey(slq.seed)``): a fixed key
             makes the estimate a deterministic, differentiable function of the system.
+        check: check concrete inputs with :func:`gcrsky.model.check_system` first.
 
     Returns:
-        the value, NaN where the factorisation failed (``info.solve.result`` then says so).
+        the value, NaN where the factorisation failed or an input is bad (``info.solve.result``
+        then says which: ``NONFINITE`` or ``BAD_INPUT``).
+
+    Raises:
+        ValueError: a bad concrete input (``check``), naming it.
     """
+    if check:
+        check_system(system)
+    system, bad = guard_inputs(system, options)
     terms = evidence_terms(system)
     parts = path_of(options).evidence_parts(system, options, terms, slq=slq, key=key)
-    return _assemble(terms, parts)
+    return _fold_bad_input(*_assemble(terms, parts), bad)
 
 
 def _check_proper(system: LinearSystem) -> None:
@@ -224,6 +247,7 @@ def log_evidence(
         _check_proper(problem.system)
         terms = evidence_terms(problem.system)
         value, info = _assemble(terms, path.state_evidence_parts(problem, terms, slq=slq, key=key))
+        value, info = _fold_bad_input(value, info, bad_channels(problem.system))
         _refuse_nonfinite(value, info, path.name)
         return (value, info) if return_info else value
     system = as_system(problem)
@@ -233,6 +257,6 @@ def log_evidence(
     opts = fixed_path(system, method, options=options, memory_budget=memory_budget)
     if isinstance(opts, EighOptions) and opts.rcond > 0:
         opts = EighOptions(rcond=0.0, throw=opts.throw, tol=opts.tol)  # every direction is proper here
-    value, info = log_evidence_system(system, options=opts, slq=slq, key=key)
+    value, info = log_evidence_system(system, options=opts, slq=slq, key=key, check=False)  # as_system checked it
     _refuse_nonfinite(value, info, path_of(opts).name)
     return (value, info) if return_info else value

@@ -14,6 +14,21 @@ The system tier: pure functions of a system, usable inside a user's ``jit`` and 
 
 Every path returns ``a_wf + delta`` with ``Cov(delta) = P^-1`` exactly.
 
+**Inputs.** The system is checked as the user tier checks it: on concrete arrays
+:func:`gcrsky.model.check_system` raises a ``ValueError`` naming a bad input (a non-finite
+datum, flagged or not; ``inv_noise`` non-finite or negative; a non-finite prior mean; a prior
+``inv_var`` non-finite or negative; dtypes, shapes), before any set-up (``check=False``
+skips it, for a system already checked; host NumPy on the data, noise and prior, no copy of
+the response).  Under a trace (a user's ``jit`` / ``vmap`` / ``grad``) it cannot raise, so
+the same value checks (:func:`gcrsky.model.input_faults`, a few elementwise reductions, no
+host callback) are folded into the result: every channel with a bad input reports
+:data:`~gcrsky.solvers.Result.BAD_INPUT` (never converged), in ``wiener`` and ``draws``, on
+every path, whatever the solve measured (it can look converged); the values themselves are
+left as the path computed them.  With the path's ``throw=True`` a bad input is an error
+(``equinox.error_if``) naming it.  This happens here, once, for every path; a state
+prepared by a path directly (:class:`~gcrsky.solvers.SolverPath`) still gets the fold in
+:func:`draw` and :func:`draw_exactly`.
+
 **Draw layout** (the one convention, everywhere in gcrsky): draws are ``(Nf, ndraws, n)``,
 channel first, then draw, then the realified coefficients (:mod:`gcrsky.sphere.modes`);
 a chain of :func:`gcrsky.gcr_step` stacked by ``lax.scan`` is ``(nsteps, Nf, n)``.
@@ -30,14 +45,16 @@ one array).  Different paths give different (equally exact) draws.
 
 from __future__ import annotations
 
+import functools
 import warnings
 from typing import Union
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ..model.system import LinearSystem
-from ..solvers.info import DrawInfo, SolveInfo
+from ..model.system import INPUT_FAULTS, LinearSystem, check_system, input_faults
+from ..solvers.info import DrawInfo, SolveInfo, fold_bad_input
 from ..solvers.registry import PATHS, SolverOptions, options_for, path_of
 
 __all__ = ["DRAW_BATCH", "SamplerState", "condition", "draw", "draw_bucket", "draw_exactly", "prepare_sampler", "prepare_system",
@@ -56,12 +73,38 @@ def _options(method: str | None, options: SolverOptions | None, tol: float | Non
     return options_for(method, options, tol=tol)
 
 
+def guard_inputs(system: LinearSystem, options) -> tuple[LinearSystem, jax.Array]:
+    """``(system, bad)``: ``bad`` (Nf,) True where a channel's inputs are bad (:func:`~gcrsky.model.input_faults`).
+
+    With ``options.throw`` the returned system's data carry one ``equinox.error_if`` per input,
+    "gcrsky: bad input: <what>", so a bad input raises before (and instead of) the path's own
+    error.  Otherwise the system is returned as it is.
+    """
+    faults = input_faults(system)
+    if getattr(options, "throw", False):
+        data = system.data
+        for name, bad in faults.items():
+            data = eqx.error_if(data, bad, f"gcrsky: bad input: {INPUT_FAULTS[name]}")
+        system = system._replace(data=data)
+    return system, functools.reduce(jnp.logical_or, faults.values())
+
+
+def bad_channels(system: LinearSystem) -> jax.Array:
+    """(Nf,) True where a channel's inputs are bad (any of :func:`~gcrsky.model.input_faults`; traceable)."""
+    return functools.reduce(jnp.logical_or, input_faults(system).values())
+
+
+def _fold_state(state, bad: jax.Array):
+    return eqx.tree_at(lambda s: s.wiener, state, fold_bad_input(state.wiener, bad))
+
+
 def prepare_system(
     system: LinearSystem,
     *,
     method: str | None = None,
     options: SolverOptions | None = None,
     tol: float | None = None,
+    check: bool = True,
 ):
     """Set up one exact path once: factor / precondition P and solve for the Wiener filter.
 
@@ -75,13 +118,22 @@ def prepare_system(
             ``"dataspace"`` needs a proper prior (refused on concrete arrays otherwise).
         options: the path's options (:mod:`gcrsky.solvers.options`); implies the path.
         tol: CG tolerance in posterior-sigma units (overrides ``options.tol``).
+        check: check concrete inputs with :func:`gcrsky.model.check_system` first (the
+            module's **Inputs**; under a trace bad inputs are reported ``BAD_INPUT``).
 
     Returns:
         the path's state; pass it to :func:`draw` as often as needed.
+
+    Raises:
+        ValueError: a bad concrete input (``check``), naming it; or a path that does not apply.
     """
+    if check:
+        check_system(system)
     opts = _options(method, options, tol)
     path = path_of(opts)
-    return path.prepare(system, path.resolve(system, opts))
+    opts = path.resolve(system, opts)
+    system, bad = guard_inputs(system, opts)
+    return _fold_state(path.prepare(system, opts), bad)
 
 
 def prepare_sampler(system: LinearSystem, **kw):
@@ -90,15 +142,24 @@ def prepare_sampler(system: LinearSystem, **kw):
     return prepare_system(system, **kw)
 
 
-def condition(prepared, data: jax.Array):
+def condition(prepared, data: jax.Array, *, check: bool = True):
     """The prepared state for new visibilities ``data`` (Nf, Nt, Nbl), with the same noise and prior.
 
     The Wiener filter is solved again with the existing factor (direct paths) or preconditioner
     (CG); nothing is refactorised.  Equal to a fresh :func:`prepare_system` on the system with
     ``data`` (to rounding on the direct paths, to the tolerance on CG), and pure: vmap it over
-    data sets.
+    data sets.  Concrete ``data`` are checked (``check``: :func:`gcrsky.model.check_system` on
+    the new system, a ``ValueError`` naming a non-finite sample); traced ones that are not
+    finite make the channel's ``wiener`` :data:`~gcrsky.solvers.Result.BAD_INPUT` (the module's
+    **Inputs**).
     """
-    return path_of(prepared).condition(prepared, data)
+    path = path_of(prepared)
+    data = jnp.asarray(data, prepared.system.data.dtype)
+    system = prepared.system._replace(data=data)
+    if check:
+        check_system(system)
+    system, bad = guard_inputs(system, getattr(prepared, "options", None))  # a state need not keep its options
+    return _fold_state(path.condition(prepared, system.data), bad)
 
 
 def draw_bucket(ndraws: int) -> int:
@@ -115,9 +176,11 @@ def draw_exactly(key: jax.Array, prepared, ndraws: int) -> tuple[jax.Array, Draw
 
     What :func:`draw` calls per batch, and what fixed-batch loops (:mod:`gcrsky.inference.batches`,
     ``gcrsky run``, :mod:`gcrsky.parallel.channels`) use directly: one compiled program per
-    ``ndraws``.  Returns as :func:`draw`.
+    ``ndraws``.  Returns as :func:`draw` (bad inputs reported ``BAD_INPUT``, as there).
     """
-    return path_of(prepared).draw(key, prepared, int(ndraws))
+    draws, info = path_of(prepared).draw(key, prepared, int(ndraws))
+    bad = bad_channels(prepared.system)
+    return draws, info._replace(wiener=fold_bad_input(info.wiener, bad), draws=fold_bad_input(info.draws, bad))
 
 
 def draw(key: jax.Array, prepared, ndraws: int, *, data: jax.Array | None = None) -> tuple[jax.Array, DrawInfo]:
@@ -133,17 +196,19 @@ def draw(key: jax.Array, prepared, ndraws: int, *, data: jax.Array | None = None
 
     Returns:
         draws (Nf, ndraws, n) and a :class:`~gcrsky.solvers.DrawInfo` (``wiener``: SolveInfo
-        over (Nf,), ``draws``: SolveInfo over (Nf, ndraws), ``a_wf`` (Nf, n)).
+        over (Nf,), ``draws``: SolveInfo over (Nf, ndraws), ``a_wf`` (Nf, n)); a channel whose
+        inputs are bad (the module's **Inputs**) reports ``BAD_INPUT`` in both.
     """
     path = path_of(prepared)
     if data is not None:
-        prepared = path.condition(prepared, data)
+        prepared = condition(prepared, data)
     size = draw_bucket(ndraws)
     nbatch = -(-int(ndraws) // size)
     parts = [path.draw(jax.random.fold_in(key, b), prepared, size) for b in range(nbatch)]
     draws = jnp.concatenate([p[0] for p in parts], axis=1)[:, :ndraws]
     dinfo = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a, axis=1)[:, :ndraws], *[p[1].draws for p in parts])
-    return draws, DrawInfo(prepared.wiener, dinfo, prepared.a_wf)
+    bad = bad_channels(prepared.system)
+    return draws, DrawInfo(fold_bad_input(prepared.wiener, bad), fold_bad_input(dinfo, bad), prepared.a_wf)
 
 
 def sample_system(
@@ -154,6 +219,7 @@ def sample_system(
     method: str | None = None,
     options: SolverOptions | None = None,
     tol: float | None = None,
+    check: bool = True,
 ) -> tuple[jax.Array, DrawInfo]:
     """GCR draws from the exact posterior ``N(a_wf, P^-1)``: :func:`prepare_system` then :func:`draw`.
 
@@ -171,10 +237,13 @@ def sample_system(
 
     For many batches, call :func:`prepare_system` once and :func:`draw` per batch.
 
+    Concrete inputs are checked (``check``; a ``ValueError`` naming a bad one), traced ones
+    reported ``BAD_INPUT`` (the module's **Inputs**).
+
     Returns:
         as :func:`draw`.
     """
-    return draw(key, prepare_system(system, method=method, options=options, tol=tol), ndraws)
+    return draw(key, prepare_system(system, method=method, options=options, tol=tol, check=check), ndraws)
 
 
 def wiener_filter_system(
@@ -183,15 +252,24 @@ def wiener_filter_system(
     method: str | None = None,
     options: SolverOptions | None = None,
     tol: float | None = None,
+    check: bool = True,
 ) -> tuple[jax.Array, SolveInfo]:
     """Wiener filter (posterior mean) ``P^-1 (X^T W d + S^-1 a0)`` on one exact path.
 
     CG (the default) starts at the prior mean and never forms the factors the draws
     need; the direct paths solve with their factor.
 
+    Concrete inputs are checked (``check``; a ``ValueError`` naming a bad one), traced ones
+    reported ``BAD_INPUT`` (the module's **Inputs**).
+
     Returns:
         (a_wf (Nf, n), SolveInfo with (Nf,) fields).
     """
+    if check:
+        check_system(system)
     opts = _options(method, options, tol)
     path = path_of(opts)
-    return path.wiener(system, path.resolve(system, opts))
+    opts = path.resolve(system, opts)
+    system, bad = guard_inputs(system, opts)
+    a_wf, info = path.wiener(system, opts)
+    return a_wf, fold_bad_input(info, bad)

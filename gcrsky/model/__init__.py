@@ -6,7 +6,8 @@
 - ``prior``: Gaussian priors (the paper's, isotropic from C_l, flat)
 - ``skyprior``: a prior for real data: the GSM's angular power spectrum (a shipped table)
 - ``system``: :class:`LinearSystem`: precision operator, Wiener and GCR right-hand sides;
-  :func:`check_system`, what is wrong with a hand-edited system
+  :func:`check_system`, what is wrong with a hand-edited system (:func:`input_faults`, its
+  traceable value checks)
 - ``problem``: :class:`Problem` and :func:`build_problem` (geometry, responses, simulation, assembly)
 - ``compress``: exact redundant-baseline compression of data, systems, problems
 - ``observation``: :class:`Observation`, what a visibility file says (NumPy arrays on
@@ -92,6 +93,7 @@ from .system import (
     check_system,
     data_apply,
     fluctuation_rhs,
+    input_faults,
     precision_apply,
     precision_data_matrix,
     precision_matrix,
@@ -142,6 +144,7 @@ __all__ = [
     "noise_excess",
     "refuse_empty",
     "check_system",
+    "input_faults",
     "clean_data",
     "compress_problem",
     "compress_system",

@@ -26,10 +26,12 @@ from .operator import VisOperator, adjoint, apply, from_response_frame, n_in, re
 from .prior import Prior
 
 __all__ = [
+    "INPUT_FAULTS",
     "LinearSystem",
     "check_system",
     "data_apply",
     "fluctuation_rhs",
+    "input_faults",
     "precision_apply",
     "precision_data_matrix",
     "precision_matrix",
@@ -232,7 +234,11 @@ def check_system(system: LinearSystem) -> LinearSystem:
     are finite wherever ``inv_noise > 0`` (flagged samples may hold anything only if
     they were cleaned, i.e. are finite: NaN times a zero weight is NaN); the prior's
     mean is finite and its inverse variance finite and ``>= 0``; angles finite.
-    Traced systems are passed through unchecked (call it outside ``jit``).
+    Traced systems are passed through unchecked (call it outside ``jit``), and the values of a
+    system spread over processes (arrays not fully addressable here) are not read; the value checks
+    have a traceable twin, :func:`input_faults`, which the system tier folds into its result
+    codes there (:data:`gcrsky.solvers.Result.BAD_INPUT`).  Cheap: host NumPy on the data,
+    noise, prior and angles (the response's dtype is read without copying it).
 
     Returns:
         the system, unchanged.
@@ -241,7 +247,7 @@ def check_system(system: LinearSystem) -> LinearSystem:
     if any(isinstance(x, jax.core.Tracer) for x in leaves):
         return system
     for path, x in jax.tree_util.tree_flatten_with_path(system)[0]:
-        dt = np.asarray(x).dtype
+        dt = np.dtype(x.dtype) if hasattr(x, "dtype") else np.asarray(x).dtype
         if dt.kind in "fc" and dt not in (np.float64, np.complex128):
             raise ValueError(f"system{jax.tree_util.keystr(path)} is {dt}: gcrsky's solves need float64 / "
                              "complex128 (enable jax_enable_x64 before creating arrays)")
@@ -259,6 +265,9 @@ def check_system(system: LinearSystem) -> LinearSystem:
         if tuple(np.shape(getattr(system.prior, name))) != (nf, n):
             raise ValueError(f"prior.{name} has shape {np.shape(getattr(system.prior, name))}, expected (Nf, n) = "
                              f"{(nf, n)}")
+    values = (system.data, system.inv_noise, system.prior.mean, system.prior.inv_var, op.angles)
+    if not all(getattr(x, "is_fully_addressable", True) for x in values):
+        return system  # spread over processes (multi-host sharding): the values are judged in the computation
     w = np.asarray(system.inv_noise)
     bad = ~np.isfinite(w) | (w < 0)
     if bad.any():
@@ -283,3 +292,36 @@ def check_system(system: LinearSystem) -> LinearSystem:
     if not np.all(np.isfinite(np.asarray(op.angles))):
         raise ValueError("op.angles must be finite")
     return system
+
+
+#: The inputs :func:`input_faults` judges (the keys of its result), with what is wrong when one is bad.
+INPUT_FAULTS = {
+    "data": "data has non-finite samples (NaN or Inf; flagged samples too: NaN times a zero weight is NaN, "
+            "store them as 0)",
+    "inv_noise": "inv_noise is non-finite or negative (0 = flagged)",
+    "prior.mean": "prior.mean is non-finite",
+    "prior.inv_var": "prior.inv_var is non-finite or negative",
+    "op.angles": "op.angles are non-finite",
+}
+
+
+def input_faults(system: LinearSystem) -> dict[str, jax.Array]:
+    """The value checks of :func:`check_system` as traceable per-channel flags (usable inside ``jit``).
+
+    Returns:
+        ``{name: (Nf,) bool}`` for each input in :data:`INPUT_FAULTS`: True where channel
+        f's input is bad: ``data`` not finite (anywhere, flagged samples included, as
+        :func:`check_system` refuses them: ``0 * NaN`` poisons the Wiener right-hand side),
+        ``inv_noise`` non-finite or ``< 0``, ``prior.mean`` non-finite, ``prior.inv_var``
+        non-finite or ``< 0``, ``op.angles`` non-finite (every channel).  Elementwise
+        reductions only (no host callback, no gradient: the flags are booleans).
+    """
+    w, iv = system.inv_noise, system.prior.inv_var
+    nf = jnp.shape(w)[0]
+    return {
+        "data": ~jnp.all(jnp.isfinite(system.data), axis=(-2, -1)),
+        "inv_noise": ~jnp.all(jnp.isfinite(w) & (w >= 0), axis=(-2, -1)),
+        "prior.mean": ~jnp.all(jnp.isfinite(system.prior.mean), axis=-1),
+        "prior.inv_var": ~jnp.all(jnp.isfinite(iv) & (iv >= 0), axis=-1),
+        "op.angles": jnp.broadcast_to(~jnp.all(jnp.isfinite(system.op.angles)), (nf,)),
+    }

@@ -8,7 +8,14 @@ finite but its solve misses the tolerance, measured by the true residual: e.g. t
 m-mode path on coverage that is not block-diagonal in m, which a trace cannot check
 beforehand, or a factor that lost its accuracy to rounding).  ``SolveInfo.converged``
 is ``result == 0``: on every path it is *measured* (CG's error bound, the direct paths'
-true residual against their ``tol``), never assumed.
+true residual against their ``tol``), never assumed.  ``BAD_INPUT`` (5: the system's
+inputs are not valid: a non-finite datum, a non-finite or negative ``inv_noise``, a
+non-finite prior mean, a non-finite or negative prior ``inv_var``, non-finite angles;
+see :func:`gcrsky.model.input_faults`) is set by the system tier
+(:mod:`gcrsky.inference.posterior`, :func:`gcrsky.inference.log_evidence_system`) under a
+trace, where :func:`gcrsky.model.check_system` cannot raise: it overrides whatever the
+path measured (a solve of bad inputs can look converged), in every channel with a bad
+input, and with a path's ``throw=True`` it is an error naming the input.
 :func:`result_names` turns codes into words for messages.
 """
 
@@ -20,7 +27,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["DrawInfo", "Result", "SolveInfo", "direct_info", "exact_info", "result_code", "result_names"]
+__all__ = ["DrawInfo", "Result", "SolveInfo", "direct_info", "exact_info", "fold_bad_input", "result_code",
+           "result_names"]
 
 
 class Result:
@@ -31,8 +39,9 @@ class Result:
     BREAKDOWN = 2
     NONFINITE = 3
     INACCURATE = 4
+    BAD_INPUT = 5
 
-    NAMES = ("success", "max_iterations", "breakdown", "nonfinite", "inaccurate")
+    NAMES = ("success", "max_iterations", "breakdown", "nonfinite", "inaccurate", "bad_input")
 
 
 class SolveInfo(NamedTuple):
@@ -124,6 +133,20 @@ def exact_info(wiener: SolveInfo, finite: jax.Array, shape: tuple[int, ...]) -> 
     code = jnp.where(jnp.broadcast_to(finite, shape), expand(wiener.result), Result.NONFINITE)
     return SolveInfo(jnp.zeros(shape, int), expand(wiener.err_sigma), expand(wiener.rel_residual),
                      code == Result.SUCCESS, code)
+
+
+def fold_bad_input(info: SolveInfo, bad: jax.Array) -> SolveInfo:
+    """``info`` with :data:`Result.BAD_INPUT` (never converged) wherever ``bad`` is True.
+
+    Args:
+        info: a :class:`SolveInfo` with fields of shape (Nf, ...).
+        bad: (Nf,) booleans, a channel's inputs are bad (:func:`gcrsky.model.input_faults`);
+            broadcast over the trailing batch axes (e.g. the draws).
+    """
+    bad = jnp.asarray(bad)
+    bad = jnp.reshape(bad, bad.shape + (1,) * (jnp.ndim(info.result) - bad.ndim))
+    code = jnp.where(bad, Result.BAD_INPUT, info.result).astype(jnp.asarray(info.result).dtype)
+    return info._replace(converged=code == Result.SUCCESS, result=code)
 
 
 def result_names(info: SolveInfo) -> dict[str, int]:
