@@ -4,7 +4,8 @@ The simulation (:func:`gcrsky.checks.uvsim.simulate_uvdata`, matvis, an independ
 7 antennas (hexagon, 14.6 m spacing) with 14 m Gaussian dishes at HERA, 2 channels at 120 and
 121 MHz, 12 integrations over 6 h, a sky drawn from an isotropic prior ``C_l = 50 / (1 + l)^2``
 K^2 at lmax 6 (the degree sampled: representable, ``band_limit`` "truncate" is right), matvis
-nside 32 and gcrsky nside 32 (forward error 2.5e-5 of the rms, measured), radiometer noise of
+nside 64 and gcrsky nside 64 (at 32 the longest rows' fringes, reach l = 111, exceed 3 nside - 1;
+from_uvdata refuses it; at 32 the two simulators agreed to 2.5e-5 of the rms, aliasing alike), radiometer noise of
 10 s x 100 kHz (the cross-visibilities' rms is ~40 sigma: the noise dominates the simulators'
 disagreement by 1e3).  The known gains (:func:`gcrsky.checks.gainsim.corrupt_with_gains`):
 5 % rms amplitude and 5 deg rms phase per antenna and feed, linear across the band and the
@@ -63,7 +64,7 @@ from gcrsky.io.uvdata import from_uvdata
 from gcrsky.model import gain_model, isotropic_prior, n_gain_params, perturbations, unit_gains
 from gcrsky.model.operator import dense_matrix
 
-LMAX, NSIDE = 6, 32
+LMAX, NSIDE = 6, 64  # nside 64: the quadrature resolves the fringes (reach 111 > 3 x 32 - 1)
 FREQS = np.array([120e6, 121e6])
 NT, HOURS = 12, 6.0
 DT_S, DNU_HZ = 10.0, 1e5

@@ -14,7 +14,7 @@ OVERRIDES = {
     "hyperparameters.ipynb": {"LMAX": 8, "NSIDE": 32, "GRID": 4, "STEPS": 8},
     "gibbs.ipynb": {"LMAX": 8, "NSIDE": 32, "STEPS": 1500, "NUTS_WARMUP": 150, "NUTS_SAMPLES": 300},
     "point_sources.ipynb": {"LMAX": 8, "NSIDE": 32, "STEPS": 1500},
-    "real_data.ipynb": {"LMAX": 8, "BAND_LIMIT": "marginalise", "NSIDE": 32, "NSAMPLES": 20},
+    "real_data.ipynb": {"LMAX": 8, "BAND_LIMIT": "marginalise", "NSIDE": 64, "NSAMPLES": 20},  # nside 64: the kept fringes resolved
     "calibration.ipynb": {"HEX_ROWS": (2, 3), "LMAX": 4, "NSIDE": 16, "STEPS": 1000, "BURN": 200,
                           "H1C_LMAX": 8, "H1C_STEPS": 100, "H1C_BURN": 100},
 }

@@ -4,8 +4,8 @@ Before: the README told users to call ``gcrsky.parallel.use_safe_cpu_threading()
 after ``import gcrsky``, which raised ``AttributeError`` (the subpackage was not loaded).
 Checked here, each in a fresh process where it matters:
 
-* every ```` ```python ```` block, in order, as one script (the blocks build on each other:
-  ``prob`` and ``system`` come from earlier ones), in an empty working directory;
+* every ```` ```python ```` block, in order, as one script: ``tests/test_notebooks.py::
+  test_readme_python_examples_run`` (at a smaller nside, with checks of what the blocks make);
 * every ``gcrsky.NAME...`` the prose names in backticks resolves by attribute access from
   ``import gcrsky``, and the no-argument calls it names (``gcrsky.x.y()``) run;
 * every ``gcrsky COMMAND ...`` line of the README parses with the command's own parser.
@@ -31,7 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 README = (REPO / "README.md").read_text()
 
 
-def python_blocks(text: str) -> list[str]:
+def python_blocks(text: str) -> list[str]:  # run by tests/test_notebooks.py
     return re.findall(r"^```python\n(.*?)^```", text, flags=re.S | re.M)
 
 
@@ -109,12 +109,3 @@ def test_commands_parse(argv, capsys):
 def test_a_wrong_command_does_not_parse(capsys):
     with pytest.raises(SystemExit):
         build_parser().parse_args(["run", "--no-such-option"])
-
-
-@pytest.mark.slow
-def test_python_blocks_run_as_written(tmp_path):
-    """All the README's Python blocks, in order, as one script in an empty directory (a few minutes)."""
-    script = "\n".join(python_blocks(README))
-    proc = _run(script, tmp_path)
-    assert proc.returncode == 0, proc.stderr[-4000:]
-    assert (tmp_path / "obs.uvh5").is_file()  # the first block's file
