@@ -139,7 +139,7 @@ CASES = [
     ("dish-1e-9", lambda d: _sim(d, d / "out" / "dish-", "--dish-diameter", "1e-9"),
      r"dish_diameter 1e-09 m gives a beam FWHM .* wider than the sky"),
     ("dish-1e9", lambda d: _sim(d, d / "out" / "dish+", "--dish-diameter", "1e9"),
-     r"narrower than two pixels of the nside 32 grid"),
+     r"narrower than a pixel of the nside 32 grid"),
     ("noise-1e-300", lambda d: _sim(d, d / "out" / "noise", "--noise-scale", "1e-300"),
      r"noise_scale 1e-300 is outside"),
     ("out-is-a-file", lambda d: _sim(d, d / "afile"), r"--out .*afile is a file, not a directory"),

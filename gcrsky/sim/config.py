@@ -86,7 +86,8 @@ class Config:
         return self
 
     def _check_beam_resolution(self) -> None:
-        """The beam is narrower than the sky and wider than two pixels of the quadrature grid."""
+        """The beam is narrower than the sky and no narrower than a pixel of the quadrature grid (a simulation's
+        data come from the same grid, so only a beam that falls between its pixels is refused)."""
         import healpy as hp
 
         freqs = np.asarray(self.freqs_hz, np.float64)
@@ -100,12 +101,12 @@ class Config:
                     f"{np.degrees(widest):.3g} deg at {freqs.min() / 1e6:g} MHz: wider than the sky; the dish "
                     f"must be wider than lambda / pi = {SPEED_OF_LIGHT / freqs.min() / np.pi:.3g} m")
         pixel = hp.nside2resol(int(self.nside))
-        if narrowest < 2 * pixel:
-            fit = 1 << int(np.ceil(np.log2(hp.nside2resol(1) / (narrowest / 2))))
+        if narrowest < pixel:
+            fit = 1 << int(np.ceil(np.log2(hp.nside2resol(1) / narrowest)))
             raise ValueError(
                 f"the beam's FWHM, {np.degrees(narrowest):.3g} deg at {freqs.max() / 1e6:g} MHz, is narrower than "
-                f"two pixels of the nside {self.nside} grid ({np.degrees(pixel):.3g} deg each): the quadrature "
-                f"cannot resolve it; use nside >= {fit} or a wider beam (a smaller dish)")
+                f"a pixel of the nside {self.nside} grid ({np.degrees(pixel):.3g} deg): the quadrature cannot "
+                f"resolve it; use nside >= {fit} or a wider beam (a smaller dish)")
 
     @property
     def lsts_hours(self) -> np.ndarray:
