@@ -378,6 +378,37 @@ def test_prepare_once_then_draw_equals_sample(small, method):
     assert bool(np.all(np.asarray(info.draws.converged)))
 
 
+def test_large_n_mode_factorises_on_the_host_and_equals_numpy(small):
+    """``inverse=False`` on concrete CPU arrays factorises P on the host (``blocked_cholesky``, every
+    core): the factor equals NumPy's to ~cond(P) eps relative, the Wiener filter to a dense solve; a
+    non-positive-definite P gives a NaN factor reported as not converged (as XLA's factor does), and
+    under a trace the XLA factor runs instead (same factor to rounding)."""
+    from gcrsky.solvers import CholeskyOptions
+    from gcrsky.solvers.dense import host_cholesky, host_factor_applies
+
+    prob = small["prob"]
+    opts = CholeskyOptions(inverse=False)
+    state = gcrsky.prepare(prob, options=opts)
+    P = small["P"]
+    tol = 10 * np.linalg.cond(P) * np.finfo(float).eps
+    np.testing.assert_allclose(np.asarray(state.chol)[0], small["L"], rtol=0, atol=tol * np.abs(small["L"]).max())
+    np.testing.assert_allclose(np.asarray(state.a_wf)[0], small["a_wf"], rtol=0,
+                               atol=tol * np.abs(small["a_wf"]).max())
+    assert bool(np.all(np.asarray(state.wiener.converged)))
+    assert host_factor_applies(jnp.asarray(P)[None])
+    assert not jax.jit(lambda p: jnp.asarray(host_factor_applies(p)))(jnp.asarray(P)[None])
+    bad = jnp.asarray(np.stack([P, P - 2 * np.linalg.eigvalsh(P)[-1] * np.eye(P.shape[0])]))
+    L = np.asarray(host_cholesky(bad))
+    assert np.all(np.isfinite(L[0])) and np.all(np.isnan(L[1]))
+    np.testing.assert_allclose(np.tril(L[0]), L[0], rtol=0, atol=0)  # lower triangular, zeros above
+    from gcrsky.model import precision_matrix
+    from gcrsky.solvers.dense import _factor_cholesky_jit
+
+    traced = jax.jit(lambda s: _factor_cholesky_jit(s, precision_matrix(s), opts)[2])
+    np.testing.assert_allclose(np.asarray(traced(prob.system()))[0], small["L"], rtol=0,
+                               atol=tol * np.abs(small["L"]).max())
+
+
 def test_cholesky_draws_without_the_inverse_factor_equal_those_with_it(small):
     """``CholeskyOptions(inverse=False)`` (the large-n mode: draws solve with L^T, no L^-T)
     gives the same draws as the default's product with L^-T: same keys, same z, and

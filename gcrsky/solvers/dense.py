@@ -35,6 +35,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..base.dtypes import check_float64
 from ..base.memory import format_bytes
@@ -192,6 +193,44 @@ def _factor_cholesky_jit(system: LinearSystem, P: jax.Array, options: CholeskyOp
     return st.a_wf, st.wiener, st.chol
 
 
+@partial(jax.jit, static_argnames=("options",))
+def _wiener_of_factor(system: LinearSystem, P: jax.Array, L: jax.Array, options: CholeskyOptions):
+    """The Wiener filter of a given P and its factor L (the host-factor route)."""
+    return _cholesky_wiener(system, P, L, wiener_rhs(system), options)
+
+
+def host_factor_applies(P: jax.Array) -> bool:
+    """Whether :func:`prepare_cholesky` (without ``L^-T``) factorises P on the host: P concrete and held by
+    the CPU backend.  There :func:`gcrsky.solvers.blocked.blocked_cholesky` runs its BLAS calls on every
+    core the process may use (``potrf`` only on panels of at most ``BLOCK`` columns, so the threaded-``dpotrf``
+    crash above :data:`OPENBLAS_SAFE_N` is out of reach) while XLA's own factor runs on one thread: measured
+    n = 22801 on 2 cores, XXX."""
+    if isinstance(P, jax.core.Tracer) or not P.is_fully_addressable:  # traced, or spread over processes
+        return False
+    return all(d.platform == "cpu" for d in P.devices())
+
+
+def host_cholesky(P: jax.Array) -> jax.Array:
+    """Lower Cholesky factors (Nf, n, n) of a concrete P (Nf, n, n) on the CPU backend, factorised on the
+    host (:func:`host_factor_applies`) into one aligned buffer that XLA then uses without a copy.
+
+    A channel whose P is not positive definite gets a NaN factor (as XLA's factor does), which the
+    Wiener filter's info reports as not converged.
+    """
+    from .blocked import blocked_cholesky
+    from .dataspace_large import aligned_empty
+
+    host = np.asarray(P)  # the CPU buffer itself (read-only view), no copy
+    out = aligned_empty(host.shape)
+    for f in range(host.shape[0]):
+        np.copyto(out[f], host[f])
+        try:
+            blocked_cholesky(out[f])
+        except ValueError:
+            out[f] = np.nan
+    return jax.device_put(out)
+
+
 def _cholesky_wiener(system: LinearSystem, P, L, b, options: CholeskyOptions):
     """``a_wf = P^-1 b`` through the factor, with its info from the true residual ``b - P a_wf``."""
     cho = jax.vmap(lambda l, v: jax.scipy.linalg.cho_solve((l, True), v))
@@ -231,22 +270,32 @@ def prepare_cholesky(system: LinearSystem, options: CholeskyOptions | None = Non
     if not isinstance(options, CholeskyOptions):
         raise TypeError(f"the Cholesky path takes CholeskyOptions, got {type(options).__name__}")
     n = n_in(system.op)
+    inverse = n <= CHOLESKY_INVERSE_MAX_N if options.inverse is None else bool(options.inverse)
+    if not inverse:
+        # two programs: P, then its factor -- one program holds the P being built, its copy
+        # for LAPACK and the factor at once (5.25 n^2 doubles at the peak against 3 n^2;
+        # measured with ``memory_analysis``).  Inside a caller's jit they fuse again.
+        check_float64(system.op.response, system.inv_noise)
+        P = precision_matrix(system)
+        if host_factor_applies(P):
+            L = host_cholesky(P)
+            a_wf, winfo = _wiener_of_factor(system, P, L, options)
+            return CholeskyState(system, a_wf, winfo, P, L, None, options)
+        _check_openblas_threads(n)
+        a_wf, winfo, L = _factor_cholesky_jit(system, P, options)
+        return CholeskyState(system, a_wf, winfo, P, L, None, options)
+    _check_openblas_threads(n)
+    return _prepare_cholesky(system, options, inverse)
+
+
+def _check_openblas_threads(n: int) -> None:
+    """Refuse XLA's dense factor of n > :data:`OPENBLAS_SAFE_N` unless OpenBLAS runs single-threaded."""
     if n > OPENBLAS_SAFE_N and os.environ.get("OPENBLAS_NUM_THREADS") != "1":
         raise RuntimeError(
             f"the dense Cholesky of n = {n} > {OPENBLAS_SAFE_N} parameters needs OPENBLAS_NUM_THREADS=1 "
             "in the environment before Python starts (multi-threaded OpenBLAS dpotrf crashed at this "
             "size); the gcrsky CLI sets it, as does gcrsky.parallel.use_safe_cpu_threading() when "
             "called before numpy/scipy/jax are imported")
-    inverse = n <= CHOLESKY_INVERSE_MAX_N if options.inverse is None else bool(options.inverse)
-    if inverse:
-        return _prepare_cholesky(system, options, inverse)
-    # two programs: P, then its factor -- one program holds the P being built, its copy
-    # for LAPACK and the factor at once (5.25 n^2 doubles at the peak against 3 n^2;
-    # measured with ``memory_analysis``).  Inside a caller's jit they fuse again.
-    check_float64(system.op.response, system.inv_noise)
-    P = precision_matrix(system)
-    a_wf, winfo, L = _factor_cholesky_jit(system, P, options)
-    return CholeskyState(system, a_wf, winfo, P, L, None, options)
 
 
 def _eigh_fns(lam, rcond):
