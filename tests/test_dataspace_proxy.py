@@ -142,7 +142,7 @@ def test_wiener_filter_and_draws_equal_the_general_construction(system, referenc
     assert 0 < it.max() <= MAX_ITERATIONS and 0 < np.asarray(w.iterations).max() <= MAX_ITERATIONS
 
 
-@pytest.mark.parametrize("tol", [1e-2, 1e-4])
+@pytest.mark.parametrize("tol", [1e-4])  # one loose tolerance: the error is measurable there
 def test_the_bound_holds_where_cg_stops_early(system, reference, tol):
     """At loose tolerances the error is measurable (not rounding) and below the reported ||r||_2."""
     ref, P = reference
@@ -192,7 +192,8 @@ def test_anisotropic_prior_has_no_proxy(system):
     assert stationary_proxy(no_frame) is None
 
 
-@pytest.mark.parametrize("which,in_place", [("noise", False), ("prior", False), ("noise", True)])
+# noise and prior derivatives, the jnp and the host factor: each once (~1 min of compilation a case)
+@pytest.mark.parametrize("which,in_place", [("prior", False), ("noise", True)])
 def test_wiener_filter_differentiates_implicitly(system, which, in_place):
     """d/d(scale) of a fixed projection of the Wiener filter, the proxy's factor (jnp or host) held at scale 1
     and D matrix-free at the traced scale: against central differences of fresh proxy set-ups (h = 1e-5)."""
