@@ -181,6 +181,19 @@ def test_joint_dense_and_mmode_equal_numpy(case, request):
         assert abs(float(ev) - ref.log_evidence) < 1e-8 * abs(ref.log_evidence), (float(ev), ref.log_evidence)
 
 
+def test_bad_inputs_are_refused_naming_them(op):
+    system = _system(op, _prior())
+    R = np.asarray(system.prior.freq_cov)
+    rank3 = spectral_basis_cov(FREQS, NU0, -2.5, np.array([1.0, 0.3, 0.05]), nugget=0.0)
+    for bad, match in ((system.prior._replace(freq_cov=R[:3, :3]), "freq_cov has shape"),
+                       (system.prior._replace(freq_cov=R + np.triu(R, 1)), "symmetric"),
+                       (system.prior._replace(freq_cov=rank3 - 1e-6 * np.eye(4)), "nugget"),
+                       (system.prior._replace(mode_var=-system.prior.mode_var), "mode_var")):
+        for prepare in (prepare_joint_dense, prepare_joint_mmode):
+            with pytest.raises(ValueError, match=match):
+                prepare(system._replace(prior=bad))
+
+
 def test_mmode_refuses_partial_coverage(op):
     system = _system(op, _prior())
     part = system._replace(op=system.op._replace(angles=system.op.angles[:10]), data=system.data[:, :10],

@@ -56,7 +56,13 @@ import numpy as np
 from ..model.operator import VisOperator, adjoint, apply
 from ..model.prior import Prior
 from ..model.spectral import FrequencyPrior
-from ..model.system import LinearSystem, fluctuation_rhs, precision_data_matrix, precision_matrix_by_time
+from ..model.system import (
+    LinearSystem,
+    check_system,
+    fluctuation_rhs,
+    precision_data_matrix,
+    precision_matrix_by_time,
+)
 from ..sphere.modes import lmax_from_nparams
 from .mmode import mmode_blocks, mmode_buckets, mmode_check
 from .options import MModeOptions
@@ -66,6 +72,7 @@ __all__ = [
     "JointDenseState",
     "JointMModeState",
     "JointSystem",
+    "check_joint_system",
     "data_system",
     "draw_joint_dense",
     "draw_joint_mmode",
@@ -102,6 +109,36 @@ def data_system(system: JointSystem) -> LinearSystem:
     mean the joint prior's): its precision is ``blockdiag_nu(H_nu)``."""
     mean = system.prior.mean
     return LinearSystem(system.op, system.data, system.inv_noise, Prior(mean, jnp.zeros_like(mean)))
+
+
+def check_joint_system(system: JointSystem) -> JointSystem:
+    """Check a concrete :class:`JointSystem` on the host; raise ``ValueError`` naming what is wrong.
+
+    The data, noise, operator and prior mean as :func:`gcrsky.model.check_system`; ``mode_var``
+    (n,) finite and positive; ``freq_cov`` (Nf, Nf) finite and symmetric (to 1e-12 of its
+    largest entry) with a positive Cholesky factor.  Traced systems pass unchecked.
+
+    Returns:
+        the system, unchanged.
+    """
+    if is_traced(system):
+        return system
+    check_system(data_system(system))
+    nf, n = np.shape(system.prior.mean)
+    c = np.asarray(system.prior.mode_var)
+    if c.shape != (n,) or not np.all(np.isfinite(c) & (c > 0)):
+        raise ValueError(f"prior.mode_var must be (n,) = ({n},), finite and positive; got shape {c.shape}")
+    R = np.asarray(system.prior.freq_cov)
+    if R.shape != (nf, nf):
+        raise ValueError(f"prior.freq_cov has shape {R.shape}, expected (Nf, Nf) = {(nf, nf)}")
+    if not np.all(np.isfinite(R)) or np.abs(R - R.T).max() > 1e-12 * np.abs(R).max():
+        raise ValueError("prior.freq_cov must be finite and symmetric")
+    try:
+        np.linalg.cholesky(R)
+    except np.linalg.LinAlgError:
+        raise ValueError("prior.freq_cov is not positive definite in float64: give it a nugget "
+                         "(gcrsky.model.spectral, e.g. a rank-K spectral basis needs one)") from None
+    return system
 
 
 def joint_evidence_terms(system: JointSystem) -> dict:
@@ -179,17 +216,27 @@ class JointDenseState(eqx.Module):
     terms: dict
 
 
-@jax.jit
-def prepare_joint_dense(system: JointSystem) -> JointDenseState:
+def prepare_joint_dense(system: JointSystem, *, check: bool = True) -> JointDenseState:
     """Factorise the joint whitened precision ``M = I + G^T blockdiag(H) G`` and solve the Wiener filter.
 
     Args:
         system: a :class:`JointSystem` (any coverage, noise and flags).
+        check: :func:`check_joint_system` first (concrete arrays only; skipped under a trace).
 
     Returns:
-        a :class:`JointDenseState`.  Cost ``O(Nf^3 n^3)``; a factorisation failure (``R`` not
-        positive definite in float64) shows as NaN (check ``jnp.isfinite(state.a_wf)``).
+        a :class:`JointDenseState`.  Cost ``O(Nf^3 n^3)``; under a trace a factorisation failure
+        (``R`` not positive definite in float64) shows as NaN (check ``jnp.isfinite(state.a_wf)``).
+
+    Raises:
+        ValueError: a bad concrete input (``check``).
     """
+    if check:
+        check_joint_system(system)
+    return _prepare_dense(system)
+
+
+@jax.jit
+def _prepare_dense(system: JointSystem) -> JointDenseState:
     LR, sc = _whitening(system.prior)
     H = _data_precision(data_system(system))
     nf, n = H.shape[0], H.shape[1]
@@ -228,16 +275,17 @@ def _evidence(state, logdet_m):
     return -0.5 * (chi2 + logdet_m + t["logdet_n"] + t["n_data"] * LOG_2PI)
 
 
-def joint_log_evidence_dense(state: JointSystem | JointDenseState) -> jax.Array:
+def joint_log_evidence_dense(state: JointSystem | JointDenseState, *, check: bool = True) -> jax.Array:
     """The joint log evidence ``log p(d)`` of all channels (a scalar; module docstring).
 
     Args:
-        state: a :class:`JointSystem` (factorised here) or a :class:`JointDenseState`.
+        state: a :class:`JointSystem` (factorised here, checked on concrete arrays with ``check``)
+            or a :class:`JointDenseState`.
 
     Differentiable (``jax.grad``) in everything the system holds, e.g. the prior's hyperparameters.
     """
     if isinstance(state, JointSystem):
-        state = prepare_joint_dense(state)
+        state = prepare_joint_dense(state, check=check)
     return _evidence(state, 2.0 * jnp.sum(jnp.log(jnp.diagonal(state.chol))))
 
 
@@ -350,6 +398,7 @@ def prepare_joint_mmode(system: JointSystem, options: MModeOptions | None = None
     """
     options = options or MModeOptions()
     if check and not is_traced(system):
+        check_joint_system(system)
         ok = mmode_check(data_system(system), atol=options.atol, rtol=options.rtol)
         if not ok:
             raise ValueError(f"the joint m-mode path does not apply: {ok.reason}")
