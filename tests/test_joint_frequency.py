@@ -46,6 +46,7 @@ from gcrsky.solvers.joint import (
     prepare_joint_dense,
     prepare_joint_mmode,
 )
+from gcrsky.solvers.options import MModeOptions
 
 LMAX = 6
 N = (LMAX + 1) ** 2
@@ -172,12 +173,17 @@ def test_spectral_basis_is_rank_k_plus_nugget():
 @pytest.mark.parametrize("case", ["coupled", "flagged"])
 def test_joint_dense_and_mmode_equal_numpy(case, request):
     system, ref, dense, mm = request.getfixturevalue(case)
-    for state in (dense, mm):
+    mm2 = prepare_joint_mmode(system, MModeOptions(bucket=2))  # 4 buckets, each with padding (m = 0, 2, 4, 6)
+    assert len(mm2.chol) == 4 and len(mm.chol) == 1
+    for state in (dense, mm, mm2):
         err = np.abs(np.asarray(state.a_wf) - ref.a_wf) / ref.sigma
         assert err.max() < 1e-8, err.max()
     np.testing.assert_allclose(np.asarray(joint_precision_matrix(system)), ref.P, rtol=1e-9,
                                atol=1e-11 * np.abs(ref.P).max())
-    for ev in (joint_log_evidence_dense(dense), joint_log_evidence_mmode(mm)):
+    key = jax.random.PRNGKey(4)
+    d1, d2 = np.asarray(draw_joint_dense(key, dense, 3)), np.asarray(draw_joint_mmode(key, mm2, 3))
+    np.testing.assert_allclose(d2, d1, atol=1e-10 * np.abs(d1).max())  # same noise, same posterior
+    for ev in (joint_log_evidence_dense(dense), joint_log_evidence_mmode(mm), joint_log_evidence_mmode(mm2)):
         assert abs(float(ev) - ref.log_evidence) < 1e-8 * abs(ref.log_evidence), (float(ev), ref.log_evidence)
 
 
