@@ -234,6 +234,19 @@ summed over times.  Exact dense Cholesky (``method="auto"`` picks it)::
   bottleneck is memory (P and its factor, 8.3 GB, grow as lmax^4), so lmax >~ 160 needs the
   matrix-free route, whose products still cost ``O(Nt Nbl n)`` each.
 
+(C'') The same row with the dense factor on the host (MEASURED 2026-12-03 20:27-20:29 UTC, load ~1-2,
+``SCALE_PATHS=chol python benchmarks/scale.py --only l150-a331-t30-8h-f1-red`` under ``/usr/bin/time -v``).
+``prepare_cholesky`` without ``L^-T`` (n > 12000) now factorises P with ``gcrsky.solvers.blocked.blocked_cholesky``
+on every core (threadpoolctl; ``potrf`` only on 1024-wide panels) instead of XLA's one-threaded factor::
+
+    config                      n      Nbl/all    N_d    resp_s  prob_s  peak_MB  auto      chol
+    l150-a331-t30-8h-f1-red     22801  630/54615  37800     5.5     2.0  13413    cholesky  138.0 (incl. compile) / 20.3ms
+
+* set-up 204.9 -> 138.0 s (1.49x), 200 draws 4.1 s (1.4 s of it compilation), Wiener filter error 3.0e-8
+  posterior sigma; the whole configuration 157.4 s wall with the response (was 250 s: issue 24 item 2's
+  "the lmax 150 row faster than today's 250 s": met, 1.59x); process peak 13.7 GB (``/usr/bin/time``),
+  13.4 GB by the script (was 13.3).
+
 (B') Response routes side by side, all 630 unique rows of the 331-antenna hexagon, nside
 256, 1 channel (MEASURED 2026-12-02 06:53-07:06 UTC, load 0.4-2, one process per lmax,
 ``python benchmarks/response_routes.py 300 256 331`` and ``150 256 331``): lmax 300: rings 115.6 s, SHT 41.5 s (2.8x), max |dR| / max |R| =
