@@ -68,18 +68,12 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+sys.path.insert(0, os.path.dirname(__file__))
 
-from gcrsky.instrument import (  # noqa: E402
-    HERA_LATITUDE_DEG,
-    gaussian_beam,
-    groups_for_array,
-    hex_array,
-    make_array,
-    unique_response,
-)
-from gcrsky.model import LinearSystem, VisOperator, isotropic_prior  # noqa: E402
+import window_pc  # noqa: E402  (benchmarks/: the shared 37-antenna problem)
+
+from gcrsky.model import LinearSystem  # noqa: E402
 from gcrsky.solvers.dataspace_large import lag_blocks_by_m  # noqa: E402
-from gcrsky.sphere import n_params  # noqa: E402
 
 TOL = 1e-6
 MAXITER = 3000
@@ -87,21 +81,9 @@ ROWS = [(16, 8.0, 144), (64, 8.0, 144), (100, 8.0, 90)]
 
 
 def make_system(lmax: int, hours: float, nfull: int, snr: float = 10.0) -> LinearSystem:
-    """The 37-antenna problem of the module docstring; one channel, Nt = nfull hours / 24 times."""
-    arr = make_array(hex_array((4, 5, 6, 7, 6, 5, 4), 14.6), HERA_LATITUDE_DEG, gaussian_beam(14.0))
-    g = groups_for_array(arr)
-    R = unique_response(arr, g, np.array([100e6]), lmax, 64 if lmax <= 64 else 128)
+    """The 37-antenna problem of ``benchmarks/window_pc.py`` at the times ``t 2 pi / nfull``, t < nfull hours / 24."""
     nt = int(round(nfull * hours / 24))
-    lsts = np.arange(nt) * 2 * np.pi / nfull
-    cl = 100.0 / (1.0 + np.arange(lmax + 1)) ** 2
-    prior = isotropic_prior(cl[None], n_params(lmax))
-    std = 1 / np.sqrt(np.asarray(prior.inv_var))
-    counts = np.asarray(g.counts, float)
-    p = np.einsum("fbk,fk->fb", np.abs(np.asarray(R)) ** 2, std**2)
-    sigma = np.sqrt(np.average(p, axis=1, weights=counts).mean()) / snr / np.sqrt(2)
-    iv = jnp.broadcast_to(jnp.asarray(counts / sigma**2), (1, nt, len(counts)))
-    data = jnp.zeros((1, nt, len(counts)), complex)
-    return LinearSystem(VisOperator(R, jnp.asarray(lsts)), data, iv, prior)
+    return window_pc.make_system(lmax, hours, snr=snr, lsts=np.arange(nt) * 2 * np.pi / nfull)
 
 
 def circulant_solver(c: np.ndarray):

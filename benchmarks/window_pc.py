@@ -110,13 +110,15 @@ TOL = 1e-6
 BANDS = (2, 4, 8)
 
 
-def make_system(lmax: int, hours: float, per_hour: int = 6, snr: float = 10.0) -> LinearSystem:
-    """The 37-antenna problem above; (LinearSystem, 1 channel)."""
+def make_system(lmax: int, hours: float, per_hour: int = 6, snr: float = 10.0, lsts=None) -> LinearSystem:
+    """The 37-antenna problem above; (LinearSystem, 1 channel).  ``lsts`` (radians) replaces the default
+    times (``per_hour`` an hour over the first ``hours``)."""
     arr = make_array(hex_array((4, 5, 6, 7, 6, 5, 4), 14.6), HERA_LATITUDE_DEG, gaussian_beam(14.0))
     g = groups_for_array(arr)
     R = unique_response(arr, g, np.array([100e6]), lmax, 64 if lmax <= 64 else 128)
-    nt = max(4, round(per_hour * hours))
-    lsts = np.linspace(0, hours * 2 * np.pi / 24, nt)
+    if lsts is None:
+        lsts = np.linspace(0, hours * 2 * np.pi / 24, max(4, round(per_hour * hours)))
+    nt = len(lsts)
     cl = 100.0 / (1.0 + np.arange(lmax + 1)) ** 2
     prior = isotropic_prior(cl[None], n_params(lmax))
     std = 1 / np.sqrt(np.asarray(prior.inv_var))
