@@ -175,7 +175,9 @@ CHOLESKY_INVERSE_MAX_N = 12000
 #: Above this n, a multi-threaded OpenBLAS ``dpotrf`` crashed (segmentation fault) on the
 #: development host (scipy-openblas 0.3.30, the LAPACK jaxlib calls: n = 14000 ran, n =
 #: 16000 crashed, in scipy as in JAX); with ``OPENBLAS_NUM_THREADS=1`` set before start-up
-#: it ran (n = 22801 in 127 s).  :func:`prepare_cholesky` refuses larger n without it.
+#: it ran (n = 22801 in 127 s).  :func:`prepare_cholesky` refuses larger n without it where XLA factorises
+#: (under a trace, or off the CPU backend); on concrete CPU arrays it factorises on the host instead
+#: (:func:`host_cholesky`, whose ``potrf`` calls stay below this size).
 OPENBLAS_SAFE_N = 14000
 
 
