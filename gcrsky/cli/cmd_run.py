@@ -11,7 +11,7 @@ import sys
 import time
 
 from ..solvers.options import DEFAULT_TOL
-from .options import DEFAULT_NSAMPLES, check_channel_options
+from .options import DEFAULT_NSAMPLES, check_channel_options, check_frequency_options
 from .runs import EXIT_REFUSED, execute_with_bars, report_run, run_spec
 from .terminal import refusal_message
 
@@ -22,6 +22,7 @@ def run_command(args, parser) -> int:
     from tqdm.contrib.logging import logging_redirect_tqdm
 
     check_channel_options(parser, args)
+    check_frequency_options(parser, args)
     if args.data is not None:
         from .cmd_data import data_command
 

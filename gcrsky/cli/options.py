@@ -17,7 +17,10 @@ __all__ = [
     "add_channel_options",
     "add_compile_cache_options",
     "add_data_options",
+    "add_frequency_options",
     "add_gain_options",
+    "check_frequency_options",
+    "frequency_model",
     "gain_sampling",
     "add_beam_prior_options",
     "add_run_flags",
@@ -281,6 +284,66 @@ def add_gain_options(g) -> None:
                    help="sweeps per kept draw (default 1)")
     g.add_argument("--gauge-moves", type=int_at_least(0, "gauge-moves"), default=4, metavar="N",
                    help="moves along the amplitude-sky gauge per sweep (default 4; 0: plain Gibbs)")
+
+
+def add_frequency_options(g) -> None:
+    """``--freq-prior`` and its settings (:class:`gcrsky.run.FrequencyModel`)."""
+    g.add_argument("--freq-prior", choices=("independent", "template", "basis", "kernel"), default="independent",
+                   help="independent (default): each channel its own prior, sampled separately; template: one "
+                   "power law (nu/nu0)^beta shared by all channels; basis: --freq-nbasis log-polynomial spectral "
+                   "functions; kernel: a smooth covariance in log frequency (--freq-xi); the coupled priors sample "
+                   "all channels jointly and inpaint fully flagged channels through their neighbours")
+    g.add_argument("--freq-beta", type=finite_float("freq-beta"), default=None, metavar="B",
+                   help="spectral index of the prior's standard deviation (default: fitted to how the prior's own "
+                   "variance changes across the channels, e.g. the GSM's)")
+    g.add_argument("--freq-xi", type=positive_float("freq-xi"), default=0.1, metavar="XI",
+                   help="kernel: correlation length in natural log frequency (default 0.1: ~10 %% in frequency)")
+    g.add_argument("--freq-nbasis", type=int_at_least(1, "freq-nbasis", 8), default=3, metavar="K",
+                   help="basis: number of log-polynomial functions (default 3: power law, running, curvature)")
+    g.add_argument("--freq-basis-sigma", type=positive_float("freq-basis-sigma"), default=0.1, metavar="S",
+                   help="basis: prior sd of the k-th function's coefficient relative to the power law's, S^k "
+                   "(default 0.1)")
+    g.add_argument("--freq-nugget", type=_float_where("freq-nugget", lambda v: v >= 0 and math.isfinite(v),
+                                                      "a non-negative finite number"), default=None, metavar="E",
+                   help="relative variance each channel may have beyond the model (default: template and kernel "
+                   "1e-6, basis 1e-3)")
+    g.add_argument("--freq-fit", action="store_true",
+                   help="kernel: fit its amplitude, beta and xi by maximum joint evidence before sampling")
+
+
+#: The frequency block's options (dest, option) that need a coupled ``--freq-prior``.
+FREQ_ONLY = (("freq_beta", "--freq-beta"), ("freq_xi", "--freq-xi"), ("freq_nbasis", "--freq-nbasis"),
+             ("freq_basis_sigma", "--freq-basis-sigma"), ("freq_nugget", "--freq-nugget"), ("freq_fit", "--freq-fit"))
+
+
+def check_frequency_options(parser, args) -> None:
+    """The frequency block's options need a coupled ``--freq-prior`` (and the right one); channels then run jointly."""
+    defaults = parser.parse_args(["run"])
+    used = [opt for dest, opt in FREQ_ONLY if getattr(args, dest) != getattr(defaults, dest)]
+    if args.freq_prior == "independent":
+        if used:
+            parser.error(f"{', '.join(used)} set a frequency prior: add --freq-prior template, basis or kernel")
+        return
+    wrong = {"template": ("--freq-xi", "--freq-nbasis", "--freq-basis-sigma", "--freq-fit"),
+             "basis": ("--freq-xi", "--freq-fit"), "kernel": ("--freq-nbasis", "--freq-basis-sigma")}
+    bad = [opt for opt in used if opt in wrong[args.freq_prior]]
+    if bad:
+        parser.error(f"{', '.join(bad)} do not apply to --freq-prior {args.freq_prior}")
+    if channel_mode(args) is not None:
+        parser.error(f"--freq-prior {args.freq_prior} couples the channels, so they are sampled together: drop "
+                     "--by-channel, --devices and --num-processes")
+    if getattr(args, "gains", "off") == "sample":
+        parser.error(f"--freq-prior {args.freq_prior} is not combined with --gains sample yet")
+
+
+def frequency_model(args):
+    """The :class:`gcrsky.run.FrequencyModel` of the options, or None with ``--freq-prior independent``."""
+    if args.freq_prior == "independent":
+        return None
+    from ..run.spec import FrequencyModel
+
+    return FrequencyModel(prior=args.freq_prior, beta=args.freq_beta, xi=args.freq_xi, nbasis=args.freq_nbasis,
+                          basis_sigma=args.freq_basis_sigma, nugget=args.freq_nugget, fit=args.freq_fit)
 
 
 def gain_sampling(args, applied: float = 1.0):

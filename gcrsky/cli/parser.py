@@ -15,6 +15,7 @@ from .options import (
     add_channel_options,
     add_compile_cache_options,
     add_data_options,
+    add_frequency_options,
     add_gain_options,
     add_run_flags,
     finite_float,
@@ -100,6 +101,9 @@ def _add_run_parser(sub) -> None:
         "gains sampled with the sky", "--data only: per-antenna complex gains (a few smooth modes in frequency and "
         "time) and the overall amplitude sampled jointly with the sky (docs/gains.md); the draws are then a Markov "
         "chain's, and the posterior-mean gains are written as gains.calh5"))
+    add_frequency_options(r.add_argument_group(
+        "frequency prior", "one prior over all channels, coupling them (docs/frequency.md): the channels are sampled "
+        "jointly, and fully flagged channels are inpainted through their neighbours (marked in summary.json)"))
     ex = r.add_mutually_exclusive_group()
     ex.add_argument("--resume", action="store_true",
                     help="continue the run recorded in --out (killed or complete) from its first missing batch; "

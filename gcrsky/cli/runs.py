@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import sys
 
-from .options import channel_mode
+from .options import channel_mode, frequency_model
 from .terminal import StageBar, batch_bar, channel_bar, print_summary, refusal_message, stage_names
 
 __all__ = ["EXIT_AFTER_DRAWS", "EXIT_REFUSED", "execute_with_bars", "existing_mode", "report_run", "run_spec"]
@@ -22,12 +22,13 @@ def existing_mode(args) -> str:
 
 
 def run_spec(args, *, nsamples: int, method: str, tol: float, scenario: str | None = None, extra=None, gains=None):
-    """The :class:`~gcrsky.run.RunSpec` of ``gcrsky run``'s options (draws, output, channels, argv, gains)."""
+    """The :class:`~gcrsky.run.RunSpec` of ``gcrsky run``'s options (draws, output, channels, argv, gains,
+    frequency prior)."""
     from ..run import Draws, Output, RunSpec, Solver
 
     return RunSpec(Draws(nsamples, args.seed, args.batch), Output(args.out, existing_mode(args), not args.no_plots),
                    Solver(method, tol), channels=channel_mode(args), scenario=scenario,
-                   argv=getattr(args, "_argv", None), extra=extra, gains=gains)
+                   argv=getattr(args, "_argv", None), extra=extra, gains=gains, frequency=frequency_model(args))
 
 
 def execute_with_bars(args, prob, spec, hooks, *, build_s: float, compile_since):

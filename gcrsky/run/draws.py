@@ -67,7 +67,8 @@ def kill_hook(complete: int) -> None:
 
 
 def _results_attrs(prob, spec, settings, *, method, options, key_scheme) -> dict:
-    """The attributes a run records in a new ``results.h5``."""
+    """The attributes a run records in a new ``results.h5`` (``options``: a path's options object, or the
+    JSON text of a path the registry does not list, e.g. a frequency-coupled run's)."""
     cfg = prob.config
     return {
         "config_json": json.dumps(cfg.to_dict() if cfg is not None else None, default=json_default),
@@ -77,7 +78,7 @@ def _results_attrs(prob, spec, settings, *, method, options, key_scheme) -> dict
         "batch": spec.draws.batch,
         "method": method,
         "method_requested": settings["method"],
-        "solver_options_json": options_json(options),
+        "solver_options_json": options if isinstance(options, str) else options_json(options),
         "tol": spec.solver.tol,
         "scenario": spec.scenario or "",
         "key_scheme": key_scheme,

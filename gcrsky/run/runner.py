@@ -24,6 +24,7 @@ here prints.
 
 from __future__ import annotations
 
+import json
 from typing import Sequence
 
 import jax
@@ -34,6 +35,7 @@ from ..parallel.runtime import CompileStats, compile_cache_dir, compile_stats
 from .channels import channel_draws, worker_channels
 from .draws import joint_draws
 from .fit import run_fit
+from .frequency import channels_block, frequency_draws
 from .gains import gain_draws, gain_summary, gained_problem, stored_gain_factor, write_gain_products
 from .lock import run_lock
 from .maps import RunMaps, parameter_frame, run_maps, stored_maps
@@ -109,7 +111,8 @@ def _execute_locked(prob, spec: RunSpec, hooks, watch: Watch, build_s: float, co
     run = open_run(prob, spec)
     st = StageTimer(watch.on_stage)
     st.times["build"] = build_s
-    draw_stage = gain_draws if spec.gains is not None else joint_draws if spec.channels is None else channel_draws
+    draw_stage = (gain_draws if spec.gains is not None else frequency_draws if spec.frequency is not None
+                  else joint_draws if spec.channels is None else channel_draws)
     method = draw_stage(prob, spec, run, st, watch)  # leaves the "draws" stage running
     stored = read_draws(run.h5)
     st.stop()
@@ -126,19 +129,21 @@ def _after_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, stored, meth
                                       rank=stored.rank)
     if not np.isfinite(stored.draws).all():
         warnings.append(f"ERROR: {int((~np.isfinite(stored.draws)).sum())} non-finite values in the draws.")
+    channels = channels_block(prob, spec, run.h5, warnings)
     view, figures = _report(prob, spec, run, stored, hooks, st, warnings)
     fit_prob = prob if spec.gains is None else gained_problem(prob, stored_gain_factor(run.h5))
     gof = None if (run.out / SUMMARY_FILE).exists() else run_fit(fit_prob, stored.wiener_filter, warnings,
                                                                      rank=stored.rank)
     st.start("write")
-    finalized = _write(prob, spec, run, stored, view.maps, method)
+    finalized = _write(prob, spec, run, stored, view.maps, method, channels)
     gains = None
     if spec.gains is not None and not (run.out / SUMMARY_FILE).exists():
         gains = gain_summary(prob, spec.gains, run.h5)
         gains["calibration_file"] = write_gain_products(prob, spec.gains, run.out, run.h5)
     st.stop()
     timings, compiled = _timings(st, stored, compile0)
-    summary = _summary(prob, spec, run, view, solver, warnings, (timings, compiled), figures, method, gof, gains)
+    summary = _summary(prob, spec, run, view, solver, warnings, (timings, compiled), figures, method, gof, gains,
+                       channels)
     written = [f for f in existing_run_files(run.out)
                if f not in run.before or (f == RESULTS_FILE and finalized)]
     return summary, _products(prob, run, view, stored.draws, written)
@@ -163,8 +168,9 @@ def _report(prob, spec: RunSpec, run: OpenRun, stored, hooks, st: StageTimer, wa
     return view, figures
 
 
-def _write(prob, spec: RunSpec, run: OpenRun, stored, maps: RunMaps, method: str) -> bool:
-    """The products (those missing), and ``results.h5`` finished unless it was; True if it was finished now."""
+def _write(prob, spec: RunSpec, run: OpenRun, stored, maps: RunMaps, method: str, channels: dict) -> bool:
+    """The products (those missing), and ``results.h5`` finished unless it was (with the ``channels`` block as
+    its attribute ``channels_json``); True if it was finished now."""
     write_products(run.out, wiener_filter=stored.wiener_filter, wiener_maps=maps.wiener_maps,
                    std_maps=maps.std_maps, freqs_hz=np.asarray(prob.freqs_hz), lmax=prob.lmax,
                    frame=parameter_frame(prob), ndraws=stored.draws.shape[1], method=method,
@@ -172,7 +178,7 @@ def _write(prob, spec: RunSpec, run: OpenRun, stored, maps: RunMaps, method: str
     if read_results_state(run.h5).complete:
         return False
     arrays = {"truth": maps.truth_maps, "mean": maps.mean_maps, "std": maps.std_maps, "wiener": maps.wiener_maps}
-    finalize_results_h5(run.h5, mode_z=maps.mode_z, maps=arrays)
+    finalize_results_h5(run.h5, mode_z=maps.mode_z, maps=arrays, attrs={"channels_json": json.dumps(channels)})
     return True
 
 
@@ -193,7 +199,7 @@ def _timings(st: StageTimer, stored, compile0: CompileStats) -> tuple[dict, dict
 
 def _summary(prob, spec: RunSpec, run: OpenRun, view: RunView, solver: dict, warnings: list,
              timings: tuple[dict, dict], figures: dict, method: str, gof: dict | None = None,
-             gains: dict | None = None) -> RunSummary:
+             gains: dict | None = None, channels: dict | None = None) -> RunSummary:
     """The run's :class:`RunSummary`, written to ``summary.json`` (a resumed run keeps the one its run wrote)."""
     path = run.out / SUMMARY_FILE
     if path.exists():
@@ -218,6 +224,7 @@ def _summary(prob, spec: RunSpec, run: OpenRun, view: RunView, solver: dict, war
         data_checks=dict(getattr(cfg, "checks", None) or {}) or None,
         goodness_of_fit=gof,
         gains=gains,
+        channels=channels,
     )
     write_json(path, summary.to_json())
     return summary

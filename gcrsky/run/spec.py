@@ -25,13 +25,16 @@ from ..model.gains import BASES
 from ..parallel.channels import CHANNEL_KEY_SCHEME
 from ..solvers.options import DEFAULT_TOL
 
-__all__ = ["CHANNEL_MODES", "EXISTING", "METHODS", "Draws", "GainSampling", "Output", "RunSpec", "Solver",
-           "run_settings"]
+__all__ = ["CHANNEL_MODES", "EXISTING", "FREQ_PRIORS", "METHODS", "Draws", "FrequencyModel", "GainSampling",
+           "Output", "RunSpec", "Solver", "run_settings"]
 
 #: The paths a run may ask for (``"auto"``: chosen by size, :func:`gcrsky.solvers.plan.choose_path`).
 METHODS = ("auto", "cg", "cholesky", "eigh", "mmode", "dataspace")
 #: What a run may do with a directory that already holds a run's files.
 EXISTING = ("refuse", "overwrite", "resume")
+#: The frequency models of a run: independent channels (each its own prior), or one prior over all of them
+#: (:class:`FrequencyModel`, :mod:`gcrsky.run.frequency`).
+FREQ_PRIORS = ("independent", "template", "basis", "kernel")
 #: Independent-channel modes (:mod:`gcrsky.parallel.channels`); None is the joint run.
 CHANNEL_MODES = ("loop", "devices", "processes")
 
@@ -153,6 +156,75 @@ class GainSampling:
         return {**dataclasses.asdict(self), "modes": list(self.modes)}
 
 
+def _positive(obj, name: str, where: str, *, zero: bool = False) -> None:
+    v = getattr(obj, name)
+    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or v < 0 or (v == 0 and not zero):
+        raise ValueError(f"{where} must be a {'non-negative' if zero else 'positive'} finite number, got {v!r}")
+    object.__setattr__(obj, name, float(v))
+
+
+#: Default relative nugget per frequency prior (:mod:`gcrsky.model.spectral`): the template and the kernel only
+#: need ``R`` numerically positive definite; a rank-K basis needs a proper prior beyond its K functions.
+DEFAULT_NUGGET = {"template": 1e-6, "basis": 1e-3, "kernel": 1e-6}
+
+
+@dataclasses.dataclass(frozen=True)
+class FrequencyModel:
+    """One prior over all channels, coupling them (:mod:`gcrsky.run.frequency`; DESIGN section 13).
+
+    The prior is separable, ``Cov(a_k(nu), a_k(nu')) = c_k R(nu, nu')``, with ``c_k`` the problem's
+    own (independent) prior variance at the reference channel (the middle one) and ``R`` from
+    :mod:`gcrsky.model.spectral`:
+
+    * ``"template"``: the paper's power law ``(nu/nu0)^beta`` shared by all channels (a one-function
+      spectral basis), plus the nugget;
+    * ``"basis"``: ``nbasis`` log-polynomial functions ``(nu/nu0)^beta log(nu/nu0)^k``, the k-th with
+      prior variance ``basis_sigma^(2k)`` (relative to the power law's), plus the nugget;
+    * ``"kernel"``: ``(nu nu'/nu0^2)^beta exp(-(log nu - log nu')^2 / (2 xi^2))``, plus the nugget.
+
+    Attributes:
+        prior: ``"template"``, ``"basis"`` or ``"kernel"``.
+        beta: spectral index of the prior's standard deviation, or None: fitted (least squares
+            in log-log) to the ratio of each channel's prior variance to the reference channel's.
+        xi: the kernel's correlation length in ``log nu`` (natural log).
+        nbasis: the basis' number of functions K (>= 1).
+        basis_sigma: the basis' relative prior standard deviation per order.
+        nugget: relative jitter (:mod:`gcrsky.model.spectral`); None: :data:`DEFAULT_NUGGET`.
+        fit: fit the kernel's hyperparameters (amplitude, beta, xi) by maximum joint evidence
+            before sampling (``"kernel"`` only).
+    """
+
+    prior: str = "kernel"
+    beta: float | None = None
+    xi: float = 0.1
+    nbasis: int = 3
+    basis_sigma: float = 0.1
+    nugget: float | None = None
+    fit: bool = False
+
+    def __post_init__(self):
+        _choice("frequency.prior", self.prior, FREQ_PRIORS[1:])
+        if self.beta is not None:
+            if isinstance(self.beta, bool) or not isinstance(self.beta, numbers.Real) or not math.isfinite(self.beta):
+                raise ValueError(f"frequency.beta must be a finite number or None, got {self.beta!r}")
+            object.__setattr__(self, "beta", float(self.beta))
+        _positive(self, "xi", "frequency.xi")
+        _integer(self, "nbasis", "frequency.nbasis", 1, 8)
+        _positive(self, "basis_sigma", "frequency.basis_sigma")
+        if self.nugget is None:
+            object.__setattr__(self, "nugget", DEFAULT_NUGGET[self.prior])
+        _positive(self, "nugget", "frequency.nugget", zero=True)
+        if not isinstance(self.fit, bool):
+            raise ValueError(f"frequency.fit must be True or False, got {self.fit!r}")
+        if self.fit and self.prior != "kernel":
+            raise ValueError(f"frequency.fit fits the kernel's hyperparameters: it needs prior 'kernel', not "
+                             f"{self.prior!r}")
+
+    def to_dict(self) -> dict:
+        """The settings as a JSON-able dict (recorded with the run's settings as ``frequency``)."""
+        return dataclasses.asdict(self)
+
+
 @dataclasses.dataclass(frozen=True)
 class RunSpec:
     """One run: draws, solver, output, and what else identifies it.
@@ -172,6 +244,9 @@ class RunSpec:
             file); JSON-able, no key of the standard settings.
         gains: None (the data taken as calibrated) or :class:`GainSampling`: gains sampled
             with the sky (a joint run only; recorded in the settings as ``gains``).
+        frequency: None (independent channels, each its own prior) or :class:`FrequencyModel`:
+            one prior over all channels, sampled jointly (:mod:`gcrsky.run.frequency`; recorded
+            in the settings as ``frequency``).
     """
 
     draws: Draws
@@ -182,6 +257,7 @@ class RunSpec:
     argv: tuple[str, ...] | None = None
     extra: Mapping[str, Any] | None = None
     gains: GainSampling | None = None
+    frequency: FrequencyModel | None = None
 
     def __post_init__(self):
         for name, kind in (("draws", Draws), ("output", Output), ("solver", Solver)):
@@ -203,6 +279,13 @@ class RunSpec:
             if self.channels is not None:
                 raise ValueError("gains are sampled jointly over the channels (the amplitude's modes span them): "
                                  "drop channels (--by-channel, --devices, --num-processes)")
+        if self.frequency is not None:
+            if not isinstance(self.frequency, FrequencyModel):
+                raise ValueError(f"frequency must be a FrequencyModel or None, got {self.frequency!r}")
+            if self.channels is not None or self.gains is not None:
+                raise ValueError("a frequency prior couples the channels, so they are sampled together: drop "
+                                 + ("channels (--by-channel, --devices, --num-processes)" if self.channels is not None
+                                    else "--gains sample (not combined with a frequency prior yet)"))
         self.settings(None)  # the extra settings must not clash and must be JSON-able
 
     def all_extra(self) -> dict:
@@ -210,6 +293,8 @@ class RunSpec:
         extra = dict(self.extra or {})
         if self.gains is not None:
             extra["gains"] = self.gains.to_dict()
+        if self.frequency is not None:
+            extra["frequency"] = self.frequency.to_dict()
         if self.channels is not None:
             extra.update(channels=self.channels, channel_key_scheme=CHANNEL_KEY_SCHEME)
         return extra

@@ -76,6 +76,9 @@ class RunSummary:
         gains: a run that samples the gains with the sky: their settings, the posterior flux
             scale, the phase gradients against their prior (:func:`gcrsky.run.gains.gain_summary`);
             None otherwise.
+        channels: the channels and their model (:func:`gcrsky.run.frequency.channels_block`): the
+            frequency model, which channels are fully or partly flagged, each channel's unflagged
+            fraction, where a flagged channel's posterior comes from, and a frequency prior's settings.
     """
 
     frac_diff_centre_median: float | None
@@ -100,6 +103,7 @@ class RunSummary:
     data_checks: dict | None = None
     goodness_of_fit: dict | None = None
     gains: dict | None = None
+    channels: dict | None = None
 
     def to_json(self) -> dict:
         """The ``summary.json`` object: ``{field: value}`` in field order."""

@@ -64,6 +64,7 @@ from ..model.system import (
     precision_matrix_by_time,
 )
 from ..sphere.modes import lmax_from_nparams
+from .info import SolveInfo, direct_info
 from .mmode import mmode_blocks, mmode_buckets, mmode_check
 from .options import MModeOptions
 from .path import is_traced
@@ -77,6 +78,7 @@ __all__ = [
     "draw_joint_dense",
     "draw_joint_mmode",
     "joint_evidence_terms",
+    "joint_wiener_info",
     "joint_log_evidence_dense",
     "joint_log_evidence_mmode",
     "joint_precision_matrix",
@@ -287,6 +289,37 @@ def joint_log_evidence_dense(state: JointSystem | JointDenseState, *, check: boo
     if isinstance(state, JointSystem):
         state = prepare_joint_dense(state, check=check)
     return _evidence(state, 2.0 * jnp.sum(jnp.log(jnp.diagonal(state.chol))))
+
+
+def joint_wiener_info(system: JointSystem, a_wf: jax.Array, tol: float) -> SolveInfo:
+    """The measured accuracy of a joint Wiener filter, from its true residual, matrix-free.
+
+    With ``delta = a_wf - a0`` and ``u = G^-1 delta`` the whitened solve is ``M u = y``,
+    ``y = G^T b'``; its true residual ``r = y - u - G^T blockdiag(H) delta`` is computed with
+    the operator's products (``H delta = X^T W X delta``), independently of the factor that
+    produced ``a_wf``.  Since ``M >= I``, the error's M-norm (the error in posterior sigma)
+    is at most ``||r||_2``: that bound is ``err_sigma``, judged against ``tol``.
+
+    Args:
+        system: the :class:`JointSystem`; a_wf: (Nf, n) its Wiener filter, Kelvin.
+        tol: the accuracy asked for, posterior sigma.
+
+    Returns:
+        a :class:`~gcrsky.solvers.SolveInfo` with (Nf,) fields (the joint solve's figures,
+        the same for every channel: the channels are solved together).
+    """
+    LR, sc = _whitening(system.prior)
+    delta = jnp.asarray(a_wf) - system.prior.mean
+    b_res = joint_evidence_terms(system)["b_res"]
+    h_delta = adjoint(system.op, system.inv_noise * apply(system.op, delta))
+    u = jsl.solve_triangular(LR, (delta / sc).reshape(delta.shape[0], -1), lower=True)
+    y = _gt(LR, sc, b_res)
+    r = y - u - _gt(LR, sc, h_delta)
+    err = jnp.linalg.norm(r)
+    rel = err / jnp.maximum(jnp.linalg.norm(y), jnp.finfo(r.dtype).tiny)
+    nf = delta.shape[0]
+    finite = jnp.all(jnp.isfinite(delta))
+    return direct_info(jnp.full((nf,), err), jnp.full((nf,), rel), jnp.full((nf,), finite), tol)
 
 
 # ---------------------------------------------------------------- m-mode

@@ -1,0 +1,257 @@
+"""A run whose channels share one frequency-coupled prior (``RunSpec.frequency``; DESIGN section 13).
+
+The problem's per-channel prior (e.g. the GSM's ``C_l(nu)``) gives the mode variances ``c_k`` at
+the reference channel (the middle one, ``nu0``) and, through the ratio of every channel's prior
+variance to the reference one's, the spectral index ``beta`` of the prior's standard deviation
+(least squares in log-log, unless given).  :func:`frequency_prior_of` builds the separable
+:class:`~gcrsky.model.spectral.FrequencyPrior` ``S = R (x) diag(c)`` of
+:class:`~gcrsky.run.spec.FrequencyModel` from them (template, basis or kernel ``R``), and
+records how far its per-channel variances ``c_k R_ff`` are from the independent prior's.
+
+The draws (:func:`frequency_draws`) are those of the joint posterior over all channels, by an
+exact joint path of :mod:`gcrsky.solvers.joint`: ``mmode`` for uniform full-day coverage,
+else the dense Cholesky of the whitened joint precision (memory checked first).  Key scheme
+:data:`FREQ_KEY_SCHEME`: batch ``b`` is ``draw(fold_in(PRNGKey(seed), b), batch)``, so a
+resumed run ends with the draws of an uninterrupted one.  The Wiener filter's accuracy is
+measured from its true residual (:func:`gcrsky.solvers.joint.joint_wiener_info`), and the
+draws carry it, as every direct path's do.
+
+Flagged channels.  A channel without a single unflagged sample has no data term; its posterior
+comes through ``R`` from its neighbours (inpainting).  :func:`channel_flags` says which channels
+are fully or partly flagged; every run records it (``results.h5`` ``channels/``, the summary's
+``channels`` block), and an independent run says that such channels are its prior's alone.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..base.memory import check_memory
+from ..io.results import append_batch
+from ..model.spectral import (
+    FrequencyPrior,
+    log_frequency_kernel,
+    spectral_basis_cov,
+)
+from ..solvers.info import exact_info
+from ..solvers.joint import (
+    JointSystem,
+    data_system,
+    draw_joint_dense,
+    draw_joint_mmode,
+    joint_wiener_info,
+    prepare_joint_dense,
+    prepare_joint_mmode,
+)
+from ..solvers.mmode import mmode_check
+from .draws import kill_hook, record_setup
+from .output import OpenRun
+from .spec import FrequencyModel, RunSpec
+from .stages import StageTimer, Watch
+
+__all__ = ["FREQ_KEY_SCHEME", "JOINT_METHODS", "channel_flags", "choose_joint_method", "frequency_draws",
+           "frequency_prior_of", "joint_system_of"]
+
+log = logging.getLogger(__name__)
+
+#: The key scheme of a frequency-coupled run's draws (recorded in ``results.h5``).
+FREQ_KEY_SCHEME = "joint-frequency-v1: batch b = draw_joint(fold_in(PRNGKey(seed), b), batch), (ndraws, Nf, n)"
+
+#: The joint paths a frequency-coupled run may ask for (``--method``), by the name results.h5 records.
+JOINT_METHODS = {"cholesky": "joint-cholesky", "mmode": "joint-mmode"}
+
+#: Bytes per entry of the dense joint path's working set: M and its factor in float64, with slack.
+_DENSE_BYTES = 3 * 8
+
+
+def channel_flags(inv_noise) -> dict:
+    """Which channels have data: ``{"flagged": [...], "partly_flagged": [...], "data_fraction": [...]}``.
+
+    Args:
+        inv_noise: (Nf, Nt, Nbl) per-component inverse noise variance (0 = flagged).
+
+    Returns:
+        ``flagged``: channels without a single unflagged sample; ``partly_flagged``: channels with
+        some samples flagged, not all; ``data_fraction``: (Nf,) the unflagged fraction per channel.
+    """
+    w = np.asarray(inv_noise)
+    frac = (w > 0).reshape(w.shape[0], -1).mean(axis=1)
+    return {"flagged": [int(i) for i in np.flatnonzero(frac == 0)],
+            "partly_flagged": [int(i) for i in np.flatnonzero((frac > 0) & (frac < 1))],
+            "data_fraction": [float(x) for x in frac]}
+
+
+def _fit_beta(freqs: np.ndarray, var: np.ndarray, f0: int) -> float:
+    """The index of ``sqrt(median_k var_fk / var_f0k)`` against ``nu / nu0`` (least squares in log-log)."""
+    if freqs.size < 2:
+        return 0.0
+    ratio = np.median(var / var[f0][None, :], axis=1)
+    x, y = np.log(freqs / freqs[f0]), 0.5 * np.log(ratio)
+    return float(np.sum(x * y) / np.sum(x * x))
+
+
+def frequency_prior_of(system, freqs_hz, model: FrequencyModel) -> tuple[FrequencyPrior, dict]:
+    """The frequency-coupled prior of ``model`` built on a problem's own per-channel prior.
+
+    Args:
+        system: the problem's :class:`~gcrsky.model.LinearSystem` (its prior: mean (Nf, n), a
+            proper ``inv_var`` (Nf, n)).
+        freqs_hz: (Nf,) channel frequencies, Hz, increasing or not, distinct.
+        model: the :class:`~gcrsky.run.spec.FrequencyModel`.
+
+    Returns:
+        ``(FrequencyPrior, info)``; ``info`` (JSON-able): the prior's name, ``nu0_mhz``, ``beta``
+        (and whether it was fitted), the kernel or basis settings, and ``variance_ratio``: the
+        range over channels and modes of ``c_k R_ff`` over the independent prior's variance.
+
+    Raises:
+        ValueError: the prior is not proper on every mode (a flat prior has no variance to couple).
+    """
+    prior = system.prior
+    inv = np.asarray(prior.inv_var, np.float64)
+    freqs = np.asarray(freqs_hz, np.float64)
+    if not np.all(np.isfinite(inv) & (inv > 0)):
+        raise ValueError("a frequency prior couples the prior variances of the channels, so it needs a proper prior "
+                         "on every mode (this one is flat or zero on some): use --prior gsm or a prior file, or "
+                         "--freq-prior independent")
+    if np.unique(freqs).size != freqs.size:
+        raise ValueError("a frequency prior needs distinct channel frequencies")
+    var = 1.0 / inv
+    f0 = freqs.size // 2
+    nu0 = float(freqs[f0])
+    fitted = model.beta is None
+    beta = _fit_beta(freqs, var, f0) if fitted else model.beta
+    info = {"prior": model.prior, "nu0_mhz": nu0 / 1e6, "reference_channel": f0, "beta": beta,
+            "beta_fitted_to_prior": fitted, "nugget": model.nugget}
+    if model.prior == "kernel":
+        R = log_frequency_kernel(freqs, nu0, 1.0, beta, model.xi, nugget=model.nugget)
+        info["xi"] = model.xi
+    else:
+        k = 1 if model.prior == "template" else model.nbasis
+        R = spectral_basis_cov(freqs, nu0, beta, model.basis_sigma ** (2.0 * np.arange(k)), nugget=model.nugget)
+        if k > 1:
+            info.update(nbasis=k, basis_sigma=model.basis_sigma)
+    fp = FrequencyPrior(mean=jnp.asarray(prior.mean), mode_var=jnp.asarray(var[f0]), freq_cov=jnp.asarray(R))
+    ratio = np.diag(np.asarray(R))[:, None] * var[f0][None, :] / var
+    info["variance_ratio"] = [float(ratio.min()), float(ratio.max())]
+    return fp, info
+
+
+def joint_system_of(prob, model: FrequencyModel) -> tuple[JointSystem, dict]:
+    """The :class:`~gcrsky.solvers.joint.JointSystem` of a problem under ``model`` (and the prior's info)."""
+    system = prob.system()
+    fp, info = frequency_prior_of(system, prob.freqs_hz, model)
+    return JointSystem(system.op, system.data, system.inv_noise, fp), info
+
+
+def choose_joint_method(joint: JointSystem, method: str) -> str:
+    """The joint path of ``method`` (``auto``: m-mode where it applies, else dense), its memory checked.
+
+    Raises:
+        ValueError: a method no joint path serves, or ``mmode`` where it does not apply.
+        InsufficientMemoryError: the dense path does not fit.
+    """
+    if method not in ("auto", *JOINT_METHODS):
+        raise ValueError(f"a frequency prior samples all channels jointly by {' or '.join(JOINT_METHODS)} (or "
+                         f"auto), not --method {method}")
+    if method in ("auto", "mmode"):
+        ok = mmode_check(data_system(joint))
+        if ok:
+            return JOINT_METHODS["mmode"]
+        if method == "mmode":
+            raise ValueError(f"the joint m-mode path does not apply: {ok.reason}")
+    nf, n = np.shape(joint.prior.mean)
+    check_memory(_DENSE_BYTES * float(nf * n) ** 2 + 8.0 * nf * n * n,
+                 f"the dense joint path over {nf} channels x {n} coefficients",
+                 "use fewer channels (--freq-min/--freq-max), a lower --lmax, or full-day coverage (m-mode)")
+    return JOINT_METHODS["cholesky"]
+
+
+def frequency_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, watch: Watch) -> str:
+    """The ``wiener`` stage and the draws of a frequency-coupled run, from batch ``run.start``.
+
+    Returns the path that ran; leaves the ``draws`` stage running (the caller stops it).
+    """
+    d = spec.draws
+    st.start("wiener")
+    joint, info = joint_system_of(prob, spec.frequency)
+    if run.state is None:
+        method = choose_joint_method(joint, spec.solver.method)
+    else:
+        method = str(run.state.attrs["method"])
+    prepare, draw = ((prepare_joint_mmode, draw_joint_mmode) if method == JOINT_METHODS["mmode"]
+                     else (prepare_joint_dense, draw_joint_dense))
+    state = prepare(joint)
+    a_wf = np.asarray(jax.block_until_ready(state.a_wf))
+    winfo = jax.tree_util.tree_map(np.asarray, joint_wiener_info(joint, a_wf, spec.solver.tol))
+    log.info("joint Wiener filter over %d channels by %s: error <= %.3g posterior sigma", a_wf.shape[0], method,
+             float(winfo.err_sigma[0]))
+    options = json.dumps({"method": method, "frequency_prior": info})
+    record_setup(prob, spec, run, a_wf, winfo, rank=None, method=method, options=options,
+                 key_scheme=FREQ_KEY_SCHEME)
+    st.stop()
+    st.start("draws")
+    key = jax.random.PRNGKey(d.seed)
+    batches = range(run.start, d.n_batches)
+    for b in watch.progress(batches) if watch.progress is not None else batches:
+        t0 = time.perf_counter()
+        x = np.asarray(jax.block_until_ready(draw(jax.random.fold_in(key, b), state, d.batch)))
+        take = min(d.batch, d.nsamples - b * d.batch)
+        x = np.moveaxis(x[:take], 0, 1)  # (Nf, take, n)
+        dinfo = jax.tree_util.tree_map(np.asarray, exact_info(winfo, np.isfinite(x).all(axis=-1), x.shape[:2]))
+        kill_hook(append_batch(run.h5, b, x, dinfo, seconds=time.perf_counter() - t0))
+    return method
+
+
+def _recorded_prior(h5) -> dict | None:
+    """The frequency prior's settings a frequency-coupled run recorded in ``results.h5``."""
+    import h5py
+
+    with h5py.File(h5, "r") as f:
+        text = f.attrs.get("solver_options_json")
+    try:
+        return json.loads(text).get("frequency_prior") if text else None
+    except (TypeError, ValueError, AttributeError):
+        return None
+
+
+def channels_block(prob, spec: RunSpec, h5, warnings: list) -> dict:
+    """The summary's ``channels`` block (also ``results.h5``'s attribute ``channels_json``), and its note.
+
+    Every run says which channels are fully or partly flagged and what their draws are: the
+    prior's alone for independent channels (a NOTE in ``warnings``), inpainted through the
+    frequency prior for a frequency-coupled run.
+
+    Args:
+        prob: the run's :class:`~gcrsky.model.Problem`; spec: its :class:`~gcrsky.run.RunSpec`;
+        h5: its ``results.h5``; warnings: the run's warnings (a note is appended).
+
+    Returns:
+        ``{"model", "freqs_mhz", "flagged", "partly_flagged", "data_fraction", "flagged_posterior",
+        "frequency_prior"}`` (JSON-able).
+    """
+    flags = channel_flags(prob.system().inv_noise)
+    freqs = np.asarray(prob.freqs_hz, np.float64)
+    coupled = spec.frequency is not None
+    block = {"model": spec.frequency.prior if coupled else "independent",
+             "freqs_mhz": [float(f / 1e6) for f in freqs], **flags,
+             "flagged_posterior": ("inpainted: the joint posterior through the frequency prior's coupling to the "
+                                   "other channels" if coupled else "the prior alone (independent channels)"),
+             "frequency_prior": _recorded_prior(h5) if coupled else None}
+    if flags["flagged"]:
+        mhz = ", ".join(f"{freqs[i] / 1e6:.3f}" for i in flags["flagged"])
+        if coupled:
+            warnings.append(f"NOTE: {len(flags['flagged'])} channel(s) fully flagged ({mhz} MHz): their draws and maps "
+                            f"are inpainted through the {spec.frequency.prior} frequency prior (marked in "
+                            "summary.json's channels block and results.h5's channels_json).")
+        else:
+            warnings.append(f"NOTE: {len(flags['flagged'])} channel(s) fully flagged ({mhz} MHz): their draws and maps "
+                            "are the prior's alone (independent channels); --freq-prior kernel inpaints them through "
+                            "the neighbouring channels.")
+    return block
