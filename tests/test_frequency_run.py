@@ -35,7 +35,14 @@ from gcrsky.run.frequency import (
     joint_system_of,
 )
 from gcrsky.run.spec import FrequencyModel
-from gcrsky.solvers.joint import draw_joint_dense, joint_precision_matrix, joint_wiener_info, prepare_joint_dense
+from gcrsky.solvers.joint import (
+    draw_joint_dense,
+    joint_precision_matrix,
+    joint_wiener_info,
+    prepare_joint_dense,
+    prepare_joint_mmode,
+    whitened_solve,
+)
 
 LMAX = 4
 N = (LMAX + 1) ** 2
@@ -143,6 +150,10 @@ def test_full_day_coverage_takes_the_m_mode_path(small_array, tmp_path):
     # rounding floor: tolerance 1e-7; and the run's own measured bound met its tolerance (1e-6)
     assert np.sqrt(e @ np.asarray(joint_precision_matrix(joint)) @ e) < 1e-7
     assert float(joint_wiener_info(joint, wf, 1e-6).err_sigma[0]) < 1e-6
+    # M^-1 by the m-mode factor equals the dense factor's (the measured error uses it; cond(M) ~ 5e8: rtol 1e-6)
+    v = np.random.default_rng(2).standard_normal(wf.shape)
+    np.testing.assert_allclose(whitened_solve(prepare_joint_mmode(joint), v),
+                               whitened_solve(prepare_joint_dense(joint), v), rtol=1e-6, atol=1e-9)
 
 
 def test_the_prior_is_built_on_the_problem_s_own(partial):
@@ -188,3 +199,20 @@ def test_bad_frequency_settings_are_refused(partial, tmp_path, capsys):
             cli.main(["run", "--out", str(tmp_path / "x"), *argv])
         assert e.value.code == 2
         assert msg in capsys.readouterr().err, argv
+
+
+def test_the_measured_wiener_error_is_the_exact_one(partial):
+    """``joint_wiener_info`` with the factor: ``sqrt(r^T M^-1 r)`` equals the exact M-norm of a planted error
+    (explicit NumPy precision, rtol 1e-6: the planted error is 1e-3 sigma, far above rounding); without the
+    factor, the bound ``||r||_2`` is at least it (M >= I)."""
+    joint, _ = joint_system_of(partial, MODEL)
+    state = prepare_joint_dense(joint)
+    P = np.asarray(joint_precision_matrix(joint))
+    rng = np.random.default_rng(5)
+    e = rng.standard_normal(P.shape[0])
+    e *= 1e-3 / np.sqrt(e @ P @ e)  # 1e-3 posterior sigma
+    wrong = np.asarray(state.a_wf) + e.reshape(state.a_wf.shape)
+    exact = joint_wiener_info(joint, wrong, 1e-6, state=state)
+    bound = joint_wiener_info(joint, wrong, 1e-6)
+    np.testing.assert_allclose(float(exact.err_sigma[0]), 1e-3, rtol=1e-6)
+    assert float(bound.err_sigma[0]) >= float(exact.err_sigma[0]) and not bool(exact.converged[0])

@@ -189,7 +189,7 @@ def frequency_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, watch: Wa
                      else (prepare_joint_dense, draw_joint_dense))
     state = prepare(joint)
     a_wf = np.asarray(jax.block_until_ready(state.a_wf))
-    winfo = jax.tree_util.tree_map(np.asarray, joint_wiener_info(joint, a_wf, spec.solver.tol))
+    winfo = jax.tree_util.tree_map(np.asarray, joint_wiener_info(joint, a_wf, spec.solver.tol, state=state))
     log.info("joint Wiener filter over %d channels by %s: error <= %.3g posterior sigma", a_wf.shape[0], method,
              float(winfo.err_sigma[0]))
     options = json.dumps({"method": method, "frequency_prior": info})
