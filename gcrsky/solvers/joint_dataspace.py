@@ -233,6 +233,11 @@ def joint_dataspace_log_evidence(state: JointSystem | JointDataSpaceState, *, ch
     """
     if isinstance(state, JointSystem):
         state = prepare_joint_dataspace(state, check=check)
+    return _dense_evidence(state)
+
+
+@jax.jit
+def _dense_evidence(state: JointDataSpaceState) -> jax.Array:
     rt = to_rows(_sqrt_w(state.system.inv_noise) * _residual(state.system)).reshape(-1)
     q = jnp.dot(rt, cholesky_solve(state.gram, state.chol, rt))
     return _evidence(state.system, q, cholesky_logdet(state.gram, state.chol))
@@ -411,6 +416,11 @@ def joint_dataspace_log_evidence_mmode(state: JointSystem | JointDataSpaceMState
     """
     if isinstance(state, JointSystem):
         state = prepare_joint_dataspace_mmode(state, check=check)
+    return _mmode_evidence(state)
+
+
+@jax.jit
+def _mmode_evidence(state: JointDataSpaceMState) -> jax.Array:
     system = state.system
     M = state.lmax + 1
     rt = _projected_residual(system, state.lmax).reshape(M, -1)
