@@ -44,7 +44,8 @@ Two exact paths:
   shape (m = 0 padded with identity rows), one batched build and factorisation.  The noise-only rest
   enters the evidence as ``r^T W r - |r~_proj|^2`` and adds nothing to ``log det D``.  Cost
   ``~(lmax+1) (Nf 4 Nbl)^2 2 (lmax+1)`` flop for the blocks, ``(lmax+1) (Nf 4 Nbl)^3 / 3`` for their
-  factors; memory ``2 x 8 (lmax+1) (Nf 4 Nbl)^2`` bytes (blocks and factors) plus the per-order rows
+  factors, built and factorised one order at a time (``lax.map``); memory ``2 x 8 (lmax+1) (Nf 4 Nbl)^2``
+  bytes (blocks and factors, :func:`joint_dataspace_mmode_bytes`) plus the per-order rows
   ``8 (lmax+1) Nf 4 Nbl 2 (lmax+1)``.  Far smaller than the a-space joint m-blocks
   (``Nf 2 (lmax - m + 1)`` wide) when ``4 Nbl < 2 (lmax - m + 1)``.
 
@@ -345,10 +346,12 @@ def _prepare_mmode(system: JointSystem, lmax: int) -> JointDataSpaceMState:
     Z = _order_rows(system, lmax)  # (M, Nf, 4 Nbl, 2M)
     M, nf, k, _ = Z.shape
     cb = _to_orders(system.prior.mode_var[None, :], lmax)[:, 0]  # (M, 2M), zeros on padding
-    G = jnp.einsum("mfak,mgbk->mfagb", Z * cb[:, None, None, :], Z)
-    D = (system.prior.freq_cov[None, :, None, :, None] * G).reshape(M, nf * k, nf * k)
-    D = 0.5 * (D + jnp.swapaxes(D, -1, -2)) + jnp.eye(nf * k, dtype=D.dtype)
-    L = jnp.linalg.cholesky(D)
+
+    def block(zc):  # one order at a time: the build's transients are one block's, not all orders'
+        D = _gram(system.prior._replace(mode_var=zc[1]), zc[0])
+        return D, jnp.linalg.cholesky(D)
+
+    D, L = jax.lax.map(block, (Z, cb))
     rt = _projected_residual(system, lmax).reshape(M, -1)
     x = cholesky_solve(D, L, rt).reshape(M, nf, k)
     a_wf = system.prior.mean + _s_apply(system.prior, _from_orders(jnp.einsum("mfak,mfa->mfk", Z, x), lmax))
@@ -431,8 +434,9 @@ def _mmode_evidence(state: JointDataSpaceMState) -> jax.Array:
 
 
 def joint_dataspace_mmode_bytes(nf: int, nbl: int, lmax: int) -> float:
-    """Estimated peak bytes of the per-m set-up (float64): the blocks, their factors and the build's
-    transient copy of D (``3 x 8 (lmax+1) (4 Nf Nbl)^2``), plus the per-order rows and their
-    gathered complex response (``8 (lmax+1) 4 Nf Nbl 2 (lmax+1)`` each, about)."""
+    """Estimated peak bytes of the per-m set-up (float64): the blocks and their factors
+    (``2 x 8 (lmax+1) (4 Nf Nbl)^2``; each built and factorised in turn, so the build's transients are
+    one block's, ``2 x 8 (4 Nf Nbl)^2``), plus the per-order rows and their gathered complex response
+    (``8 (lmax+1) 4 Nf Nbl 2 (lmax+1)`` each, about)."""
     M, k = lmax + 1, 4 * nf * nbl
-    return 3.0 * 8 * M * k * k + 2.0 * 8 * M * k * 2 * M
+    return 2.0 * 8 * (M + 1) * k * k + 2.0 * 8 * M * k * 2 * M
