@@ -24,15 +24,31 @@ Rows:
 
 Columns: ``setup_s`` the set-up (compiles included), ``draw_ms`` per draw from a second batch of
 ``--ndraws`` (compiled), ``peak_GB`` the process's peak resident memory (VmHWM, reset before the
-row) during the set-up and draws, ``wf_resid`` the Wiener filter's accuracy: the relative residual
+row) during the set-up and draws, ``est_GB`` the resident size before the row plus
+:func:`~gcrsky.solvers.joint_dataspace.joint_dataspace_mmode_bytes`, ``wf_resid`` the Wiener filter's accuracy: the relative residual
 ``|M u - y| / |y|`` of the prior-whitened joint system (``M = I + G^T H G``, ``u = G^-1 (a_wf - a0)``,
 ``y = G^T X^T W r``; matrix-free, cheap) for the joint row, and for the independent row its own
 solve info (``err_sigma``, posterior sigma).  ``--quick`` also compares the joint Wiener filter with
 the a-space joint m-mode path's (:func:`gcrsky.solvers.joint.prepare_joint_mmode`).
 
 Measured 2026-12-03 (this repository's machine: 2 shared cores, CPU JAX float64, one OpenBLAS thread,
-XLA's safe threading), ``python benchmarks/joint_frequency.py``, other engineers' jobs running:
-MEASURED_TABLE
+XLA's safe threading), ``python benchmarks/joint_frequency.py`` at 23:48-23:51 UTC, other engineers' jobs
+running (load ``11.96 11.81 8.47`` at the start, ``15.44 12.93 9.34`` at the end; wall 143 s, the
+problem built in 16.5 s)::
+
+    lmax 100, 64 channels, 6 baselines, 16 draws per batch
+    path                                block  setup_s  draw_ms  peak_GB  est_GB  wf_resid
+    joint (per-m data space)             1536     48.5   541.24     3.62    4.08   1.1e-14
+    independent (m-mode per channel)      202     28.8   236.26     2.81     nan   6.8e-12
+    ratio joint / independent                      1.7      2.3      1.3
+
+The joint row's ``wf_resid`` is the whitened relative residual, the independent row's the m-mode
+path's ``err_sigma`` (posterior sigma).  An earlier run that kept the blocks ``D_m`` besides their
+factors peaked at 7.05 GB (set-up 76.3 s, 421 ms per draw, load ~13-15); only the factors are kept
+now.  ``--quick`` (lmax 20, 8 channels, 23:45 UTC, load ~13): joint set-up 5.6 s, 1.4 ms per draw,
+peak 0.67 GB; independent 8.0 s, 0.75 ms; the joint Wiener filter equal to the a-space joint m-mode
+path's to 1.2e-14 of its largest entry.  The timings are of a machine shared with four other jobs
+(2 cores, load 12-15): they scatter by tens of per cent between runs.
 """
 
 from __future__ import annotations
@@ -168,8 +184,9 @@ def run(lmax: int, nchan: int, ndraws: int, quick: bool) -> list[dict]:
     t = time.perf_counter()
     jax.block_until_ready(draw_joint_dataspace_mmode(jax.random.PRNGKey(2), st, ndraws))
     per_draw = (time.perf_counter() - t) / ndraws
-    row = dict(path="joint (per-m data space)", block=int(st.gram.shape[-1]), setup_s=setup,
+    row = dict(path="joint (per-m data space)", block=int(st.chol.shape[-1]), setup_s=setup,
                draw_ms=1e3 * per_draw, peak_GB=_status("VmHWM") / GB, rss0_GB=rss0 / GB,
+               est_GB=(rss0 + joint_dataspace_mmode_bytes(nchan, NBL, lmax)) / GB,
                wf_resid=whitened_residual(system, st.a_wf))
     if quick:
         from gcrsky.solvers.joint import prepare_joint_mmode
@@ -197,7 +214,7 @@ def run(lmax: int, nchan: int, ndraws: int, quick: bool) -> list[dict]:
     jax.block_until_ready(draw_mmode(jax.random.PRNGKey(2), sm, ndraws)[0])
     per_draw = (time.perf_counter() - t) / ndraws
     row = dict(path="independent (m-mode per channel)", block=2 * (lmax + 1), setup_s=setup,
-               draw_ms=1e3 * per_draw, peak_GB=_status("VmHWM") / GB, rss0_GB=rss0 / GB,
+               draw_ms=1e3 * per_draw, peak_GB=_status("VmHWM") / GB, rss0_GB=rss0 / GB, est_GB=float("nan"),
                wf_resid=float(jnp.max(sm.wiener.err_sigma)))
     rows.append(row)
     print(row, flush=True)
@@ -205,11 +222,12 @@ def run(lmax: int, nchan: int, ndraws: int, quick: bool) -> list[dict]:
 
 
 def table(rows: list[dict]) -> str:
-    head = f"    {'path':34s} {'block':>6s} {'setup_s':>8s} {'draw_ms':>8s} {'peak_GB':>8s} {'wf_resid':>9s}"
+    head = (f"    {'path':34s} {'block':>6s} {'setup_s':>8s} {'draw_ms':>8s} {'peak_GB':>8s} {'est_GB':>7s} "
+            f"{'wf_resid':>9s}")
     lines = [head]
     for r in rows:
         lines.append(f"    {r['path']:34s} {r['block']:6d} {r['setup_s']:8.1f} {r['draw_ms']:8.2f} "
-                     f"{r['peak_GB']:8.2f} {r['wf_resid']:9.1e}")
+                     f"{r['peak_GB']:8.2f} {r['est_GB']:7.2f} {r['wf_resid']:9.1e}")
     j, i = rows
     lines.append(f"    {'ratio joint / independent':34s} {'':6s} {j['setup_s'] / i['setup_s']:8.1f} "
                  f"{j['draw_ms'] / i['draw_ms']:8.1f} {j['peak_GB'] / i['peak_GB']:8.1f}")

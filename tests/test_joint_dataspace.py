@@ -165,7 +165,7 @@ def test_dense_equals_numpy_and_a_space_partial_flagged(partial):
 
 def test_per_m_and_dense_equal_numpy_fullday(fullday):
     system, ref, st, sm = fullday
-    assert sm.gram.shape == (LMAX + 1, FREQS.size * 4 * 12, FREQS.size * 4 * 12)
+    assert sm.chol.shape == (LMAX + 1, FREQS.size * 4 * 12, FREQS.size * 4 * 12)
     for a in (st.a_wf, sm.a_wf):
         assert _sigma_err(a, ref) < 1e-8, _sigma_err(a, ref)
     for ev in (joint_dataspace_log_evidence(st), joint_dataspace_log_evidence_mmode(sm)):

@@ -44,15 +44,17 @@ Two exact paths:
   shape (m = 0 padded with identity rows), one batched build and factorisation.  The noise-only rest
   enters the evidence as ``r^T W r - |r~_proj|^2`` and adds nothing to ``log det D``.  Cost
   ``~(lmax+1) (Nf 4 Nbl)^2 2 (lmax+1)`` flop for the blocks, ``(lmax+1) (Nf 4 Nbl)^3 / 3`` for their
-  factors, built and factorised one order at a time (``lax.map``); memory ``2 x 8 (lmax+1) (Nf 4 Nbl)^2``
-  bytes (blocks and factors, :func:`joint_dataspace_mmode_bytes`) plus the per-order rows
+  factors, built and factorised one order at a time (``lax.map``); memory ``8 (lmax+1) (Nf 4 Nbl)^2``
+  bytes for the factors (~1.5 times that at the set-up's peak, :func:`joint_dataspace_mmode_bytes`) plus the
+  per-order rows
   ``8 (lmax+1) Nf 4 Nbl 2 (lmax+1)``.  Far smaller than the a-space joint m-blocks
   (``Nf 2 (lmax - m + 1)`` wide) when ``4 Nbl < 2 (lmax - m + 1)``.
 
 Differentiation: D and everything in it differentiate natively (the response, the noise, the prior's
-hyperparameters through ``R`` and ``c``); solves with D are differentiated implicitly and
-``log det D`` by ``tr(D^-1 dD)`` (:func:`gcrsky.solvers.dense.cholesky_solve`,
-:func:`~gcrsky.solvers.dense.cholesky_logdet`).  On the per-m path the noise enters through its
+hyperparameters through ``R`` and ``c``); on the dense path solves with D are differentiated implicitly
+and ``log det D`` by ``tr(D^-1 dD)`` (:func:`gcrsky.solvers.dense.cholesky_solve`,
+:func:`~gcrsky.solvers.dense.cholesky_logdet`), on the per-m path (which keeps only the blocks'
+factors, to halve its memory) natively through the factors.  On the per-m path the noise enters through its
 mean over times, so a derivative along a noise change that keeps it stationary is exact.
 """
 
@@ -253,10 +255,10 @@ class JointDataSpaceMState(eqx.Module):
     Attributes:
         system: the :class:`~gcrsky.solvers.joint.JointSystem`.
         a_wf: (Nf, n) joint Wiener filter, Kelvin.
-        gram: (lmax+1, Nf 4 Nbl, Nf 4 Nbl) the blocks ``D_m``; rows ``f 4 Nbl + j``, ``j`` =
-            ``p Nbl + b`` for the Re / Im part (p = 0 / 1) of ``d_m`` and ``(2 + p) Nbl + b`` of ``d_-m``
-            (identity rows at m = 0, and on flagged channels).
-        chol: their lower Cholesky factors, same shape.
+        chol: (lmax+1, Nf 4 Nbl, Nf 4 Nbl) the lower Cholesky factors of the blocks ``D_m`` (the blocks
+            themselves are not kept); rows ``f 4 Nbl + j``, ``j`` = ``p Nbl + b`` for the Re / Im part
+            (p = 0 / 1) of ``d_m`` and ``(2 + p) Nbl + b`` of ``d_-m`` (identity rows at m = 0, and on
+            flagged channels).
         rows: (lmax+1, Nf, 4 Nbl, 2 (lmax+1)) the whitened per-order operator ``W^1/2 Z_m``; columns
             as the single bucket of :func:`gcrsky.solvers.mmode.mmode_buckets` ``(lmax, lmax + 1)``
             (``Re a_{m+p, m}``, then ``Im a_{m+p, m}``; zero on padding).
@@ -265,7 +267,6 @@ class JointDataSpaceMState(eqx.Module):
 
     system: JointSystem
     a_wf: jax.Array
-    gram: jax.Array
     chol: jax.Array
     rows: jax.Array
     lmax: int = eqx.field(static=True)
@@ -348,14 +349,13 @@ def _prepare_mmode(system: JointSystem, lmax: int) -> JointDataSpaceMState:
     cb = _to_orders(system.prior.mode_var[None, :], lmax)[:, 0]  # (M, 2M), zeros on padding
 
     def block(zc):  # one order at a time: the build's transients are one block's, not all orders'
-        D = _gram(system.prior._replace(mode_var=zc[1]), zc[0])
-        return D, jnp.linalg.cholesky(D)
+        return jnp.linalg.cholesky(_gram(system.prior._replace(mode_var=zc[1]), zc[0]))
 
-    D, L = jax.lax.map(block, (Z, cb))
+    L = jax.lax.map(block, (Z, cb))  # only the factors are kept (D itself would double the memory)
     rt = _projected_residual(system, lmax).reshape(M, -1)
-    x = cholesky_solve(D, L, rt).reshape(M, nf, k)
+    x = _order_solve(L, rt[..., None])[..., 0].reshape(M, nf, k)
     a_wf = system.prior.mean + _s_apply(system.prior, _from_orders(jnp.einsum("mfak,mfa->mfk", Z, x), lmax))
-    return JointDataSpaceMState(system, a_wf, D, L, Z, lmax)
+    return JointDataSpaceMState(system, a_wf, L, Z, lmax)
 
 
 def prepare_joint_dataspace_mmode(system: JointSystem, options: MModeOptions | None = None, *,
@@ -427,16 +427,17 @@ def _mmode_evidence(state: JointDataSpaceMState) -> jax.Array:
     system = state.system
     M = state.lmax + 1
     rt = _projected_residual(system, state.lmax).reshape(M, -1)
-    q_proj = jnp.sum(rt * cholesky_solve(state.gram, state.chol, rt))
+    q_proj = jnp.sum(rt * _order_solve(state.chol, rt[..., None])[..., 0])
     rWr = joint_evidence_terms(system)["rWr"]
     q = rWr - jnp.sum(rt**2) + q_proj
-    return _evidence(system, q, jnp.sum(cholesky_logdet(state.gram, state.chol)))
+    return _evidence(system, q, 2.0 * jnp.sum(jnp.log(jnp.diagonal(state.chol, axis1=-2, axis2=-1))))
 
 
 def joint_dataspace_mmode_bytes(nf: int, nbl: int, lmax: int) -> float:
-    """Estimated peak bytes of the per-m set-up (float64): the blocks and their factors
-    (``2 x 8 (lmax+1) (4 Nf Nbl)^2``; each built and factorised in turn, so the build's transients are
-    one block's, ``2 x 8 (4 Nf Nbl)^2``), plus the per-order rows and their gathered complex response
-    (``8 (lmax+1) 4 Nf Nbl 2 (lmax+1)`` each, about)."""
+    """Estimated peak bytes of the per-m set-up (float64): the factors (``8 (lmax+1) (4 Nf Nbl)^2``), XLA's
+    temporaries (half as much again, bounding XLA's memory analysis of the set-up: 0.48 x the factors
+    at lmax 40, 16 channels, 6 baselines), one block's transients (``2 x 8 (4 Nf Nbl)^2``), and the
+    per-order rows with their gathered complex response (``8 (lmax+1) 4 Nf Nbl 2 (lmax+1)`` each, about).
+    Draws add ``~16 ndraws (lmax+1) 4 Nf Nbl``."""
     M, k = lmax + 1, 4 * nf * nbl
-    return 2.0 * 8 * (M + 1) * k * k + 2.0 * 8 * M * k * 2 * M
+    return 8.0 * (1.5 * M + 2) * k * k + 2.0 * 8 * M * k * 2 * M
