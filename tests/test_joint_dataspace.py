@@ -188,6 +188,8 @@ def test_per_m_refuses_partial_coverage_and_flags(partial, fullday):
     for prepare in (prepare_joint_dataspace, prepare_joint_dataspace_mmode):
         with pytest.raises(ValueError, match="mode_var"):
             prepare(system._replace(prior=bad))
+        with pytest.raises(MemoryError, match="joint data space .* needs"):  # D is 1536 (dense) or 192 square
+            prepare(system, memory_budget=1e5)
 
 
 NDRAWS = 300
