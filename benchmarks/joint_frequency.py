@@ -45,9 +45,10 @@ problem built in 16.5 s)::
 The joint row's ``wf_resid`` is the whitened relative residual, the independent row's the m-mode
 path's ``err_sigma`` (posterior sigma).  An earlier run that kept the blocks ``D_m`` besides their
 factors peaked at 7.05 GB (set-up 76.3 s, 421 ms per draw, load ~13-15); only the factors are kept
-now.  ``--quick`` (lmax 20, 8 channels, 23:45 UTC, load ~13): joint set-up 5.6 s, 1.4 ms per draw,
-peak 0.67 GB; independent 8.0 s, 0.75 ms; the joint Wiener filter equal to the a-space joint m-mode
-path's to 1.2e-14 of its largest entry.  The timings are of a machine shared with four other jobs
+now.  ``--quick`` (lmax 20, 8 channels, 23:54 UTC, load ~15): joint set-up 3.9 s, 0.79 ms per draw,
+peak 0.65 GB (estimate 0.60: the compiled programs' fixed cost is not in it); independent 7.6 s,
+0.23 ms; the joint Wiener filter equal to the a-space joint m-mode path's to 1.2e-14 of its largest
+entry.  The timings are of a machine shared with four other jobs
 (2 cores, load 12-15): they scatter by tens of per cent between runs.
 """
 

@@ -468,6 +468,8 @@ def joint_dataspace_mmode_bytes(nf: int, nbl: int, lmax: int) -> float:
     temporaries (half as much again, bounding XLA's memory analysis of the set-up: 0.48 x the factors
     at lmax 40, 16 channels, 6 baselines), one block's transients (``2 x 8 (4 Nf Nbl)^2``), and the
     per-order rows with their gathered complex response (``8 (lmax+1) 4 Nf Nbl 2 (lmax+1)`` each, about).
-    Draws add ``~16 ndraws (lmax+1) 4 Nf Nbl``."""
+    Draws add ``~16 ndraws (lmax+1) 4 Nf Nbl``.  Not counted, as for every path: the process's fixed cost
+    of compiling and running a program (~0.05-0.2 GB; the ``--quick`` benchmark's peak exceeds its estimate
+    by 0.05 GB, the full one's is 0.46 GB below it)."""
     M, k = lmax + 1, 4 * nf * nbl
     return 8.0 * (1.5 * M + 2) * k * k + 2.0 * 8 * M * k * 2 * M
