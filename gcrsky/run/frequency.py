@@ -9,8 +9,9 @@ variance to the reference one's, the spectral index ``beta`` of the prior's stan
 records how far its per-channel variances ``c_k R_ff`` are from the independent prior's.
 
 The draws (:func:`frequency_draws`) are those of the joint posterior over all channels, by an
-exact joint path of :mod:`gcrsky.solvers.joint`: ``mmode`` for uniform full-day coverage,
-else the dense Cholesky of the whitened joint precision (memory checked first).  Key scheme
+exact joint path (:data:`JOINT_PATHS`, :func:`choose_joint_method`): per order of m for uniform
+full-day coverage, else dense; in the a-space (:mod:`gcrsky.solvers.joint`) or the data space
+(:mod:`gcrsky.solvers.joint_dataspace`), whichever factor is narrower and fits in memory.  Key scheme
 :data:`FREQ_KEY_SCHEME`: batch ``b`` is ``draw(fold_in(PRNGKey(seed), b), batch)``, so a
 resumed run ends with the draws of an uninterrupted one.  The Wiener filter's accuracy is
 measured from its true residual (:func:`gcrsky.solvers.joint.joint_wiener_info`), and the
@@ -27,12 +28,14 @@ from __future__ import annotations
 import json
 import logging
 import time
+from functools import partial
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..base.memory import check_memory
+from ..base.memory import available_memory_bytes, check_memory
 from ..io.results import append_batch
 from ..model.spectral import (
     FrequencyPrior,
@@ -48,6 +51,16 @@ from ..solvers.joint import (
     joint_wiener_info,
     prepare_joint_dense,
     prepare_joint_mmode,
+    whitened_solve,
+)
+from ..solvers.joint_dataspace import (
+    draw_joint_dataspace,
+    draw_joint_dataspace_mmode,
+    joint_dataspace_bytes,
+    joint_dataspace_mmode_bytes,
+    prepare_joint_dataspace,
+    prepare_joint_dataspace_mmode,
+    whitened_solve_dataspace,
 )
 from ..solvers.mmode import mmode_check
 from .draws import kill_hook, record_setup
@@ -55,7 +68,7 @@ from .output import OpenRun
 from .spec import FrequencyModel, RunSpec
 from .stages import StageTimer, Watch
 
-__all__ = ["FREQ_KEY_SCHEME", "JOINT_METHODS", "channel_flags", "choose_joint_method", "frequency_draws",
+__all__ = ["FREQ_KEY_SCHEME", "JOINT_METHODS", "JOINT_PATHS", "JointPath", "channel_flags", "choose_joint_method", "frequency_draws",
            "frequency_prior_of", "joint_system_of"]
 
 log = logging.getLogger(__name__)
@@ -63,8 +76,9 @@ log = logging.getLogger(__name__)
 #: The key scheme of a frequency-coupled run's draws (recorded in ``results.h5``).
 FREQ_KEY_SCHEME = "joint-frequency-v1: batch b = draw_joint(fold_in(PRNGKey(seed), b), batch), (ndraws, Nf, n)"
 
-#: The joint paths a frequency-coupled run may ask for (``--method``), by the name results.h5 records.
-JOINT_METHODS = {"cholesky": "joint-cholesky", "mmode": "joint-mmode"}
+#: The ``--method`` values a frequency-coupled run takes (besides ``auto``), and what each asks for.
+JOINT_METHODS = {"cholesky": "the dense a-space joint precision", "mmode": "its blocks per order (full day)",
+                 "dataspace": "the data space, dense or per order (full day)"}
 
 #: Bytes per entry of the dense joint path's working set: M and its factor in float64, with slack.
 _DENSE_BYTES = 3 * 8
@@ -150,27 +164,75 @@ def joint_system_of(prob, model: FrequencyModel) -> tuple[JointSystem, dict]:
     return JointSystem(system.op, system.data, system.inv_noise, fp), info
 
 
+class JointPath(NamedTuple):
+    """A joint path over channels: its recorded name, set-up, draw and ``M^-1`` (whitened) functions."""
+
+    name: str
+    prepare: Callable
+    draw: Callable
+    solve: Callable
+
+
+#: The joint paths by recorded name (``results.h5``'s ``method``).
+JOINT_PATHS = {p.name: p for p in (
+    JointPath("joint-cholesky", prepare_joint_dense, draw_joint_dense, whitened_solve),
+    JointPath("joint-mmode", prepare_joint_mmode, draw_joint_mmode, whitened_solve),
+    JointPath("joint-dataspace", prepare_joint_dataspace, draw_joint_dataspace, whitened_solve_dataspace),
+    JointPath("joint-dataspace-mmode", prepare_joint_dataspace_mmode, draw_joint_dataspace_mmode,
+              whitened_solve_dataspace),
+)}
+
+
+def _candidates(joint: JointSystem, full_day: bool) -> list[tuple[str, float]]:
+    """The exact joint paths that apply, cheapest first by their factor's width, with their memory (bytes).
+
+    Full day: per order, the a-space blocks are ``Nf s_m`` wide (``s_m = 2 (lmax - m + 1)``), the data
+    space's ``4 Nf Nbl``; otherwise the dense a-space ``Nf n`` against the data space's ``2 Nf Nt Nbl``.
+    """
+    nf, nt, nbl = (int(x) for x in np.shape(joint.data))
+    n = int(np.shape(joint.prior.mean)[1])
+    lmax = int(round(np.sqrt(n))) - 1
+    if full_day:
+        s = 2 * (lmax + 1 - np.arange(lmax + 1))
+        aspace = ("joint-mmode", float(np.sum(2 * 8.0 * (nf * s) ** 2)) + 8.0 * nf * n * n, float(np.mean(nf * s)))
+        dspace = ("joint-dataspace-mmode", joint_dataspace_mmode_bytes(nf, nbl, lmax), 4.0 * nf * nbl)
+    else:
+        aspace = ("joint-cholesky", _DENSE_BYTES * float(nf * n) ** 2 + 8.0 * nf * n * n, float(nf * n))
+        dspace = ("joint-dataspace", joint_dataspace_bytes(nf, nt, nbl, n), 2.0 * nf * nt * nbl)
+    return [(name, mem) for name, mem, _ in sorted((aspace, dspace), key=lambda c: c[2])]
+
+
 def choose_joint_method(joint: JointSystem, method: str) -> str:
-    """The joint path of ``method`` (``auto``: m-mode where it applies, else dense), its memory checked.
+    """The exact joint path of ``--method`` (its name in :data:`JOINT_PATHS`), its memory checked.
+
+    ``auto``: with uniform full-day coverage (:func:`gcrsky.solvers.mmode_check`) the per-order paths,
+    else the dense ones; of the a-space (``cholesky`` / ``mmode``) and data-space (``dataspace``) form,
+    the narrower factor that fits in memory.  ``cholesky`` and ``mmode`` ask for the a-space form,
+    ``dataspace`` for the data space's (per order where the coverage allows).
 
     Raises:
         ValueError: a method no joint path serves, or ``mmode`` where it does not apply.
-        InsufficientMemoryError: the dense path does not fit.
+        InsufficientMemoryError: no path asked for fits.
     """
     if method not in ("auto", *JOINT_METHODS):
-        raise ValueError(f"a frequency prior samples all channels jointly by {' or '.join(JOINT_METHODS)} (or "
-                         f"auto), not --method {method}")
-    if method in ("auto", "mmode"):
-        ok = mmode_check(data_system(joint))
-        if ok:
-            return JOINT_METHODS["mmode"]
-        if method == "mmode":
-            raise ValueError(f"the joint m-mode path does not apply: {ok.reason}")
-    nf, n = np.shape(joint.prior.mean)
-    check_memory(_DENSE_BYTES * float(nf * n) ** 2 + 8.0 * nf * n * n,
-                 f"the dense joint path over {nf} channels x {n} coefficients",
-                 "use fewer channels (--freq-min/--freq-max), a lower --lmax, or full-day coverage (m-mode)")
-    return JOINT_METHODS["cholesky"]
+        raise ValueError(f"a frequency prior samples all channels jointly by {', '.join(JOINT_METHODS)} (or auto), "
+                         f"not --method {method}")
+    ok = mmode_check(data_system(joint))
+    if method == "mmode" and not ok:
+        raise ValueError(f"the joint m-mode path does not apply: {ok.reason}")
+    cands = _candidates(joint, bool(ok))
+    if method != "auto":
+        want = {"cholesky": "joint-cholesky", "mmode": "joint-mmode", "dataspace": "joint-dataspace"}[method]
+        cands = [c for c in cands if c[0].startswith(want)]
+    budget = available_memory_bytes()
+    for name, mem in cands:
+        if mem <= budget:
+            return name
+    name, mem = cands[0]
+    check_memory(mem, f"the joint path {name} over {np.shape(joint.data)[0]} channels",
+                 "use fewer channels (--freq-min/--freq-max), a lower --lmax, or fewer times or baselines",
+                 budget=budget)
+    return name
 
 
 def frequency_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, watch: Watch) -> str:
@@ -185,11 +247,12 @@ def frequency_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, watch: Wa
         method = choose_joint_method(joint, spec.solver.method)
     else:
         method = str(run.state.attrs["method"])
-    prepare, draw = ((prepare_joint_mmode, draw_joint_mmode) if method == JOINT_METHODS["mmode"]
-                     else (prepare_joint_dense, draw_joint_dense))
-    state = prepare(joint)
+    path = JOINT_PATHS[method]
+    draw = path.draw
+    state = path.prepare(joint)
     a_wf = np.asarray(jax.block_until_ready(state.a_wf))
-    winfo = jax.tree_util.tree_map(np.asarray, joint_wiener_info(joint, a_wf, spec.solver.tol, state=state))
+    winfo = jax.tree_util.tree_map(np.asarray, joint_wiener_info(joint, a_wf, spec.solver.tol,
+                                                                  solve=partial(path.solve, state)))
     log.info("joint Wiener filter over %d channels by %s: error <= %.3g posterior sigma", a_wf.shape[0], method,
              float(winfo.err_sigma[0]))
     options = json.dumps({"method": method, "frequency_prior": info})

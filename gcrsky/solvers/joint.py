@@ -292,23 +292,23 @@ def joint_log_evidence_dense(state: JointSystem | JointDenseState, *, check: boo
     return _evidence(state, 2.0 * jnp.sum(jnp.log(jnp.diagonal(state.chol))))
 
 
-def joint_wiener_info(system: JointSystem, a_wf: jax.Array, tol: float, *, state=None) -> SolveInfo:
+def joint_wiener_info(system: JointSystem, a_wf: jax.Array, tol: float, *, solve=None) -> SolveInfo:
     """The measured accuracy of a joint Wiener filter, from its true residual computed matrix-free.
 
     With ``delta = a_wf - a0`` and ``u = G^-1 delta`` the whitened solve is ``M u = y``,
     ``y = G^T b'``; its true residual ``r = y - u - G^T blockdiag(H) delta`` is computed with
     the operator's products (``H delta = X^T W X delta``), independently of the factor that
     produced ``a_wf``.  The error's M-norm (the error in posterior sigma) is
-    ``sqrt(r^T M^-1 r)``: with ``state`` (a :class:`JointDenseState` or
-    :class:`JointMModeState`) ``M^-1`` is applied with its factor, as every direct path
-    measures its solves (:func:`gcrsky.solvers.info.direct_info`); without, the bound
+    ``sqrt(r^T M^-1 r)``: with ``solve`` (``v -> M^-1 v`` by the path's factor:
+    :func:`whitened_solve`, :func:`gcrsky.solvers.joint_dataspace.whitened_solve_dataspace`)
+    as every direct path measures its solves (:func:`gcrsky.solvers.info.direct_info`); without, the bound
     ``||r||_2`` (``M >= I``), which rounding in ``H delta`` dominates when the data are
     much more precise than the prior (it grows like ``eps ||M|| ||u||``).
 
     Args:
         system: the :class:`JointSystem`; a_wf: (Nf, n) its Wiener filter, Kelvin.
         tol: the accuracy asked for, posterior sigma.
-        state: the factorised path, or None (keyword).
+        solve: ``M^-1`` by the path's factor, a function of (Nf, n) whitened vectors, or None (keyword).
 
     Returns:
         a :class:`~gcrsky.solvers.SolveInfo` with (Nf,) fields (the joint solve's figures,
@@ -321,10 +321,10 @@ def joint_wiener_info(system: JointSystem, a_wf: jax.Array, tol: float, *, state
     u = jsl.solve_triangular(LR, (delta / sc).reshape(delta.shape[0], -1), lower=True)
     y = _gt(LR, sc, b_res)
     r = y - u - _gt(LR, sc, h_delta)
-    if state is None:
+    if solve is None:
         err = jnp.linalg.norm(r)
     else:
-        err = jnp.sqrt(jnp.maximum(jnp.sum(r * whitened_solve(state, r)), 0.0))
+        err = jnp.sqrt(jnp.maximum(jnp.sum(r * solve(r)), 0.0))
     rel = jnp.linalg.norm(r) / jnp.maximum(jnp.linalg.norm(y), jnp.finfo(r.dtype).tiny)
     nf = delta.shape[0]
     finite = jnp.all(jnp.isfinite(delta))

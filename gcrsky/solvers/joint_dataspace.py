@@ -92,6 +92,7 @@ __all__ = [
     "joint_dataspace_mmode_bytes",
     "prepare_joint_dataspace",
     "prepare_joint_dataspace_mmode",
+    "whitened_solve_dataspace",
 ]
 
 
@@ -475,3 +476,33 @@ def joint_dataspace_mmode_bytes(nf: int, nbl: int, lmax: int) -> float:
     by 0.05 GB, the full one's is 0.46 GB below it)."""
     M, k = lmax + 1, 4 * nf * nbl
     return 8.0 * (1.5 * M + 2) * k * k + 2.0 * 8 * M * k * 2 * M
+
+
+def _g_transpose(prior, v: jax.Array) -> jax.Array:
+    """``G^T v`` for v (..., Nf, n)."""
+    LR = jnp.linalg.cholesky(prior.freq_cov)
+    return jnp.einsum("hf,...hk->...fk", LR, v * jnp.sqrt(prior.mode_var))
+
+
+@jax.jit
+def whitened_solve_dataspace(state: JointDataSpaceState | JointDataSpaceMState, v: jax.Array) -> jax.Array:
+    """``M^-1 v`` for whitened vectors v (Nf, n), ``M = I + G^T X^T W X G``, by the data-space factor.
+
+    Woodbury: ``M^-1 = I - G^T Y^T D^-1 Y G`` with ``D = I + Y S Y^T`` (``Y = W^1/2 X``; per order
+    on the per-m path).  What :func:`gcrsky.solvers.joint.joint_wiener_info` needs to measure a
+    Wiener filter's error in posterior sigma with the path's own factor.
+    """
+    prior = state.system.prior
+    gv = _g_apply(prior, v)
+    if isinstance(state, JointDataSpaceState):
+        nf, nd = state.rows.shape[:2]
+        u = jnp.einsum("fak,fk->fa", state.rows, gv).reshape(-1)
+        x = jsl.cho_solve((state.chol, True), u).reshape(nf, nd)
+        back = jnp.einsum("fak,fa->fk", state.rows, x)
+    else:
+        Z, lmax = state.rows, state.lmax
+        M, nf, k, _ = Z.shape
+        u = jnp.einsum("mfak,mfk->mfa", Z, _to_orders(gv, lmax)).reshape(M, nf * k, 1)
+        x = _order_solve(state.chol, u).reshape(M, nf, k)
+        back = _from_orders(jnp.einsum("mfak,mfa->mfk", Z, x), lmax)
+    return v - _g_transpose(prior, back)
