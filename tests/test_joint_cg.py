@@ -94,11 +94,14 @@ def partial(response):
 # ---------------------------------------------------------------- against the dense path
 
 
-@pytest.mark.parametrize("kind", ["none", "mblock"])
-def test_wiener_and_draws_equal_dense(partial, kind):
+def test_wiener_and_draws_equal_dense(partial):
+    """Draws with "none" ("auto"'s choice on partial coverage), the Wiener filter with both."""
     system, ref, key = partial
-    st = prepare_joint_cg(system, JointCGOptions(tol=TOL, preconditioner=kind))
-    assert st.options.preconditioner == kind
+    mb = prepare_joint_cg(system, JointCGOptions(tol=TOL, preconditioner="mblock"))
+    assert bool(mb.wiener.converged) and float(mb.wiener.err_sigma) <= TOL
+    assert (np.abs(np.asarray(mb.a_wf) - ref.a_wf) / ref.sigma).max() < 1e-8
+    st = prepare_joint_cg(system, JointCGOptions(tol=TOL))
+    assert st.options.preconditioner == "none"
     draws, info = draw_joint_cg(key, st, NDRAWS)
     assert bool(info.wiener.converged) and float(info.wiener.err_sigma) <= TOL
     assert np.all(np.asarray(info.draws.converged)) and np.asarray(info.draws.err_sigma).max() <= TOL
@@ -137,18 +140,17 @@ def test_matvec_and_mode_preconditioner_are_their_matrices(partial):
 # ---------------------------------------------------------------- preconditioning and convergence
 
 
-def test_mblock_preconditioner_cuts_iterations_and_auto_choice(response):
+def test_mblock_preconditioner_cuts_iterations_and_auto_choice(response, partial):
     """Full day: the m-block preconditioner is M itself (measured 1 iteration against 57 unpreconditioned);
     "auto" takes it there and "none" on partial coverage, where the m-blocks measured worse (115 vs 63)."""
     full = _system(response, 1.0)
     its = {}
-    for kind in ("none", "mblock"):
-        st = prepare_joint_cg(full, JointCGOptions(tol=1e-8, preconditioner=kind))
+    for kind in ("none", "mblock"):  # the partial fixture's shapes and options: no new compile
+        st = prepare_joint_cg(full, JointCGOptions(tol=TOL, preconditioner=kind))
         assert bool(st.wiener.converged)
         its[kind] = int(st.wiener.iterations)
     assert its["mblock"] <= 2 and its["none"] > 20 * its["mblock"], its
-    assert prepare_joint_cg(full).options.preconditioner == "mblock"
-    assert prepare_joint_cg(_system(response, 1.0 / 3.0)).options.preconditioner == "none"
+    assert prepare_joint_cg(full, JointCGOptions(tol=TOL)).options.preconditioner == "mblock"
 
 
 def test_non_convergence_is_reported(partial):
@@ -158,8 +160,6 @@ def test_non_convergence_is_reported(partial):
     assert not bool(w.converged) and int(w.result) == Result.MAX_ITERATIONS and float(w.err_sigma) > TOL
     # the reported bound still bounds the true error (measured P-norm error ~1e2 below err_sigma here)
     assert ref.p_norm(np.asarray(st.a_wf) - ref.a_wf) <= float(w.err_sigma)
-    with pytest.raises(Exception, match="did not converge"):
-        prepare_joint_cg(system, JointCGOptions(tol=TOL, maxiter=3, preconditioner="none", throw=True)).a_wf.block_until_ready()
 
 
 def test_bad_options_are_refused_naming_them(partial):
