@@ -93,6 +93,7 @@ __all__ = [
     "JointCGState",
     "JointMBlockPreconditioner",
     "JointModePreconditioner",
+    "JointNystromPreconditioner",
     "draw_joint_cg",
     "joint_matvec",
     "joint_preconditioner",
@@ -103,7 +104,7 @@ __all__ = [
 #: ``"auto"`` takes the m-block preconditioner while its factors need at most this many bytes.
 MBLOCK_MAX_BYTES = 2 * 1024**3
 
-KINDS = ("auto", "mblock", "mode", "none")
+KINDS = ("auto", "mblock", "mode", "nystrom", "none")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,15 +115,17 @@ class JointCGOptions:
         tol: stop when the whitened residual's 2-norm ``||r||_2 <= tol``: a rigorous bound on the
             error's P-norm, posterior-sigma units (module docstring).
         maxiter: cap on iterations per solve (both passes of the residual restart together).
-        preconditioner: ``"auto"``, ``"mblock"``, ``"mode"`` or ``"none"`` (module docstring).
+        preconditioner: ``"auto"``, ``"mblock"``, ``"mode"``, ``"nystrom"`` or ``"none"`` (module docstring).
         bucket: padding quantum of the m-block layout (:class:`gcrsky.solvers.MModeOptions`).
+        sketch_size: rank of the ``"nystrom"`` sketch (clipped to ``Nf n``).
         throw: raise (``equinox.error_if``) when a solve did not converge.
     """
 
     tol: float = 1e-8
     maxiter: int = 2000
-    preconditioner: Literal["auto", "mblock", "mode", "none"] = "auto"
+    preconditioner: Literal["auto", "mblock", "mode", "nystrom", "none"] = "auto"
     bucket: int = MModeOptions.bucket
+    sketch_size: int = 128
     throw: bool = False
 
     def __post_init__(self):
@@ -130,7 +133,7 @@ class JointCGOptions:
             raise ValueError(f"preconditioner must be one of {KINDS}, got {self.preconditioner!r}")
         if not (isinstance(self.tol, (int, float)) and np.isfinite(self.tol) and self.tol > 0):
             raise ValueError(f"tol must be a positive finite number, got {self.tol!r}")
-        for name in ("maxiter", "bucket"):
+        for name in ("maxiter", "bucket", "sketch_size"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
                 raise ValueError(f"{name} must be a positive integer, got {v!r}")
@@ -178,6 +181,36 @@ class JointModePreconditioner(NamedTuple):
     chol: jax.Array
 
 
+class JointNystromPreconditioner(NamedTuple):
+    """A rank-k Nystrom sketch ``K ~ U diag(lam) U^T`` of the whitened data part ``K = M - I``.
+
+    Attributes:
+        U: (Nf n, k) orthonormal columns (channel-major ``f n + k``); lam: (k,) eigenvalues >= 0.
+    """
+
+    U: jax.Array
+    lam: jax.Array
+
+
+def _nystrom(system: JointSystem, chol_r, sqrt_c, k: int, key=None) -> JointNystromPreconditioner:
+    """The stable randomized Nystrom sketch (Frangella, Tropp & Udell 2023) of ``M - I`` with k products."""
+    nf, n = system.prior.mean.shape
+    key = jax.random.PRNGKey(0) if key is None else key
+    om = jnp.linalg.qr(jax.random.normal(key, (nf * n, k), chol_r.dtype))[0]
+
+    def data_part(v):
+        u = v.reshape(nf, n)
+        return (joint_matvec(system, chol_r, sqrt_c, u) - u).reshape(-1)
+
+    Y = jax.lax.map(data_part, om.T, batch_size=min(8, k)).T  # (Nf n, k)
+    nu = jnp.finfo(Y.dtype).eps * jnp.linalg.norm(Y)
+    Yn = Y + nu * om
+    C = jnp.linalg.cholesky(om.T @ Yn)
+    B = jax.scipy.linalg.solve_triangular(C, Yn.T, lower=True).T
+    U, sv, _ = jnp.linalg.svd(B, full_matrices=False)
+    return JointNystromPreconditioner(U, jnp.maximum(sv**2 - nu, 0.0))
+
+
 def _whitened_mblocks(system: JointSystem, chol_r, sqrt_c, quantum: int):
     """Per bucket (G, Nf S, Nf S): ``I + G_m^T blockdiag(H_nu,m) G_m`` (padding decoupled), and the layout."""
     nf = chol_r.shape[0]
@@ -192,16 +225,19 @@ def _whitened_mblocks(system: JointSystem, chol_r, sqrt_c, quantum: int):
     return tuple(out), blocks
 
 
-def joint_preconditioner(system: JointSystem, kind: str = "mblock", quantum: int = MModeOptions.bucket):
+def joint_preconditioner(system: JointSystem, kind: str = "mblock", quantum: int = MModeOptions.bucket,
+                         sketch_size: int = 128):
     """Build the named preconditioner of ``M`` (module docstring): ``"mblock"``, ``"mode"`` or ``"none"``.
 
     Args:
         system: a :class:`~gcrsky.solvers.joint.JointSystem` with ``op.frame is None``.
-        kind: ``"mblock"``, ``"mode"`` or ``"none"``.
+        kind: ``"mblock"``, ``"mode"``, ``"nystrom"`` or ``"none"``.
         quantum: the m-block layout's padding quantum.
+        sketch_size: the Nystrom sketch's rank (clipped to ``Nf n``).
 
     Returns:
-        a :class:`JointMBlockPreconditioner`, a :class:`JointModePreconditioner` or None.
+        a :class:`JointMBlockPreconditioner`, :class:`JointModePreconditioner`,
+        :class:`JointNystromPreconditioner` or None.
 
     Raises:
         ValueError: an unknown ``kind``, or a frame map (it couples the orders m).
@@ -211,6 +247,8 @@ def joint_preconditioner(system: JointSystem, kind: str = "mblock", quantum: int
         raise ValueError(f"unknown joint preconditioner {kind!r}; expected one of {KINDS[1:]}")
     if kind == "none":
         return None
+    if kind == "nystrom":
+        return _nystrom(system, *_whitening(system.prior), min(int(sketch_size), nf * n))
     if system.op.frame is not None:
         raise ValueError("the joint m-block and mode preconditioners need op.frame is None (a frame map couples m); "
                          "use preconditioner='none'")
@@ -234,6 +272,10 @@ def _precondition(pc, r: jax.Array) -> jax.Array:
     if pc is None:
         return r
     nf, n = r.shape
+    if isinstance(pc, JointNystromPreconditioner):
+        v = r.reshape(-1)
+        c = pc.U.T @ v
+        return (pc.U @ (c / (pc.lam + 1.0)) + v - pc.U @ c).reshape(nf, n)
     if isinstance(pc, JointModePreconditioner):
         x = jax.vmap(lambda L, b: jax.scipy.linalg.cho_solve((L, True), b))(pc.chol, r.T)  # (n, Nf)
         return x.T
@@ -252,9 +294,13 @@ def _solve(system: JointSystem, chol_r, sqrt_c, pc, y, options: JointCGOptions):
     pc = jax.lax.stop_gradient(pc)  # changes the path, not the answer
     cgo = CGOptions(tol=options.tol, maxiter=options.maxiter)
 
+    # the Nystrom sketch never exceeds M (M_pc <= M): r^T M_pc^-1 r bounds the error's P-norm and is tighter
+    # than ||r||^2 (M_pc >= I); with the others only the 2-norm is a bound
+    stop = None if isinstance(pc, JointNystromPreconditioner) else (lambda r: jnp.vdot(r, r).real)
+
     def one(b):
         return cg_solve(lambda u: joint_matvec(system, chol_r, sqrt_c, u), lambda r: _precondition(pc, r), b,
-                        jnp.zeros_like(b), cgo, stop=lambda r: jnp.vdot(r, r).real)
+                        jnp.zeros_like(b), cgo, stop=stop)
 
     u, info = one(y) if y.ndim == 2 else jax.vmap(one)(y)
     if options.throw:
@@ -295,10 +341,10 @@ def _resolve(system: JointSystem, options: JointCGOptions | None) -> JointCGOpti
     if kind == "auto":
         nf, n = system.prior.mean.shape
         fits = 8 * nf * nf * mmode_buckets(int(round(np.sqrt(n))) - 1, options.bucket).padded_entries
-        kind = "none"
+        kind = "nystrom"
         if system.op.frame is None and fits <= MBLOCK_MAX_BYTES and not is_traced(system):
-            kind = "mblock" if mmode_check(data_system(system)) else "none"
-    if kind != "none" and system.op.frame is not None:
+            kind = "mblock" if mmode_check(data_system(system)) else "nystrom"
+    if kind in ("mblock", "mode") and system.op.frame is not None:
         raise ValueError("the joint m-block and mode preconditioners need op.frame is None; "
                          "use JointCGOptions(preconditioner='none')")
     return dataclasses.replace(options, preconditioner=kind)
@@ -307,7 +353,7 @@ def _resolve(system: JointSystem, options: JointCGOptions | None) -> JointCGOpti
 @partial(jax.jit, static_argnames=("options",))
 def _prepare(system: JointSystem, options: JointCGOptions) -> JointCGState:
     chol_r, sqrt_c = _whitening(system.prior)
-    pc = joint_preconditioner(system, options.preconditioner, options.bucket)
+    pc = joint_preconditioner(system, options.preconditioner, options.bucket, options.sketch_size)
     terms = joint_evidence_terms(system)
     u, info = _solve(system, chol_r, sqrt_c, pc, _gt(chol_r, sqrt_c, terms["b_res"]), options)
     a_wf = system.prior.mean + _g(chol_r, sqrt_c, u)
