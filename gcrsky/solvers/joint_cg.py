@@ -17,38 +17,63 @@ true residual ``r = M (u* - u)``
 
 since ``G^T P G = M``.  CG therefore stops on the plain 2-norm of the whitened residual,
 ``||r||_2 <= tol``: an upper bound on the error's P-norm, which bounds every linear functional's error
-in units of its posterior standard deviation (``|v^T (a - a*)| <= sqrt(v^T P^-1 v) ||a - a*||_P``).  The
-bound holds whatever the preconditioner (none of them satisfies ``M_pc <= M`` for partial coverage, so
-``r^T M_pc^-1 r`` would bound nothing), and ``SolveInfo.converged`` is this measured bound against
-``tol`` on the true residual after CG's residual restart (:func:`gcrsky.solvers.cg.pcg`).
+in units of its posterior standard deviation (``|v^T (a - a*)| <= sqrt(v^T P^-1 v) ||a - a*||_P``).  It
+holds whatever the preconditioner; the m-block and per-mode preconditioners have no ``M_pc <= M`` on
+partial coverage, so ``r^T M_pc^-1 r`` would bound nothing there.  The Nystrom sketch never exceeds the
+matrix it approximates (``I <= M_pc <= M``), so with it CG stops on ``sqrt(r^T M_pc^-1 r)``, also a bound
+(``r^T M_pc^-1 r >= r^T M^-1 r``) and tighter than ``||r||_2``.  ``SolveInfo.converged`` (and
+``err_sigma``) is this measured bound against ``tol`` on the true residual after CG's residual restart
+(:func:`gcrsky.solvers.cg.pcg`).
 
-Preconditioners ("built per channel and per m"), all from the full-day m-mode approximation of each
-channel's data term (:func:`gcrsky.solvers.mmode.mmode_blocks`: ``H_nu``'s m-blocks with the noise summed
-over the observed times, the m-mode path's formula; exact for uniform full-day coverage):
+Preconditioners.  Built per channel and per m, from the full-day m-mode approximation of each channel's
+data term (:func:`gcrsky.solvers.mmode.mmode_blocks`: ``H_nu``'s m-blocks with the noise summed over the
+observed times, the m-mode path's formula; exact for uniform full-day coverage):
 
 * ``"mblock"``: for each m, the block of ``M`` restricted to order m, ``I + G_m^T blockdiag_nu(H_nu,m) G_m``
   of width ``Nf s_m``, Cholesky-factorised (the joint m-mode path's factor; bucketed as
   :class:`gcrsky.solvers.mmode.MModeBuckets`).  Memory ``8 Nf^2 sum_m s_m^2 ~ 11 Nf^2 lmax^3`` bytes,
-  set-up ``O(Nf^3 lmax^4)``.  For uniform full-day coverage it is ``M`` itself (CG stops after one step).
+  set-up ``O(Nf^3 lmax^4)``.  For uniform full-day coverage it is ``M`` itself (one CG step).
 * ``"mode"``: the cheaper per-mode blocks ``I + c_k L_R^T diag_nu(H_nu,kk) L_R``, (n, Nf, Nf): ``M``'s
   diagonal in the mode, exact in the frequency coupling.  Memory ``8 n Nf^2``, set-up ``O(n Nf^3)``.
+
+and, because neither helps on partial coverage (below):
+
+* ``"nystrom"``: a rank-``sketch_size`` randomized Nystrom sketch of the whitened data part ``M - I``
+  over all channels together (``sketch_size`` products with ``M``, the stable construction of
+  :func:`gcrsky.solvers.preconditioners.nystrom_preconditioner`), ``M_pc = I + U diag(lam) U^T``;
+  memory ``8 Nf n k`` bytes.
 * ``"none"``: the identity (``M``'s eigenvalues are >= 1 already).
 
-``"auto"`` (the default) takes ``"mblock"`` when its factors need at most :data:`MBLOCK_MAX_BYTES`, else
-``"mode"``: mblock needs by far the fewest iterations wherever it fits (table below), and each CG
-iteration costs an operator product over all channels and times, far more than its block solves.
+Measured iterations to ``tol = 1e-8``, Wiener filter / the most of 4 draws (all converged), with the
+log-frequency kernel (A 1.2, beta -2.5, xi 0.06, nugget 1e-2), 4 channels 100-112 MHz with channel 2
+flagged, noise sigma 2e-3, the 10-antenna hexagon; full day = Nt angles equally spaced over 2 pi, 8 h =
+Nt angles over a third of the day; Nystrom with the default ``sketch_size`` 128 (Nystrom stops on its
+tighter norm, the others on ``||r||_2``):
 
-Iterations to ``tol = 1e-8`` (the Wiener filter; a draw needs as many within one or two), measured on the
-test problem (10-antenna hexagon, 12 baselines, 4 channels 100-112 MHz, the log-frequency kernel
-A 1.2, beta -2.5, xi 0.06, nugget 1e-2, noise sigma 2e-3) with channel 2 flagged, full day = 16 equally
-spaced angles, 8 h = 16 angles over a third of the day:
+======================  =====  ==========  ===========  =========  =========
+lmax, Nbl, Nt           cover  none        mode         mblock     nystrom
+======================  =====  ==========  ===========  =========  =========
+6, 12, 16               24 h   57 / 60     98 / 102     1 / 1      1 / 1
+6, 12, 16               8 h    63 / 65     150 / 159    118 / 119  1 / 1
+12, 30, 32              24 h   186 / 195   290 / 310    1 / 1      53 / 53
+12, 30, 32              8 h    214 / 222   461 / 493    342 / 362  3 / 3
+20, 45, 48              24 h   433 / 432   944 / 1008   1 / 1      259 / 261
+20, 45, 48              8 h    541 / 565   1544 / 1639  776 / 826  32 / 32
+======================  =====  ==========  ===========  =========  =========
 
-=================  ======  ======  ======  =======
-lmax, Nf           cover   none    mode    mblock
-=================  ======  ======  ======  =======
-6, 4               24 h    TBD     TBD     TBD
-6, 4               8 h     TBD     TBD     TBD
-=================  ======  ======  ======  =======
+(Measured by building these systems as ``tests/test_joint_cg.py`` does, response at nside 32 below lmax 16
+and 64 above, and reading ``prepare_joint_cg(system, JointCGOptions(tol=1e-8, preconditioner=kind))
+.wiener.iterations`` and ``draw_joint_cg(PRNGKey(0), state, 4)[1].draws.iterations``.)  The
+m-blocks are exact on the full day and lose to no preconditioner on 8 h (1.4-1.9x the iterations): the
+data of a third of the day constrain the sky seen, not every m evenly, and a preconditioner
+block-diagonal in m cannot say so (the *exact* m-diagonal blocks of the 8 h ``H_nu``, built per time,
+measured the same: 115, 338, 791 Wiener iterations).  The per-mode blocks lose everywhere.  With 256
+directions the Nystrom sketch needs 1 / 1 / 3 iterations at lmax 6 / 12 / 20 on 8 h.
+
+Default (``"auto"``): ``"mblock"`` on uniform full-day coverage (:func:`gcrsky.solvers.mmode.mmode_check`
+on concrete arrays) while its factors need at most :data:`MBLOCK_MAX_BYTES`, as it is ``M`` there (but
+the exact :func:`gcrsky.solvers.joint.prepare_joint_mmode` is then the better path); ``"nystrom"``
+everywhere else and under a trace, since it needs by far the fewest iterations on partial coverage.
 
 Differentiation: the solves go through :func:`gcrsky.solvers.cg.cg_solve` (``jax.lax.custom_linear_solve``):
 ``jax.grad`` of the Wiener filter in anything the system holds (the prior's hyperparameters) follows the
