@@ -121,6 +121,7 @@ __all__ = [
     "JointNystromPreconditioner",
     "draw_joint_cg",
     "joint_matvec",
+    "joint_precondition",
     "joint_preconditioner",
     "prepare_joint_cg",
     "wiener_joint_cg",
@@ -292,8 +293,8 @@ def joint_preconditioner(system: JointSystem, kind: str = "mblock", quantum: int
     return JointModePreconditioner(jnp.linalg.cholesky(B))
 
 
-def _precondition(pc, r: jax.Array) -> jax.Array:
-    """``M_pc^-1 r`` for r (Nf, n)."""
+def joint_precondition(pc, r: jax.Array) -> jax.Array:
+    """``M_pc^-1 r`` for r (Nf, n) with a preconditioner of :func:`joint_preconditioner` (None: identity)."""
     if pc is None:
         return r
     nf, n = r.shape
@@ -324,7 +325,7 @@ def _solve(system: JointSystem, chol_r, sqrt_c, pc, y, options: JointCGOptions):
     stop = None if isinstance(pc, JointNystromPreconditioner) else (lambda r: jnp.vdot(r, r).real)
 
     def one(b):
-        return cg_solve(lambda u: joint_matvec(system, chol_r, sqrt_c, u), lambda r: _precondition(pc, r), b,
+        return cg_solve(lambda u: joint_matvec(system, chol_r, sqrt_c, u), lambda r: joint_precondition(pc, r), b,
                         jnp.zeros_like(b), cgo, stop=stop)
 
     u, info = one(y) if y.ndim == 2 else jax.vmap(one)(y)
