@@ -138,8 +138,9 @@ class JointCGOptions:
     """Options of the joint CG (hashable: a static argument of the jitted functions).
 
     Attributes:
-        tol: stop when the whitened residual's 2-norm ``||r||_2 <= tol``: a rigorous bound on the
-            error's P-norm, posterior-sigma units (module docstring).
+        tol: stop when the whitened residual's 2-norm ``||r||_2 <= tol`` (with ``"nystrom"``:
+            ``sqrt(r^T M_pc^-1 r) <= tol``, tighter): a rigorous bound on the error's P-norm,
+            posterior-sigma units (module docstring).
         maxiter: cap on iterations per solve (both passes of the residual restart together).
         preconditioner: ``"auto"``, ``"mblock"``, ``"mode"``, ``"nystrom"`` or ``"none"`` (module docstring).
         bucket: padding quantum of the m-block layout (:class:`gcrsky.solvers.MModeOptions`).
@@ -253,10 +254,10 @@ def _whitened_mblocks(system: JointSystem, chol_r, sqrt_c, quantum: int):
 
 def joint_preconditioner(system: JointSystem, kind: str = "mblock", quantum: int = MModeOptions.bucket,
                          sketch_size: int = 128):
-    """Build the named preconditioner of ``M`` (module docstring): ``"mblock"``, ``"mode"`` or ``"none"``.
+    """Build the named preconditioner of ``M`` (module docstring).
 
     Args:
-        system: a :class:`~gcrsky.solvers.joint.JointSystem` with ``op.frame is None``.
+        system: a :class:`~gcrsky.solvers.joint.JointSystem` (``op.frame is None`` for ``"mblock"`` and ``"mode"``).
         kind: ``"mblock"``, ``"mode"``, ``"nystrom"`` or ``"none"``.
         quantum: the m-block layout's padding quantum.
         sketch_size: the Nystrom sketch's rank (clipped to ``Nf n``).
@@ -266,7 +267,7 @@ def joint_preconditioner(system: JointSystem, kind: str = "mblock", quantum: int
         :class:`JointNystromPreconditioner` or None.
 
     Raises:
-        ValueError: an unknown ``kind``, or a frame map (it couples the orders m).
+        ValueError: an unknown ``kind``, or a frame map with ``"mblock"`` / ``"mode"`` (it couples the orders m).
     """
     nf, n = system.prior.mean.shape
     if kind not in KINDS[1:]:
@@ -277,7 +278,7 @@ def joint_preconditioner(system: JointSystem, kind: str = "mblock", quantum: int
         return _nystrom(system, *_whitening(system.prior), min(int(sketch_size), nf * n))
     if system.op.frame is not None:
         raise ValueError("the joint m-block and mode preconditioners need op.frame is None (a frame map couples m); "
-                         "use preconditioner='none'")
+                         "use 'nystrom' or 'none'")
     chol_r, sqrt_c = _whitening(system.prior)
     if kind == "mblock":
         Ms, blocks = _whitened_mblocks(system, chol_r, sqrt_c, quantum)
@@ -341,7 +342,7 @@ class JointCGState(eqx.Module):
         system: the :class:`~gcrsky.solvers.joint.JointSystem`.
         a_wf: (Nf, n) joint Wiener filter, Kelvin.
         wiener: :class:`~gcrsky.solvers.SolveInfo` of its solve (scalar fields; ``err_sigma`` the
-            bound ``||r||_2`` on the error's P-norm).
+            bound on the error's P-norm: ``||r||_2``, or ``sqrt(r^T M_pc^-1 r)`` with ``"nystrom"``).
         pc: the preconditioner (:func:`joint_preconditioner`), or None.
         chol_r: (Nf, Nf) lower Cholesky factor of ``R``; sqrt_c: (n,) ``sqrt(mode_var)``.
         terms: :func:`gcrsky.solvers.joint.joint_evidence_terms`.
@@ -372,7 +373,7 @@ def _resolve(system: JointSystem, options: JointCGOptions | None) -> JointCGOpti
             kind = "mblock" if mmode_check(data_system(system)) else "nystrom"
     if kind in ("mblock", "mode") and system.op.frame is not None:
         raise ValueError("the joint m-block and mode preconditioners need op.frame is None; "
-                         "use JointCGOptions(preconditioner='none')")
+                         "use JointCGOptions(preconditioner='nystrom')")
     return dataclasses.replace(options, preconditioner=kind)
 
 
