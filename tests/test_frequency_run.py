@@ -242,10 +242,27 @@ def test_the_data_space_paths_run_the_same_posterior(small_array, partial, tmp_p
     assert np.sqrt(e @ np.asarray(joint_precision_matrix(joint)) @ e) < 1e-6
 
 
-def test_no_joint_path_that_fits_is_refused_by_name(partial, monkeypatch):
+def test_without_memory_auto_takes_cg_and_a_direct_path_is_refused_by_name(partial, monkeypatch):
     from gcrsky.base.memory import InsufficientMemoryError
 
     joint, _ = joint_system_of(partial, MODEL)
     monkeypatch.setenv("GCRSKY_MEMORY_BUDGET_GB", "1e-6")
+    assert choose_joint_method(joint, "auto") == "joint-cg"
     with pytest.raises(InsufficientMemoryError, match="joint path joint-cholesky over 4 channels"):
-        choose_joint_method(joint, "auto")
+        choose_joint_method(joint, "cholesky")
+
+
+def test_the_cg_path_runs_the_same_posterior(partial, tmp_path):
+    """``--method cg``: CG's Wiener filter equals the dense one to its tolerance (1e-6 posterior sigma, the run's
+    default; CG's stop bounds the error's P-norm), its own per-draw bounds recorded, all converged."""
+    from gcrsky.run import Solver
+
+    joint, _ = joint_system_of(partial, MODEL)
+    spec = RunSpec(Draws(4, seed=3, batch=4), Output(tmp_path, plots=False), Solver("cg"), frequency=MODEL)
+    summary, _ = execute(partial, spec)
+    assert summary.run["method"] == "joint-cg" and summary.solver["all_converged"]
+    assert summary.solver["wiener"]["err_sigma_max"] <= 1e-6
+    with h5py.File(tmp_path / "results.h5", "r") as h:
+        e = (np.asarray(h["wiener_filter"]) - np.asarray(prepare_joint_dense(joint).a_wf)).reshape(-1)
+        assert h["draw_info/iterations"].shape == (FREQS.size, 4)
+    assert np.sqrt(e @ np.asarray(joint_precision_matrix(joint)) @ e) < 1e-6

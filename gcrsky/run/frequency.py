@@ -53,6 +53,7 @@ from ..solvers.joint import (
     prepare_joint_mmode,
     whitened_solve,
 )
+from ..solvers.joint_cg import JointCGOptions, draw_joint_cg, prepare_joint_cg
 from ..solvers.joint_dataspace import (
     draw_joint_dataspace,
     draw_joint_dataspace_mmode,
@@ -78,7 +79,8 @@ FREQ_KEY_SCHEME = "joint-frequency-v1: batch b = draw_joint(fold_in(PRNGKey(seed
 
 #: The ``--method`` values a frequency-coupled run takes (besides ``auto``), and what each asks for.
 JOINT_METHODS = {"cholesky": "the dense a-space joint precision", "mmode": "its blocks per order (full day)",
-                 "dataspace": "the data space, dense or per order (full day)"}
+                 "dataspace": "the data space, dense or per order (full day)",
+                 "cg": "matrix-free CG on the whitened joint precision (Nystrom or m-block preconditioner)"}
 
 #: Bytes per entry of the dense joint path's working set: M and its factor in float64, with slack.
 _DENSE_BYTES = 3 * 8
@@ -165,21 +167,32 @@ def joint_system_of(prob, model: FrequencyModel) -> tuple[JointSystem, dict]:
 
 
 class JointPath(NamedTuple):
-    """A joint path over channels: its recorded name, set-up, draw and ``M^-1`` (whitened) functions."""
+    """A joint path over channels: its recorded name, set-up ``(joint, tol) -> state``, draw
+    ``(key, state, ndraws) -> draws (ndraws, Nf, n)`` and ``M^-1`` (whitened) functions; an
+    iterative path (``solve`` None) reports its own solves' accuracy instead."""
 
     name: str
     prepare: Callable
     draw: Callable
-    solve: Callable
+    solve: Callable | None
+
+
+def _direct(prepare):
+    return lambda joint, tol: prepare(joint)
+
+
+def _prepare_cg(joint, tol):
+    return prepare_joint_cg(joint, JointCGOptions(tol=tol))
 
 
 #: The joint paths by recorded name (``results.h5``'s ``method``).
 JOINT_PATHS = {p.name: p for p in (
-    JointPath("joint-cholesky", prepare_joint_dense, draw_joint_dense, whitened_solve),
-    JointPath("joint-mmode", prepare_joint_mmode, draw_joint_mmode, whitened_solve),
-    JointPath("joint-dataspace", prepare_joint_dataspace, draw_joint_dataspace, whitened_solve_dataspace),
-    JointPath("joint-dataspace-mmode", prepare_joint_dataspace_mmode, draw_joint_dataspace_mmode,
+    JointPath("joint-cholesky", _direct(prepare_joint_dense), draw_joint_dense, whitened_solve),
+    JointPath("joint-mmode", _direct(prepare_joint_mmode), draw_joint_mmode, whitened_solve),
+    JointPath("joint-dataspace", _direct(prepare_joint_dataspace), draw_joint_dataspace, whitened_solve_dataspace),
+    JointPath("joint-dataspace-mmode", _direct(prepare_joint_dataspace_mmode), draw_joint_dataspace_mmode,
               whitened_solve_dataspace),
+    JointPath("joint-cg", _prepare_cg, draw_joint_cg, None),
 )}
 
 
@@ -207,8 +220,9 @@ def choose_joint_method(joint: JointSystem, method: str) -> str:
 
     ``auto``: with uniform full-day coverage (:func:`gcrsky.solvers.mmode_check`) the per-order paths,
     else the dense ones; of the a-space (``cholesky`` / ``mmode``) and data-space (``dataspace``) form,
-    the narrower factor that fits in memory.  ``cholesky`` and ``mmode`` ask for the a-space form,
-    ``dataspace`` for the data space's (per order where the coverage allows).
+    the narrower factor that fits in memory; where neither fits, CG (:mod:`gcrsky.solvers.joint_cg`:
+    matrix-free, its error bounded by its stop).  ``cholesky`` and ``mmode`` ask for the a-space form,
+    ``dataspace`` for the data space's (per order where the coverage allows), ``cg`` for CG.
 
     Raises:
         ValueError: a method no joint path serves, or ``mmode`` where it does not apply.
@@ -220,6 +234,8 @@ def choose_joint_method(joint: JointSystem, method: str) -> str:
     ok = mmode_check(data_system(joint))
     if method == "mmode" and not ok:
         raise ValueError(f"the joint m-mode path does not apply: {ok.reason}")
+    if method == "cg":
+        return "joint-cg"
     cands = _candidates(joint, bool(ok))
     if method != "auto":
         want = {"cholesky": "joint-cholesky", "mmode": "joint-mmode", "dataspace": "joint-dataspace"}[method]
@@ -228,6 +244,9 @@ def choose_joint_method(joint: JointSystem, method: str) -> str:
     for name, mem in cands:
         if mem <= budget:
             return name
+    if method == "auto":
+        log.info("no direct joint path fits in %.3g GB: CG", budget / 2**30)
+        return "joint-cg"
     name, mem = cands[0]
     check_memory(mem, f"the joint path {name} over {np.shape(joint.data)[0]} channels",
                  "use fewer channels (--freq-min/--freq-max), a lower --lmax, or fewer times or baselines",
@@ -248,11 +267,14 @@ def frequency_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, watch: Wa
     else:
         method = str(run.state.attrs["method"])
     path = JOINT_PATHS[method]
-    draw = path.draw
-    state = path.prepare(joint)
+    state = path.prepare(joint, spec.solver.tol)
     a_wf = np.asarray(jax.block_until_ready(state.a_wf))
-    winfo = jax.tree_util.tree_map(np.asarray, joint_wiener_info(joint, a_wf, spec.solver.tol,
-                                                                  solve=partial(path.solve, state)))
+    nf = a_wf.shape[0]
+    if path.solve is None:  # CG: its own measured bound, the same for every channel (one joint solve)
+        winfo = jax.tree_util.tree_map(lambda v: np.broadcast_to(np.asarray(v), (nf,)).copy(), state.wiener)
+    else:
+        winfo = jax.tree_util.tree_map(np.asarray, joint_wiener_info(joint, a_wf, spec.solver.tol,
+                                                                      solve=partial(path.solve, state)))
     log.info("joint Wiener filter over %d channels by %s: error <= %.3g posterior sigma", a_wf.shape[0], method,
              float(winfo.err_sigma[0]))
     options = json.dumps({"method": method, "frequency_prior": info})
@@ -264,10 +286,16 @@ def frequency_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, watch: Wa
     batches = range(run.start, d.n_batches)
     for b in watch.progress(batches) if watch.progress is not None else batches:
         t0 = time.perf_counter()
-        x = np.asarray(jax.block_until_ready(draw(jax.random.fold_in(key, b), state, d.batch)))
+        out = jax.block_until_ready(path.draw(jax.random.fold_in(key, b), state, d.batch))
+        x, info = out if path.solve is None else (out, None)
         take = min(d.batch, d.nsamples - b * d.batch)
-        x = np.moveaxis(x[:take], 0, 1)  # (Nf, take, n)
-        dinfo = jax.tree_util.tree_map(np.asarray, exact_info(winfo, np.isfinite(x).all(axis=-1), x.shape[:2]))
+        x = np.moveaxis(np.asarray(x)[:take], 0, 1)  # (Nf, take, n)
+        if info is None:
+            dinfo = exact_info(winfo, np.isfinite(x).all(axis=-1), x.shape[:2])
+        else:  # CG's per-draw bound, the same for every channel
+            dinfo = jax.tree_util.tree_map(lambda v: np.broadcast_to(np.asarray(v)[:take], x.shape[:2]).copy(),
+                                           info.draws)
+        dinfo = jax.tree_util.tree_map(np.asarray, dinfo)
         kill_hook(append_batch(run.h5, b, x, dinfo, seconds=time.perf_counter() - t0))
     return method
 
