@@ -137,6 +137,8 @@ def test_evidence_limits_independent_and_template(op):
     assert abs(joint0 - ind) < 1e-10 * abs(ind), (joint0, ind)  # measured 7e-15 relative
 
     mid = float(spectral_log_evidence(system, model, {**theta, "log_xi": float(np.log(0.3))}))
+    held = float(spectral_log_evidence(system, model, theta, fixed={"log_xi": float(np.log(0.3))}))
+    assert held == mid  # a hyperparameter held fixed is the same model
     assert abs(mid - ind) > 10.0, (mid, ind)  # measured 32 nats: the check above can fail
 
     # xi = 1e4, nugget 1e-12: R is the rank-1 power law A (nu nu'/nu0^2)^beta up to relative 1e-9.  The

@@ -491,10 +491,13 @@ def draw_given_spectral_hyperparameters(
         raise ValueError("theta_samples has no leaves")
     first = jax.tree_util.tree_map(lambda x: x[0], theta_samples)
     method = _checked(system, model, first, fixed, method, memory_budget)
-    num = int(jnp.shape(leaves[0])[0])
-    keys = jax.random.split(key, num)
-    ndraws = int(ndraws)
+    keys = jax.random.split(key, int(jnp.shape(leaves[0])[0]))
+    fixed = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), dict(fixed or {}))
+    return _draw_given(keys, system, model, theta_samples, fixed, method, int(ndraws), batch_size)
 
+
+@partial(jax.jit, static_argnames=("method", "ndraws", "batch_size"))
+def _draw_given(keys, system, model, theta_samples, fixed, method, ndraws, batch_size):
     def one(args):
         k, theta = args
         js = joint_system(system, model, theta, fixed)
@@ -502,7 +505,7 @@ def draw_given_spectral_hyperparameters(
             return draw_joint_mmode(k, prepare_joint_mmode(js, check=False), ndraws)
         return draw_joint_dense(k, prepare_joint_dense(js, check=False), ndraws)
 
-    return jax.jit(lambda ks, th: jax.lax.map(one, (ks, th), batch_size=batch_size))(keys, theta_samples)
+    return jax.lax.map(one, (keys, theta_samples), batch_size=batch_size)
 
 
 # ---------------------------------------------------------------- the evidence table
