@@ -160,10 +160,71 @@ def frequency_prior_of(system, freqs_hz, model: FrequencyModel) -> tuple[Frequen
 
 
 def joint_system_of(prob, model: FrequencyModel) -> tuple[JointSystem, dict]:
-    """The :class:`~gcrsky.solvers.joint.JointSystem` of a problem under ``model`` (and the prior's info)."""
+    """The :class:`~gcrsky.solvers.joint.JointSystem` of a problem under ``model`` (and the prior's info).
+
+    With ``model.fit`` the kernel's amplitude, index and correlation length are first fitted by the
+    exact joint evidence (:func:`fit_kernel`) and the prior built at the fit.
+    """
     system = prob.system()
     fp, info = frequency_prior_of(system, prob.freqs_hz, model)
-    return JointSystem(system.op, system.data, system.inv_noise, fp), info
+    joint = JointSystem(system.op, system.data, system.inv_noise, fp)
+    if model.fit:
+        joint, info = fit_kernel(joint, prob.freqs_hz, model, info)
+        ratio = (np.diag(np.asarray(joint.prior.freq_cov))[:, None] * np.asarray(joint.prior.mode_var)[None, :]
+                 * np.asarray(system.prior.inv_var))
+        info["variance_ratio"] = [float(ratio.min()), float(ratio.max())]
+    return joint, info
+
+
+def fit_kernel(joint: JointSystem, freqs_hz, model: FrequencyModel, info: dict) -> tuple[JointSystem, dict]:
+    """The kernel prior at the maximum of the joint evidence (:func:`gcrsky.inference.spectral_hyper.
+    fit_spectral_hyperparameters`, BFGS under its weak hyperprior), starting from ``info``'s ``beta`` and
+    ``model.xi``.
+
+    The run's prior mean is fixed per channel, so the evidence is that of the residual data
+    ``d - X a0`` under a zero-mean prior; ``C_l(nu0)`` is read off the reference channel's variances
+    (an isotropic prior: the m = 0 entries, checked to equal every m's).  The amplitude multiplies
+    ``C_l(nu0)`` (1 = the problem's own prior at the reference channel).
+
+    Returns:
+        the system at the fit, and ``info`` with ``amplitude``, ``beta``, ``xi``, their Laplace errors,
+        the log evidence and whether the fit converged (``fit``).
+
+    Raises:
+        ValueError: the reference channel's prior is not isotropic.
+    """
+    from ..inference.spectral_hyper import SpectralModel, fit_spectral_hyperparameters, spectral_prior
+    from ..model.operator import apply
+    from ..model.spectral import mode_variance
+    from ..sphere.modes import mode_table
+
+    c = np.asarray(joint.prior.mode_var)
+    lmax = int(round(np.sqrt(c.size))) - 1
+    tab = mode_table(lmax)
+    cl = np.zeros(lmax + 1)
+    cl[np.asarray(tab.ell)[np.asarray(tab.m) == 0]] = c[np.asarray(tab.m) == 0]
+    if not np.allclose(np.asarray(mode_variance(jnp.asarray(cl))), c, rtol=1e-10, atol=0):
+        raise ValueError("--freq-fit fits the amplitude of an isotropic C_l(nu0): the reference channel's prior is "
+                         "not isotropic (its variance differs between m at one l)")
+    nu0 = info["nu0_mhz"] * 1e6
+    spec = SpectralModel(freqs_hz=jnp.asarray(freqs_hz, jnp.float64), nu0_hz=nu0, cl=jnp.asarray(cl),
+                         nugget=model.nugget, mean0=None)
+    resid = jnp.where(joint.inv_noise > 0, joint.data - apply(joint.op, joint.prior.mean), 0.0)
+    start = {"log_amplitude": 0.0, "beta": float(info["beta"]), "log_xi": float(np.log(model.xi))}
+    fit = fit_spectral_hyperparameters(joint._replace(data=resid), spec, start)
+    theta = {k: float(v) for k, v in fit.theta.items()}
+    fp = spectral_prior(spec, fit.theta)
+    fp = fp._replace(mean=joint.prior.mean)
+    sd = {k: float(v) for k, v in fit.std.items()}
+    info = {**info, "beta": theta["beta"], "beta_fitted_to_prior": False, "xi": float(np.exp(theta["log_xi"])),
+            "fit": {"amplitude": float(np.exp(theta["log_amplitude"])), "log_amplitude_sd": sd["log_amplitude"],
+                    "beta_sd": sd["beta"], "log_xi_sd": sd["log_xi"], "log_evidence": float(fit.log_evidence),
+                    "converged": bool(fit.converged), "steps": int(fit.num_steps),
+                    "method": "maximum joint evidence (BFGS), Laplace errors, weak hyperprior"}}
+    if not bool(fit.converged):
+        log.warning("--freq-fit: the kernel's fit did not converge (%s); the prior is built where it stopped",
+                    fit.message)
+    return joint._replace(prior=fp), info
 
 
 class JointPath(NamedTuple):
@@ -249,7 +310,7 @@ def choose_joint_method(joint: JointSystem, method: str) -> str:
         return "joint-cg"
     name, mem = cands[0]
     check_memory(mem, f"the joint path {name} over {np.shape(joint.data)[0]} channels",
-                 "use fewer channels (--freq-min/--freq-max), a lower --lmax, or fewer times or baselines",
+                 "use fewer channels (--freq-range, --chans), a lower --lmax, or fewer times or baselines",
                  budget=budget)
     return name
 
