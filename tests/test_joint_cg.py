@@ -14,12 +14,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _joint_fixtures import CL, FREQS, LMAX, NT, NU0, N, simulate_joint
 
 from gcrsky.instrument import antpairs, response_matrix
-from gcrsky.model.operator import VisOperator, apply
+from gcrsky.model.operator import VisOperator
 from gcrsky.model.spectral import frequency_prior, log_frequency_kernel
 from gcrsky.solvers.info import Result
-from gcrsky.solvers.joint import JointSystem, draw_joint_dense, prepare_joint_dense
+from gcrsky.solvers.joint import draw_joint_dense, prepare_joint_dense
 from gcrsky.solvers.joint_cg import (
     JointCGOptions,
     JointModePreconditioner,
@@ -31,14 +32,7 @@ from gcrsky.solvers.joint_cg import (
     wiener_joint_cg,
 )
 
-LMAX = 6
-N = (LMAX + 1) ** 2
-FREQS = np.array([100e6, 104e6, 108e6, 112e6])
-NU0 = 106e6
-NT = 16
-SIGMA = 2e-3
 HYPER = (1.2, -2.5, 0.06)  # amplitude, beta, xi
-CL = 50.0 / (1.0 + np.arange(LMAX + 1)) ** 2
 TOL = 1e-10  # CG's bound on the error's P-norm: every mode's error <= 1e-10 posterior sigma
 NDRAWS = 3
 
@@ -56,14 +50,7 @@ def _system(response, frac, seed=5):
     """Data simulated from the joint prior over ``frac`` of the day, channel 2 flagged."""
     op = VisOperator(response, jnp.asarray(2 * np.pi * frac * np.arange(NT) / NT + 0.1))
     prior = _prior(mean=0.05 * np.random.default_rng(11).standard_normal((FREQS.size, N)))
-    rng = np.random.default_rng(seed)
-    S = np.kron(np.asarray(prior.freq_cov), np.diag(np.asarray(prior.mode_var)))
-    truth = np.asarray(prior.mean) + (np.linalg.cholesky(S) @ rng.standard_normal(S.shape[0])).reshape(FREQS.size, N)
-    v = np.asarray(apply(op, jnp.asarray(truth)))
-    d = v + SIGMA * (rng.standard_normal(v.shape) + 1j * rng.standard_normal(v.shape))
-    w = np.full(v.shape, SIGMA**-2)
-    w[2], d[2] = 0.0, 0.0
-    return JointSystem(op, jnp.asarray(d), jnp.asarray(w), prior)
+    return simulate_joint(op, prior, seed, flagged=(2,))
 
 
 class Dense:

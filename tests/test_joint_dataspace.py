@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _joint_fixtures import CL, FREQS, LMAX, NT, NU0, N, simulate_joint
 from scipy import stats
 
 from gcrsky.instrument import antpairs, response_matrix
@@ -40,16 +41,9 @@ from gcrsky.solvers.joint_dataspace import (
     prepare_joint_dataspace_mmode,
 )
 
-LMAX = 6
-N = (LMAX + 1) ** 2
-FREQS = np.array([100e6, 104e6, 108e6, 112e6])
-NU0 = 106e6
-NT = 16
 NT_PART = 10
-SIGMA = 2e-3
 HYPER = (1.2, -2.5, 0.06)  # A, beta, xi
 NUGGET = 1e-2
-CL = 50.0 / (1.0 + np.arange(LMAX + 1)) ** 2
 
 
 def _prior(theta=HYPER, mean=None, coupled=True):
@@ -61,16 +55,7 @@ def _prior(theta=HYPER, mean=None, coupled=True):
 
 def _system(op, prior, seed, flag_channel, flag_fraction=0.0):
     """Data drawn from ``prior``; channel ``flag_channel`` weight 0, a fraction of other samples too."""
-    rng = np.random.default_rng(seed)
-    S = np.kron(np.asarray(prior.freq_cov), np.diag(np.asarray(prior.mode_var)))
-    truth = np.asarray(prior.mean) + (np.linalg.cholesky(S) @ rng.standard_normal(S.shape[0])).reshape(FREQS.size, N)
-    v = np.asarray(apply(op, jnp.asarray(truth)))
-    d = v + SIGMA * (rng.standard_normal(v.shape) + 1j * rng.standard_normal(v.shape))
-    w = np.full(v.shape, SIGMA**-2)
-    w[rng.random(v.shape) < flag_fraction] = 0.0
-    w[flag_channel] = 0.0
-    d[w == 0] = 0.0
-    return JointSystem(op, jnp.asarray(d), jnp.asarray(w), prior)
+    return simulate_joint(op, prior, seed, flagged=(flag_channel,), flag_fraction=flag_fraction)
 
 
 class Reference:

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _joint_fixtures import CL, FREQS, LMAX, NT, NU0, N, simulate_joint
 from scipy import stats
 
 from gcrsky.inference.evidence import log_evidence
@@ -48,15 +49,8 @@ from gcrsky.solvers.joint import (
 )
 from gcrsky.solvers.options import MModeOptions
 
-LMAX = 6
-N = (LMAX + 1) ** 2
-FREQS = np.array([100e6, 104e6, 108e6, 112e6])
-NU0 = 106e6
-NT = 16
-SIGMA = 2e-3
 HYPER = dict(amplitude=1.2, beta=-2.5, xi=0.06)  # A, beta, xi (log-frequency correlation length)
 NUGGET = 1e-2
-CL = 50.0 / (1.0 + np.arange(LMAX + 1)) ** 2
 
 
 @pytest.fixture(scope="module")
@@ -72,15 +66,7 @@ def _prior(amplitude=HYPER["amplitude"], beta=HYPER["beta"], xi=HYPER["xi"], nug
 
 def _system(op, prior, seed=3, flagged=()):
     """Data simulated from ``prior`` (truth drawn from the joint prior), channels ``flagged`` weight 0."""
-    rng = np.random.default_rng(seed)
-    S = np.kron(np.asarray(prior.freq_cov), np.diag(np.asarray(prior.mode_var)))
-    truth = np.asarray(prior.mean) + (np.linalg.cholesky(S) @ rng.standard_normal(S.shape[0])).reshape(FREQS.size, N)
-    v = np.asarray(apply(op, jnp.asarray(truth)))
-    d = v + SIGMA * (rng.standard_normal(v.shape) + 1j * rng.standard_normal(v.shape))
-    w = np.full(v.shape, SIGMA**-2)
-    for f in flagged:
-        w[f], d[f] = 0.0, 0.0
-    return JointSystem(op, jnp.asarray(d), jnp.asarray(w), prior)
+    return simulate_joint(op, prior, seed, flagged=flagged)
 
 
 def _mean(seed=11):
