@@ -15,6 +15,7 @@ OVERRIDES = {
     "gibbs.ipynb": {"LMAX": 8, "NSIDE": 32, "STEPS": 1500, "NUTS_WARMUP": 150, "NUTS_SAMPLES": 300},
     "point_sources.ipynb": {"LMAX": 8, "NSIDE": 32, "STEPS": 1500},
     "real_data.ipynb": {"LMAX": 8, "BAND_LIMIT": "marginalise", "NSIDE": 64, "NSAMPLES": 20},  # nside 64: the kept fringes resolved
+    "frequency.ipynb": {"NCHAN": 12, "LMAX": 4, "NTIMES": 10, "FLAG_BLOCKS": ((3, 2), (7, 2)), "NDRAWS": 100},
     "calibration.ipynb": {"HEX_ROWS": (2, 3), "LMAX": 4, "NSIDE": 16, "STEPS": 1000, "BURN": 200,
                           "H1C_LMAX": 8, "H1C_STEPS": 100, "H1C_BURN": 100},
 }
@@ -148,6 +149,28 @@ def _check_calibration(ns):
     assert np.median(ns["ratio_h1c"]) > 0.8, ns["ratio_h1c"]
 
 
+def _check_frequency(ns):
+    import numpy as np
+    from scipy import stats
+
+    table, fit = ns["table"], ns["fit"]
+    assert all(bool(f.converged) for f in table.fits.values())
+    # the evidence prefers the coupled prior over independent channels by far (measured +560 nats at this size)
+    assert table.coupled - table.independent > 100
+    # the fitted index is the sky's: within 0.15 of the truth's power-weighted index (measured -2.41 vs -2.46;
+    # the two estimators weight the modes differently), and a correlation length longer than the band
+    assert abs(ns["beta_fit"] - ns["beta_truth"]) < 0.15 and ns["xi_fit"] > 0.1
+    # inpainting: the independent model's flagged channels are its prior (zero mean: error = the truth's rms),
+    # the coupled model's error there is far smaller (measured 76 vs 804 K)
+    (cf, _), (inf, _) = ns["err"]["coupled"], ns["err"]["independent"]
+    truth_rms = float(np.sqrt(np.mean(ns["obs"].truth[ns["flagged"]] ** 2)))
+    assert abs(inf - truth_rms) < 1e-6 * truth_rms and cf < inf / 5
+    # the truth's z-scores at the flagged channels' well-constrained coefficients: mean z^2 within the two-sided
+    # 0.1 % chi-square range of K terms, widened by 25 % for the draws' Monte-Carlo error (100 draws)
+    k = int(ns["narrow"].sum())
+    assert k >= 10 and stats.chi2.ppf(0.0005, k) / k / 1.25 < ns["z2_flagged"] < 1.25 * stats.chi2.ppf(0.9995, k) / k
+
+
 #: The notebooks' claims, checked on their own numbers (every notebook needs an entry).
 CHECKS = {
     "quickstart.ipynb": _check_quickstart,
@@ -157,6 +180,7 @@ CHECKS = {
     "point_sources.ipynb": _check_point_sources,
     "real_data.ipynb": _check_real_data,
     "calibration.ipynb": _check_calibration,
+    "frequency.ipynb": _check_frequency,
 }
 
 
