@@ -36,7 +36,7 @@ from .resume import options_from_json, options_json
 from .stages import StageTimer, Watch
 from .summary import versions
 
-__all__ = ["draw_batch", "joint_draws", "record_setup"]
+__all__ = ["append_batches", "draw_batch", "joint_draws", "record_setup"]
 
 log = logging.getLogger(__name__)
 
@@ -132,9 +132,16 @@ def joint_draws(prob, spec, run: OpenRun, st: StageTimer, watch: Watch) -> str:
     st.stop()
     st.start("draws")
     key = jax.random.PRNGKey(d.seed)
-    batches = range(run.start, d.n_batches)
+    append_batches(run, d, watch, lambda b: draw_batch(key, prepared, b, d.batch, d.nsamples))
+    return method
+
+
+def append_batches(run: OpenRun, draws_spec, watch: Watch, draw_one) -> None:
+    """Batches ``run.start`` to the last of ``draws_spec`` (:class:`~gcrsky.run.spec.Draws`), each drawn by
+    ``draw_one(b) -> (draws (Nf, take, n), SolveInfo over (Nf, take))`` and appended to ``results.h5`` at
+    once (timed; the kill test hook after each), with the caller's progress bar."""
+    batches = range(run.start, draws_spec.n_batches)
     for b in watch.progress(batches) if watch.progress is not None else batches:
         t0 = time.perf_counter()
-        draws, info = draw_batch(key, prepared, b, d.batch, d.nsamples)
+        draws, info = draw_one(b)
         kill_hook(append_batch(run.h5, b, draws, info, seconds=time.perf_counter() - t0))
-    return method

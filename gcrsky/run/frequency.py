@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import json
 import logging
-import time
 from functools import partial
 from typing import Callable, NamedTuple
 
@@ -36,7 +35,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..base.memory import available_memory_bytes, check_memory
-from ..io.results import append_batch
 from ..model.spectral import (
     FrequencyPrior,
     log_frequency_kernel,
@@ -64,7 +62,7 @@ from ..solvers.joint_dataspace import (
     whitened_solve_dataspace,
 )
 from ..solvers.mmode import mmode_check
-from .draws import kill_hook, record_setup
+from .draws import append_batches, record_setup
 from .output import OpenRun
 from .spec import FrequencyModel, RunSpec
 from .stages import StageTimer, Watch
@@ -344,20 +342,20 @@ def frequency_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, watch: Wa
     st.stop()
     st.start("draws")
     key = jax.random.PRNGKey(d.seed)
-    batches = range(run.start, d.n_batches)
-    for b in watch.progress(batches) if watch.progress is not None else batches:
-        t0 = time.perf_counter()
+
+    def draw_one(b):
         out = jax.block_until_ready(path.draw(jax.random.fold_in(key, b), state, d.batch))
-        x, info = out if path.solve is None else (out, None)
+        x, solved = out if path.solve is None else (out, None)
         take = min(d.batch, d.nsamples - b * d.batch)
         x = np.moveaxis(np.asarray(x)[:take], 0, 1)  # (Nf, take, n)
-        if info is None:
+        if solved is None:
             dinfo = exact_info(winfo, np.isfinite(x).all(axis=-1), x.shape[:2])
         else:  # CG's per-draw bound, the same for every channel
             dinfo = jax.tree_util.tree_map(lambda v: np.broadcast_to(np.asarray(v)[:take], x.shape[:2]).copy(),
-                                           info.draws)
-        dinfo = jax.tree_util.tree_map(np.asarray, dinfo)
-        kill_hook(append_batch(run.h5, b, x, dinfo, seconds=time.perf_counter() - t0))
+                                           solved.draws)
+        return x, jax.tree_util.tree_map(np.asarray, dinfo)
+
+    append_batches(run, d, watch, draw_one)
     return method
 
 
