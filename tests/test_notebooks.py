@@ -205,31 +205,3 @@ def test_notebook_runs(path, monkeypatch):
             assert not missing, f"{path.name}: first code cell does not define {sorted(missing)}"
             ns.update(overrides)
     CHECKS[path.name](ns)
-
-
-@pytest.mark.slow
-def test_readme_python_examples_run(tmp_path, monkeypatch):
-    """The README's Python blocks run as written (smaller nside/chain for speed; files into a temporary directory)."""
-    import re
-
-    import numpy as np
-
-    readme = (pathlib.Path(__file__).parents[1] / "README.md").read_text()
-    blocks = re.findall(r"```python\n(.*?)```", readme, re.S)
-    assert len(blocks) >= 4
-    code = "\n".join(blocks).replace("nside=128", "nside=32").replace("split(key, 1000)", "split(key, 20)")
-    monkeypatch.chdir(tmp_path)
-    ns: dict = {}
-    exec(compile(code, "README.md", "exec"), ns)
-    from pyuvdata import UVData
-
-    uvd = UVData.from_file(str(tmp_path / "obs.uvh5"))  # the "your own data" example's file
-    assert uvd.Nants_data == 10 and uvd.Ntimes == 10 and uvd.vis_units == "Jy"
-    assert ns["draws"].shape == (2, 200, 441)
-    assert ns["chain"].shape == (20, 2, 441)
-    assert ns["real"].response.shape[-1] == (20 + 4 + 1) ** 2  # ICRS lmax 20 -> CIRS lmax 24
-    assert ns["real"].data.shape == (2, 10, 45)
-    assert np.all(np.isfinite(np.asarray(ns["chain"])))
-    assert ns["fit"].converged and abs(float(ns["fit"].theta)) < 4 * float(ns["fit"].std)
-    assert ns["cls"].shape == (200, 2, 21) and np.all(np.isfinite(np.asarray(ns["cls"])))
-    assert np.all((np.asarray(ns["alphas"]) > 0) & (np.asarray(ns["alphas"]) < 6))

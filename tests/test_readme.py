@@ -4,8 +4,9 @@ Before: the README told users to call ``gcrsky.parallel.use_safe_cpu_threading()
 after ``import gcrsky``, which raised ``AttributeError`` (the subpackage was not loaded).
 Checked here, each in a fresh process where it matters:
 
-* every ```` ```python ```` block, in order, as one script: ``tests/test_notebooks.py::
-  test_readme_python_examples_run`` (at a smaller nside, with checks of what the blocks make);
+* every ```` ```python ```` block, in order, as one script: ``test_readme_python_examples_run``
+  (at a smaller nside, with checks of what the blocks make; here, not in tests/test_notebooks.py, so
+  that pytest-xdist's ``--dist loadfile`` puts its ~2 minutes and the notebooks' on different workers);
 * every ``gcrsky.NAME...`` the prose names in backticks resolves by attribute access from
   ``import gcrsky``, and the no-argument calls it names (``gcrsky.x.y()``) run;
 * every ``gcrsky COMMAND ...`` line of the README parses with the command's own parser.
@@ -31,7 +32,7 @@ REPO = Path(__file__).resolve().parents[1]
 README = (REPO / "README.md").read_text()
 
 
-def python_blocks(text: str) -> list[str]:  # run by tests/test_notebooks.py
+def python_blocks(text: str) -> list[str]:  # run by test_readme_python_examples_run
     return re.findall(r"^```python\n(.*?)^```", text, flags=re.S | re.M)
 
 
@@ -109,3 +110,28 @@ def test_commands_parse(argv, capsys):
 def test_a_wrong_command_does_not_parse(capsys):
     with pytest.raises(SystemExit):
         build_parser().parse_args(["run", "--no-such-option"])
+
+
+@pytest.mark.slow
+def test_readme_python_examples_run(tmp_path, monkeypatch):
+    """The README's Python blocks run as written (smaller nside/chain for speed; files into a temporary directory)."""
+    import numpy as np
+
+    blocks = python_blocks(README)
+    assert len(blocks) >= 4
+    code = "\n".join(blocks).replace("nside=128", "nside=32").replace("split(key, 1000)", "split(key, 20)")
+    monkeypatch.chdir(tmp_path)
+    ns: dict = {}
+    exec(compile(code, "README.md", "exec"), ns)
+    from pyuvdata import UVData
+
+    uvd = UVData.from_file(str(tmp_path / "obs.uvh5"))  # the "your own data" example's file
+    assert uvd.Nants_data == 10 and uvd.Ntimes == 10 and uvd.vis_units == "Jy"
+    assert ns["draws"].shape == (2, 200, 441)
+    assert ns["chain"].shape == (20, 2, 441)
+    assert ns["real"].response.shape[-1] == (20 + 4 + 1) ** 2  # ICRS lmax 20 -> CIRS lmax 24
+    assert ns["real"].data.shape == (2, 10, 45)
+    assert np.all(np.isfinite(np.asarray(ns["chain"])))
+    assert ns["fit"].converged and abs(float(ns["fit"].theta)) < 4 * float(ns["fit"].std)
+    assert ns["cls"].shape == (200, 2, 21) and np.all(np.isfinite(np.asarray(ns["cls"])))
+    assert np.all((np.asarray(ns["alphas"]) > 0) & (np.asarray(ns["alphas"]) < 6))
