@@ -75,6 +75,8 @@ def _cheap_compiles():
     "estimate_bounds or wiener_filter_equals or rows_formed" 141.8 -> 85.6; test_dataspace_proxy.py -k
     "memory_estimate or differentiates or equal_the_general" 254.7 -> 147.9; test_notebooks.py -k "gibbs or
     point_sources" (chains of 1500 steps: run time, not compilation) 70.6 -> 56.0; 666 -> 416 in all (-38 %).
+    On a quiet machine, back to back: tests/test_dataspace.py 175.1 -> 102.4; test_notebooks.py -k "hyper or
+    standard or quick" 134.2 -> 101.3.
     """
     import os
 
