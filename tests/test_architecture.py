@@ -27,6 +27,7 @@ from gcrsky.checks.imports import (
     layer_of,
     layer_violations,
     modules_only,
+    private_imports,
 )
 
 PKG = Path(gcrsky.__file__).parent
@@ -78,6 +79,27 @@ def test_checker_flags_a_circle_and_an_upward_import(tmp_path):
     vio = layer_violations(g)
     assert [(v.importer, v.imported) for v in vio] == [("gcrsky.model.c", "gcrsky.sim"), ("gcrsky.model.c", "gcrsky.sim.x")]
     assert all("core layer 'model' imports application layer 'sim'" in v.why for v in vio)
+
+
+def test_no_module_uses_another_modules_private_names():
+    """A module's private names are its own: a helper two modules share is public where it belongs."""
+    assert [f"{p.importer}:{p.line} uses {p.owner}.{p.name}" for p in private_imports(PKG)] == []
+
+
+def test_checker_flags_private_names_used_across_modules(tmp_path):
+    """Negative control: ``from .a import _x``, ``a._y`` (module bound by ``from . import a``) and a lazy
+    ``from ..model.a import _z`` are flagged; a module's own ``_x`` and dunders are not."""
+    pkg = tmp_path / "gcrsky"
+    for sub in ("model", "sim"):
+        (pkg / sub).mkdir(parents=True)
+        (pkg / sub / "__init__.py").write_text("")
+    (pkg / "__init__.py").write_text("")
+    (pkg / "model" / "a.py").write_text("_x = 1\n_y = 2\n_z = 3\n__all__ = []\nprint(_x)\n")
+    (pkg / "model" / "b.py").write_text("from .a import _x, __all__\nfrom . import a\nv = a._y + a.__name__\n")
+    (pkg / "sim" / "c.py").write_text("def f():\n    from ..model.a import _z\n    return _z\n")
+    got = [(p.importer, p.owner, p.name) for p in private_imports(pkg)]
+    assert got == [("gcrsky.model.b", "gcrsky.model.a", "_x"), ("gcrsky.model.b", "gcrsky.model.a", "_y"),
+                   ("gcrsky.sim.c", "gcrsky.model.a", "_z")]
 
 
 def test_floors_are_finite_and_the_core_is_below_the_apps(graph):

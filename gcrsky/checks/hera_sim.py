@@ -221,7 +221,7 @@ def simulate_hera_file(
     Returns:
         :class:`HeraSimulation`.
     """
-    from .uvsim import _uvdata
+    from .uvsim import uvdata_of
 
     freqs = np.atleast_1d(np.asarray(freqs_hz, np.float64))
     pos = hex_array(hex_rows(n_side), spacing_m)
@@ -243,7 +243,7 @@ def simulate_hera_file(
     jy = kelvin_sr_to_jy(freqs)[:, None, None, None]
     blt = np.transpose(data * jy, (1, 2, 0, 3)).reshape(n_times * pairs.shape[0], freqs.size, 2)  # time-major
     t2 = time.perf_counter()
-    uvd = _uvdata(pos, location, np.arange(nant), pairs, times, freqs, ("xx", "yy"), blt, "Jy", "sum", dt_s,
+    uvd = uvdata_of(pos, location, np.arange(nant), pairs, times, freqs, ("xx", "yy"), blt, "Jy", "sum", dt_s,
                   dnu_hz, f"gcrsky.checks.hera_sim: {nant}-antenna hexagon, GSM C_l sky to lmax {lmax_sky} (reach "
                   f"{reach}), unique-baseline responses at nside {nside}, radiometer noise dt={dt_s:.4g} s "
                   f"dnu={dnu_hz:g} Hz")

@@ -35,6 +35,7 @@ __all__ = [
     "layer_of",
     "layer_violations",
     "modules_only",
+    "private_imports",
     "report",
 ]
 
@@ -220,6 +221,55 @@ def floors(graph: dict[str, set[str]]) -> dict[str, int]:
     return {m: fl(node(m)) for m in graph}
 
 
+class PrivateImport(NamedTuple):
+    """A module using another module's private name: ``importer`` line ``line`` uses ``owner.name``."""
+
+    importer: str
+    line: int
+    owner: str
+    name: str
+
+
+def _is_private(name: str) -> bool:
+    return name.startswith("_") and not (name.startswith("__") and name.endswith("__"))
+
+
+def private_imports(root: Path | str | None = None, package: str = "gcrsky") -> list[PrivateImport]:
+    """Every use of another module's private name (``_name``, not a dunder) inside the package.
+
+    Counted: ``from .mod import _name`` (any level, also inside functions) and ``mod._name``
+    where ``mod`` is an internal module bound by ``import`` / ``from . import mod``.  A module's
+    private names are its own: a helper two modules share is made public where it belongs, or moved.
+    """
+    root = Path(root) if root is not None else Path(__file__).resolve().parents[1]
+    mods = _modules(root, package)
+    out = []
+    for mod, path in mods.items():
+        is_pkg = path.name == "__init__.py"
+        tree = ast.parse(path.read_text(), str(path))
+        aliases: dict[str, str] = {}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                base = _resolve(mod, is_pkg, node.level, node.module) if node.level else (node.module or "")
+                if not (base == package or base.startswith(package + ".")):
+                    continue
+                for a in node.names:
+                    full = f"{base}.{a.name}"
+                    if full in mods:
+                        aliases[a.asname or a.name] = full
+                    elif _is_private(a.name) and base != mod:
+                        out.append(PrivateImport(mod, node.lineno, base, a.name))
+            elif isinstance(node, ast.Import):
+                for a in node.names:
+                    if a.name in mods and a.asname:
+                        aliases[a.asname] = a.name
+        for node in ast.walk(tree):
+            if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in aliases
+                    and _is_private(node.attr) and aliases[node.value.id] != mod):
+                out.append(PrivateImport(mod, node.lineno, aliases[node.value.id], node.attr))
+    return sorted(out)
+
+
 def report(root: Path | str | None = None, package: str = "gcrsky") -> str:
     """A Markdown report: modules per layer with their floors (module -> module imports), circles
     (package ``__init__``s included) and layer violations."""
@@ -242,6 +292,9 @@ def report(root: Path | str | None = None, package: str = "gcrsky") -> str:
               f"circles: {len(cyc)}; layer violations: {len(vio)}"]
     lines += [f"- circle: {' <-> '.join(c)}" for c in cyc]
     lines += [f"- {v.importer} -> {v.imported}: {v.why}" for v in vio]
+    priv = private_imports(root, package)
+    lines += ["", f"private names used across modules: {len(priv)}"]
+    lines += [f"- {p.importer}:{p.line} uses {p.owner}.{p.name}" for p in priv]
     return "\n".join(lines)
 
 

@@ -62,6 +62,7 @@ import numpy as np
 from ..base.extras import require
 from ..base.units import kelvin_sr_to_jy
 from ..instrument.antennas import antpairs, make_array
+from ..sphere.frames import time_array
 from ..sphere.maps import alm_to_map
 from ..sphere.modes import n_alm, n_params, realify, unrealify
 
@@ -284,12 +285,6 @@ def aberration_solid_angle_factor(nside: int, obstime) -> np.ndarray:
     return (1.0 - beta**2) / (1.0 + beta * cos) ** 2
 
 
-def _times_array(times):
-    from astropy.time import Time
-
-    return Time(np.atleast_1d(times.jd1), np.atleast_1d(times.jd2), format="jd", scale=times.scale)
-
-
 def gcrsky_visibilities(case: MatvisCase, a_icrs: np.ndarray, pairs: np.ndarray, *, drop_frame: bool = False):
     """gcrsky's real-time visibilities of the ICRS sky ``a_icrs``.
 
@@ -309,7 +304,7 @@ def gcrsky_visibilities(case: MatvisCase, a_icrs: np.ndarray, pairs: np.ndarray,
     from ..model.operator import VisOperator, apply
     from ..sphere.frames import observing_geometry
 
-    times = _times_array(case.times)
+    times = time_array(case.times)
     freqs = np.asarray(case.freqs_hz, np.float64)
     geom = observing_geometry(times, case.location, int(case.lmax))
     arr = make_array(case.positions_enu_m, geom.latitude_deg, case.beam)
@@ -355,7 +350,7 @@ def matvis_visibilities(case: MatvisCase, sky_map_k: np.ndarray, pairs: np.ndarr
     theta, phi = hp.pix2ang(nside_m, np.arange(sky_map_k.size))
     jy = kelvin_sr_to_jy(freqs)[None, :] * (4 * np.pi / sky_map_k.size)
     ants = {i: np.asarray(p, np.float64) for i, p in enumerate(np.asarray(case.positions_enu_m))}
-    times = _times_array(case.times)
+    times = time_array(case.times)
     # Pixels below the horizon at every time contribute nothing (matvis drops Up <= 0);
     # not handing them over saves matvis' per-time transforms.  ICRS taken as CIRS here
     # (<= 0.4 deg off in 2025), hence the 2 deg margin.
@@ -417,7 +412,7 @@ def compare_with_matvis(case: MatvisCase, **matvis_kw) -> MatvisComparison:
     nside_m = int(case.nside_matvis or case.nside)
     sky_map = alm_to_map(a, int(case.lmax), nside_m)
     if case.flux_jacobian:
-        times = _times_array(case.times)
+        times = time_array(case.times)
         sky_map = sky_map * aberration_solid_angle_factor(nside_m, times.min() + (times.max() - times.min()) / 2)
 
     t0 = _time.perf_counter()

@@ -62,10 +62,10 @@ from ..model.gsmsky import gsm_maps
 from ..model.operator import VisOperator, apply
 from ..model.spectral import FrequencyPrior
 from ..solvers.joint import JointSystem
-from ..sphere.frames import observing_geometry
+from ..sphere.frames import observing_geometry, time_array
 from ..sphere.maps import alm_to_map
 from ..sphere.modes import realify
-from .matvis import HERA_SITE, _times_array, aberration_solid_angle_factor, observing_times, site
+from .matvis import HERA_SITE, aberration_solid_angle_factor, observing_times, site
 
 __all__ = [
     "MultifreqObservation",
@@ -220,7 +220,7 @@ def simulate_gsm_observation(
     beam = gaussian_beam(float(dish_m))
 
     # gcrsky's operator: real-time geometry, response at the reference angle of the first time
-    geom = observing_geometry(_times_array(times), loc, int(lmax), pad=int(pad))
+    geom = observing_geometry(time_array(times), loc, int(lmax), pad=int(pad))
     arr = make_array(pos, geom.latitude_deg, beam)
     lsts = np.asarray(geom.lsts_rad, np.float64)
     resp = response_matrix(arr, pairs, freqs, geom.lmax_response, int(nside), lst_ref_rad=float(lsts[0]))
@@ -290,7 +290,7 @@ def matvis_channel_maps(positions_enu_m, location, times, freqs_hz, beam, maps_k
     npix = maps_k.shape[1]
     nside_m = hp.npix2nside(npix)
     theta, phi = hp.pix2ang(nside_m, np.arange(npix))
-    times = _times_array(times)
+    times = time_array(times)
     lsts = local_sidereal_angles(times, float(location.lon.to_value(u.deg)))
     lat = float(location.lat.to_value(u.rad))
     ever_up = np.zeros(npix, bool)

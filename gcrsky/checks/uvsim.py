@@ -38,8 +38,9 @@ from pyuvdata.analytic_beam import AnalyticBeam, diameter_to_sigma
 
 from ..base.extras import require
 from ..base.units import kelvin_sr_to_jy
+from ..sphere.frames import time_array
 from ..sphere.maps import alm_to_map
-from .matvis import _times_array, aberration_solid_angle_factor
+from .matvis import aberration_solid_angle_factor
 
 __all__ = ["DipoleGaussianBeam", "SimulatedUVData", "simulate_uvdata"]
 
@@ -156,7 +157,7 @@ def simulate_uvdata(
     pos = np.asarray(positions_enu_m, np.float64)
     nant = pos.shape[0]
     freqs = np.atleast_1d(np.asarray(freqs_hz, np.float64))
-    times = _times_array(times)
+    times = time_array(times)
     beams = list(beams) if isinstance(beams, (list, tuple)) else [beams]
     beam_idx = np.zeros(nant, np.int64) if beam_idx is None else np.asarray(beam_idx, np.int64)
     pairs = np.array([(i, j) for i in range(nant) for j in range(i, nant)], np.int64)
@@ -173,7 +174,7 @@ def simulate_uvdata(
         return np.transpose(x, (1, 2, 0, 3)).reshape(len(times) * pairs.shape[0], freqs.size, len(pols))
 
     numbers = np.arange(nant) if antenna_numbers is None else np.asarray(antenna_numbers, np.int64)
-    uvd = _uvdata(pos, location, numbers, pairs, times, freqs, pols, blt(data), vis_units, pol_convention, dt_s,
+    uvd = uvdata_of(pos, location, numbers, pairs, times, freqs, pols, blt(data), vis_units, pol_convention, dt_s,
                   dnu_hz, f"gcrsky.checks.uvsim: matvis {getattr(matvis, '__version__', '?')} polarized simulation, "
                   f"ICRS sky at lmax {lmax}, nside {nside_matvis}, radiometer noise dt={dt_s} s dnu={dnu_hz} Hz")
     return SimulatedUVData(uvd, blt(model), blt(sigma))
@@ -237,7 +238,7 @@ def _with_noise(vis, pairs, pols, dt_s, dnu_hz, noise_seed):
     return model, sigma, data
 
 
-def _uvdata(pos, location, numbers, pairs, times, freqs, pols, data_blt, vis_units, pol_convention, dt_s, dnu_hz,
+def uvdata_of(pos, location, numbers, pairs, times, freqs, pols, data_blt, vis_units, pol_convention, dt_s, dnu_hz,
             history):
     """The pyuvdata ``UVData`` of the simulation (drift scan, flags False, nsamples 1), checked."""
     from pyuvdata import Telescope, UVData, utils

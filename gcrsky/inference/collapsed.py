@@ -76,7 +76,8 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 
-def _blackjax():
+def blackjax_module():
+    """blackjax, imported, or an ImportError naming the ``nuts`` extra that installs it."""
     return require("blackjax", "nuts", "collapsed hyperparameter sampling (NUTS)")
 
 
@@ -175,7 +176,7 @@ def nuts_warmup(
         ``(state, step_size, inverse_mass_matrix, n_divergent)``: the last warm-up
         ``HMCState``, the adapted parameters and the number of divergent warm-up steps.
     """
-    bj = _blackjax()
+    bj = blackjax_module()
     from blackjax.adaptation.base import get_filter_adapt_info_fn
 
     adapt = bj.window_adaptation(
@@ -204,7 +205,7 @@ def nuts_sample(
     Returns:
         ``(positions (num_samples, k), log_density (num_samples,), NUTSInfo)``.
     """
-    kernel = _blackjax().nuts(logdensity, step_size, inverse_mass_matrix, max_num_doublings=max_num_doublings)
+    kernel = blackjax_module().nuts(logdensity, step_size, inverse_mass_matrix, max_num_doublings=max_num_doublings)
 
     def step(s, k):
         s, info = kernel.step(k, s)
@@ -290,7 +291,7 @@ def _programs(
     (:func:`nuts_warmup` and :func:`nuts_sample`, jitted) are separate so that a benchmark
     can compile them ahead of time.
     """
-    _blackjax()  # fail early, naming the extra
+    blackjax_module()  # fail early, naming the extra
     flat0, unravel, logdensity = flat_log_density(make_system, theta0, log_prior=log_prior, options=options)
 
     @jax.jit
@@ -444,5 +445,5 @@ def effective_sample_size(chains):
         the same structure with the chain and sample axes removed: the ESS (in
         samples, summed over chains) of every variable.
     """
-    ess = _blackjax().diagnostics.effective_sample_size
+    ess = blackjax_module().diagnostics.effective_sample_size
     return jax.tree_util.tree_map(lambda x: ess(jnp.asarray(x), chain_axis=0, sample_axis=1), chains)

@@ -82,7 +82,7 @@ from ..solvers.joint import (
 from ..solvers.mmode import mmode_check
 from ..solvers.options import CholeskyOptions, MModeOptions
 from ..solvers.path import is_traced
-from .collapsed import CollapsedSamples, _blackjax, nuts_chain
+from .collapsed import CollapsedSamples, blackjax_module, nuts_chain
 from .hyper import FitResult, fit_hyperparameters
 
 __all__ = [
@@ -435,7 +435,7 @@ def sample_spectral_hyperparameters(
     num_samples, num_warmup = int(num_samples), int(num_warmup)
     if num_samples < 1 or num_warmup < 0:
         raise ValueError("need num_samples >= 1 and num_warmup >= 0")
-    _blackjax()  # fail early, naming the extra
+    blackjax_module()  # fail early, naming the extra
     method = _checked(system, model, theta0, fixed, method, memory_budget)
     theta0 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), dict(theta0))
     fixed = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), dict(fixed or {}))

@@ -68,7 +68,7 @@ import os
 import numpy as np
 
 from .beamfiles import check_beam_values, image_beam, is_image_beam, read_beam, same_feed_pols
-from .beams import FREQ_TOL_HZ, _name, check_beam_frequencies
+from .beams import FREQ_TOL_HZ, beam_name, check_beam_frequencies
 
 __all__ = [
     "BEAM_NORMALIZATIONS",
@@ -106,7 +106,7 @@ def _peak_power(uvb) -> np.ndarray:
         return np.max(p.reshape(p.shape[0], p.shape[1], -1), axis=(0, 2))
     same = _same_feed_pols(uvb)
     if not same:
-        raise ValueError(f"power beam {_name(uvb)} has no same-feed polarisation (xx, yy, pI, ...) to normalise by")
+        raise ValueError(f"power beam {beam_name(uvb)} has no same-feed polarisation (xx, yy, pI, ...) to normalise by")
     p = np.abs(d[:, same]).reshape(d.shape[0], len(same), d.shape[2], -1)
     return np.max(p, axis=(0, 1, 3))
 
@@ -133,7 +133,7 @@ def normalize_beam(uvb, normalization: str = "peak"):
         raise ValueError(f"beam normalization must be one of {BEAM_NORMALIZATIONS}, got {normalization!r}")
     found = uvb.data_normalization
     if found == "solid_angle":
-        raise ValueError(f"beam {_name(uvb)} is solid-angle normalised: convert it to a peak-normalised beam "
+        raise ValueError(f"beam {beam_name(uvb)} is solid-angle normalised: convert it to a peak-normalised beam "
                          "first (pyuvdata cannot); gcrsky needs peak normalisation (or physical, kept as it is)")
     peak = _peak_power(uvb)
     rec = {"normalization_found": found, "normalization_used": normalization,
@@ -141,20 +141,20 @@ def normalize_beam(uvb, normalization: str = "peak"):
     if normalization == "physical":
         if found != "peak" or np.any(np.abs(peak - 1) > 1e-3):
             log.warning("beam %s used with its file's amplitude (peak power %s): the sky scales as 1 / that",
-                        _name(uvb), rec["peak_power_found"])
+                        beam_name(uvb), rec["peak_power_found"])
         return uvb, rec
     if found == "peak":  # the file's own peak normalisation is kept (a CST beam's is ~1e-4 off 1 on its grid)
         if np.any(np.abs(peak - 1) > PEAK_TOL):
-            log.warning("beam %s says it is peak-normalised but its peak power is %s", _name(uvb), rec["peak_power_found"])
+            log.warning("beam %s says it is peak-normalised but its peak power is %s", beam_name(uvb), rec["peak_power_found"])
         return uvb, rec
     if not np.all(peak > 0):
-        raise ValueError(f"beam {_name(uvb)} is zero on some channel: cannot peak-normalise it")
+        raise ValueError(f"beam {beam_name(uvb)} is zero on some channel: cannot peak-normalise it")
     out = uvb.copy()
     scale = np.sqrt(peak) if uvb.beam_type == "efield" else peak
     out.data_array = out.data_array / scale.reshape((1, 1, -1) + (1,) * (out.data_array.ndim - 3))
     out.bandpass_array = np.asarray(out.bandpass_array) * scale
     out.data_normalization = "peak"
-    log.info("beam %s (%s) peak-normalised: divided the power by %s", _name(uvb), found, rec["peak_power_found"])
+    log.info("beam %s (%s) peak-normalised: divided the power by %s", beam_name(uvb), found, rec["peak_power_found"])
     return out, rec
 
 
@@ -188,7 +188,7 @@ def resample_beam(uvb, freqs_hz, freq_scaling: str | None = None):
         if np.all(np.abs(f - ch[0]) <= FREQ_TOL_HZ):
             return uvb, {"frequency": f"single channel {ch[0] / 1e6:.6g} MHz, the data's"}
         if freq_scaling is None:
-            raise ValueError(f"beam {_name(uvb)} has one frequency ({ch[0] / 1e6:.6g} MHz) and the data "
+            raise ValueError(f"beam {beam_name(uvb)} has one frequency ({ch[0] / 1e6:.6g} MHz) and the data "
                              f"{f.min() / 1e6:.6g}-{f.max() / 1e6:.6g} MHz: say how it scales, freq_scaling='none' "
                              "(the same pattern at every frequency) or 'lambda' (angular size ~ 1/nu) "
                              "(--beam-freq-scaling none|lambda)")
@@ -213,7 +213,7 @@ def _clip_negative(uvb) -> int:
     neg[:, same] = np.real(d[:, same]) < 0
     n = int(neg.sum())
     if n:
-        log.warning("beam %s: %d negative power values clipped to 0", _name(uvb), n)
+        log.warning("beam %s: %d negative power values clipped to 0", beam_name(uvb), n)
         d[neg] = 0.0
         uvb.data_array = d
     return n
@@ -227,7 +227,7 @@ def _scale_single(uvb, f: np.ndarray, scaling: str):
         data = np.repeat(d, f.size, axis=2)
     else:
         if uvb.pixel_coordinate_system != "az_za":
-            raise ValueError(f"beam {_name(uvb)}: freq_scaling 'lambda' needs an az/za beam, this one is "
+            raise ValueError(f"beam {beam_name(uvb)}: freq_scaling 'lambda' needs an az/za beam, this one is "
                              f"{uvb.pixel_coordinate_system!r} (use 'none', or give a beam with several channels)")
         data = np.concatenate([_lambda_plane(uvb, nu0, nu) for nu in f], axis=2)
     out = uvb.copy()
@@ -292,7 +292,7 @@ def check_x_orientation(beam, file_x_orientation: str | None, *, accept_mismatch
         rec["check"] = "MISMATCH accepted"
         log.warning("x_orientation: the file's feed x points %s, the beam's %s (accepted)", file_x_orientation, bx)
     else:
-        raise ValueError(f"the file's feed x points {file_x_orientation}, the beam's {_name(beam)} {bx}: the beam's "
+        raise ValueError(f"the file's feed x points {file_x_orientation}, the beam's {beam_name(beam)} {bx}: the beam's "
                          "feeds must be the file's (give the matching beam, or accept_x_orientation_mismatch="
                          "True / --accept-x-orientation-mismatch if you know the pattern is symmetric)")
     return {"x_orientation": rec}
@@ -329,12 +329,12 @@ def prepare_beam(beam, freqs_hz, *, normalization: str = "peak", freq_scaling: s
     if isinstance(beam, (str, os.PathLike)):
         beam, rec = read_beam(beam, **read_kwargs)
     else:
-        rec = {"file": None, "kind": _name(beam.beam if isinstance(beam, BeamInterface) else beam)}
+        rec = {"file": None, "kind": beam_name(beam.beam if isinstance(beam, BeamInterface) else beam)}
     obj = beam.beam if isinstance(beam, BeamInterface) else beam
     if isinstance(obj, UVBeam):
         if obj.beam_type not in ("efield", "power"):
             raise ValueError(f"UVBeam of beam_type {obj.beam_type!r}: gcrsky needs an E-field or a power beam")
-        obj, r = check_beam_values(obj, f"beam file {rec['file']}" if rec["file"] else f"beam {_name(obj)}")
+        obj, r = check_beam_values(obj, f"beam file {rec['file']}" if rec["file"] else f"beam {beam_name(obj)}")
         rec.update(r)
         obj, r = normalize_beam(obj, normalization)
         rec.update(r)

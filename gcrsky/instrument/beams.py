@@ -56,7 +56,7 @@ __all__ = [
 FREQ_TOL_HZ = 1.0
 
 
-def _resolve(beam):
+def resolve_beam(beam):
     """``(object, kind)``: the pyuvdata beam behind ``beam`` and how it is evaluated.
 
     kinds: ``"uv_efield"``, ``"uv_power"`` (UVBeam), ``"an_efield"`` (AnalyticBeam with an
@@ -80,13 +80,15 @@ def _resolve(beam):
     raise TypeError(f"a beam must be a pyuvdata UVBeam, AnalyticBeam or BeamInterface, got {type(beam).__name__}")
 
 
-def _name(obj) -> str:
+def beam_name(obj) -> str:
+    """A beam's name for messages: its class and its ``model_name`` or ``telescope_name``."""
     name = type(obj).__name__
     label = getattr(obj, "model_name", None) or getattr(obj, "telescope_name", None)
     return f"{name}({label})" if isinstance(label, str) and label else name
 
 
-def _channels(obj) -> np.ndarray:
+def beam_channels(obj) -> np.ndarray:
+    """A UVBeam's channel frequencies (Nfreqs,), Hz, float64."""
     return np.asarray(obj.freq_array, np.float64).ravel()
 
 
@@ -102,27 +104,29 @@ def check_beam_frequencies(beam, freqs_hz) -> None:
     """
     from pyuvdata import UVBeam
 
-    obj = _resolve(beam)[0]
+    obj = resolve_beam(beam)[0]
     if not isinstance(obj, UVBeam):
         return
-    ch = _channels(obj)
+    ch = beam_channels(obj)
     f = np.atleast_1d(np.asarray(freqs_hz, np.float64))
     lo, hi = ch.min() - FREQ_TOL_HZ, ch.max() + FREQ_TOL_HZ
     bad = f[(f < lo) | (f > hi)]
     if bad.size:
         raise ValueError(
             f"frequencies {bad.tolist()} Hz lie outside the frequency range [{ch.min():.6g}, {ch.max():.6g}] Hz of "
-            f"the beam {_name(obj)} ({ch.size} channels); gcrsky does not extrapolate beams in frequency"
+            f"the beam {beam_name(obj)} ({ch.size} channels); gcrsky does not extrapolate beams in frequency"
         )
 
 
-def _freq_kind(nchan: int, kind: str | None) -> str:
+def freq_interp_kind(nchan: int, kind: str | None) -> str:
+    """pyuvdata's frequency interpolation for a beam of ``nchan`` channels: ``kind`` if given, else cubic
+    from 4 channels and linear below."""
     if kind is not None:
         return kind
     return "cubic" if nchan >= 4 else "linear"
 
 
-def _interp_kw(obj) -> dict:
+def spatial_interp_kwargs(obj) -> dict:
     """Spatial interpolation of a UVBeam: matvis' (``az_za_map_coordinates``) on az/za grids."""
     if obj.pixel_coordinate_system == "az_za":
         return dict(interpolation_function="az_za_map_coordinates", check_azza_domain=False)
@@ -206,7 +210,7 @@ def beam_amplitude(beam, az_uvbeam_rad: np.ndarray, za_rad: np.ndarray, freqs_hz
     if power is None:
         kw = {}
         if bi._isuvbeam:
-            kw = dict(_interp_kw(bi.beam), freq_interp_kind=_freq_kind(bi.beam.Nfreqs, None))
+            kw = dict(spatial_interp_kwargs(bi.beam), freq_interp_kind=freq_interp_kind(bi.beam.Nfreqs, None))
         power = bi.compute_response(
             az_array=np.asarray(az_uvbeam_rad, np.float64),
             za_array=np.asarray(za_rad, np.float64),
@@ -214,7 +218,7 @@ def beam_amplitude(beam, az_uvbeam_rad: np.ndarray, za_rad: np.ndarray, freqs_hz
             **kw,
         )
         power = np.real(np.asarray(power)[0, 0])  # (Nfreq, Npix)
-    return np.sqrt(clip_power(power, _name(bi.beam)))
+    return np.sqrt(clip_power(power, beam_name(bi.beam)))
 
 
 #: Beams (by name) whose interpolated power was clipped in this process: the first time is a warning.

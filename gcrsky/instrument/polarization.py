@@ -99,14 +99,14 @@ import numpy as np
 
 from .beams import (
     FREQ_TOL_HZ,
-    _channels,
-    _freq_kind,
-    _interp_kw,
-    _name,
-    _resolve,
     beam_amplitude,
+    beam_channels,
+    beam_name,
     check_beam_frequencies,
     clip_power,
+    freq_interp_kind,
+    resolve_beam,
+    spatial_interp_kwargs,
     unique_beams,
 )
 
@@ -143,7 +143,7 @@ class BaselineKernels(NamedTuple):
 def _feed_index(obj, feed: str) -> int:
     feeds = [str(f) for f in np.asarray(obj.feed_array).ravel()]
     if feed not in feeds:
-        raise ValueError(f"{_name(obj)} has feeds {feeds}, not {feed!r}")
+        raise ValueError(f"{beam_name(obj)} has feeds {feeds}, not {feed!r}")
     return feeds.index(feed)
 
 
@@ -152,7 +152,7 @@ def _pol_index(obj, pol: str) -> int:
 
     pols = [polnum2str(int(p)) for p in np.asarray(obj.polarization_array).ravel()]
     if pol not in pols:
-        raise ValueError(f"power beam {_name(obj)} has polarisations {pols}, not {pol!r}")
+        raise ValueError(f"power beam {beam_name(obj)} has polarisations {pols}, not {pol!r}")
     return pols.index(pol)
 
 
@@ -179,7 +179,7 @@ class _Evaluator:
     # one beam: power (cross) beam -------------------------------------------------
     def same(self, beam, p: str, q: str) -> np.ndarray:
         """``K_pq`` of one beam on both antennas: (Nf, Npix), real for ``p == q``."""
-        obj, kind = _resolve(beam)
+        obj, kind = resolve_beam(beam)
         if kind in ("uv_efield", "uv_power"):
             check_beam_frequencies(obj, self.freqs)
             cross = p != q
@@ -196,7 +196,7 @@ class _Evaluator:
                 pw, resp = self._power[key]
             k = resp[0, _pol_index(pw, q + p)]  # pyuvdata's "qp" = E_q conj(E_p) = our K_pq
             if p == q:  # interpolated power (spatial spline, cubic in frequency) undershoots next to a drop
-                return clip_power(np.real(k), _name(obj))
+                return clip_power(np.real(k), beam_name(obj))
             return np.asarray(k, np.complex128)
         if kind == "an_power" and p == q:
             pw = obj.power_eval(az_array=self.az, za_array=self.za, freq_array=self.freqs)
@@ -209,14 +209,14 @@ class _Evaluator:
         """A power UVBeam at the directions and frequencies: (1, Npols, Nf, Npix)."""
         from pyuvdata import BeamInterface
 
-        ch = _channels(pw)
+        ch = beam_channels(pw)
         return np.asarray(
             BeamInterface(pw).compute_response(
                 az_array=self.az,
                 za_array=self.za,
                 freq_array=np.clip(self.freqs, ch.min(), ch.max()),  # within FREQ_TOL_HZ of the range: its edge
-                freq_interp_kind=_freq_kind(pw.Nfreqs, self.kind),
-                **_interp_kw(pw),
+                freq_interp_kind=freq_interp_kind(pw.Nfreqs, self.kind),
+                **spatial_interp_kwargs(pw),
             )
         )
 
@@ -234,46 +234,46 @@ class _Evaluator:
                 az_array=self.az,
                 za_array=self.za,
                 freq_array=freqs,
-                freq_interp_kind=_freq_kind(obj.Nfreqs, self.kind),
-                **_interp_kw(obj),
+                freq_interp_kind=freq_interp_kind(obj.Nfreqs, self.kind),
+                **spatial_interp_kwargs(obj),
             )
         elif kind in ("an_efield", "an_power"):
             e = obj.efield_eval(az_array=self.az, za_array=self.za, freq_array=freqs)
         else:
-            raise ValueError(f"{_name(obj)} is a power beam: it has no E-field")
+            raise ValueError(f"{beam_name(obj)} is a power beam: it has no E-field")
         e = np.asarray(e, np.complex128)
         if e.shape[0] != 2:
-            raise NotImplementedError(f"{_name(obj)}: E-fields with {e.shape[0]} vector components are not supported")
+            raise NotImplementedError(f"{beam_name(obj)}: E-fields with {e.shape[0]} vector components are not supported")
         self._efield[key] = e
         return e
 
     # two different beams ------------------------------------------------------------
     def mixed(self, beam_i, beam_j, p: str, q: str) -> np.ndarray:
         """``K_ij,pq`` of two different beams: (Nf, Npix) complex (or real, ``sqrt`` route)."""
-        (oi, ki), (oj, kj) = _resolve(beam_i), _resolve(beam_j)
+        (oi, ki), (oj, kj) = resolve_beam(beam_i), resolve_beam(beam_j)
         for o in (oi, oj):
             check_beam_frequencies(o, self.freqs)
         if "uv_power" in (ki, kj):
             if p != q:
                 raise ValueError(
                     f"cannot form the cross-feed kernel {p + q!r} of two different beams when one is a power-only "
-                    f"UVBeam ({_name(oi)}, {_name(oj)}): give E-field beams"
+                    f"UVBeam ({beam_name(oi)}, {beam_name(oj)}): give E-field beams"
                 )
             pi, pj = self.same(beam_i, p, p), self.same(beam_j, p, p)
-            for name, pw in ((_name(oi), pi), (_name(oj), pj)):
+            for name, pw in ((beam_name(oi), pi), (beam_name(oj), pj)):
                 if np.min(pw) < -1e-3 * np.max(np.abs(pw)):
                     raise ValueError(f"beam power of {name} is substantially negative; cannot take sqrt(P_i P_j)")
             return np.sqrt(np.clip(pi, 0.0, None) * np.clip(pj, 0.0, None))
         uv = [o for o, k in ((oi, ki), (oj, kj)) if k == "uv_efield"]
         f_eval, interp = self.freqs, False
-        if uv and not all(_on_channels(self.freqs, _channels(o)) for o in uv):
-            ch = _channels(uv[0])
-            if len(uv) == 2 and (ch.shape != _channels(uv[1]).shape or np.abs(ch - _channels(uv[1])).max() > FREQ_TOL_HZ):
+        if uv and not all(_on_channels(self.freqs, beam_channels(o)) for o in uv):
+            ch = beam_channels(uv[0])
+            if len(uv) == 2 and (ch.shape != beam_channels(uv[1]).shape or np.abs(ch - beam_channels(uv[1])).max() > FREQ_TOL_HZ):
                 raise ValueError(
-                    f"two different E-field UVBeams ({_name(oi)}, {_name(oj)}) on different channels cannot be "
+                    f"two different E-field UVBeams ({beam_name(oi)}, {beam_name(oj)}) on different channels cannot be "
                     "combined between channels: put them on one frequency grid, or ask for channel frequencies"
                 )
-            kind = _freq_kind(ch.size, self.kind)
+            kind = freq_interp_kind(ch.size, self.kind)
             if kind == "linear":  # only the channels bracketing the requested band
                 lo = max(0, int(np.searchsorted(ch, self.freqs.min(), side="right")) - 1)
                 hi = min(ch.size, int(np.searchsorted(ch, self.freqs.max(), side="left")) + 1)
@@ -284,7 +284,7 @@ class _Evaluator:
         if interp:
             from scipy.interpolate import interp1d
 
-            kind = _freq_kind(f_eval.size, self.kind)
+            kind = freq_interp_kind(f_eval.size, self.kind)
             f = np.clip(self.freqs, f_eval.min(), f_eval.max())
             k = interp1d(f_eval, k.real, kind=kind, axis=0)(f) + 1j * interp1d(f_eval, k.imag, kind=kind, axis=0)(f)
         return np.asarray(k, np.complex128)
@@ -297,7 +297,7 @@ def _check_orthonormal_basis(obj) -> None:
     eye = np.eye(2).reshape((2, 2) + (1,) * (bv.ndim - 2))
     if bv.shape[:2] != (2, 2) or not np.allclose(bv, eye, atol=1e-10):
         raise NotImplementedError(
-            f"{_name(obj)}: E-field basis vectors other than the (azimuth, zenith angle) unit vectors are not supported "
+            f"{beam_name(obj)}: E-field basis vectors other than the (azimuth, zenith angle) unit vectors are not supported "
             "for cross kernels of different beams"
         )
 
@@ -314,7 +314,7 @@ def _pair_kernel(ev: _Evaluator, beam_i, beam_j, pol: str, warned: set) -> np.nd
     if pol == "pI":
         return 0.5 * (_pair_kernel(ev, beam_i, beam_j, "xx", warned) + _pair_kernel(ev, beam_i, beam_j, "yy", warned))
     p, q = pol[0], pol[1]
-    (oi, ki), (oj, kj) = _resolve(beam_i), _resolve(beam_j)
+    (oi, ki), (oj, kj) = resolve_beam(beam_i), resolve_beam(beam_j)
     if oi is oj:
         return ev.same(beam_i, p, q)
     k = ev.mixed(beam_i, beam_j, p, q)
@@ -326,8 +326,8 @@ def _pair_kernel(ev: _Evaluator, beam_i, beam_j, pol: str, warned: set) -> np.nd
             "antennas with different beams %s and %s, one a power-only UVBeam: using sqrt(P_i P_j) as their "
             "kernel, exact only if the two E-fields are proportional (same polarisation pattern and phase); "
             "give E-field beams for the exact cross kernel",
-            _name(oi),
-            _name(oj),
+            beam_name(oi),
+            beam_name(oj),
         )
     elif _unpolarized(oi, ki) != _unpolarized(oj, kj):
         warned.add((id(oi), id(oj)))
@@ -338,10 +338,10 @@ def _pair_kernel(ev: _Evaluator, beam_i, beam_j, pol: str, warned: set) -> np.nd
             "crossed with the polarised E-field of %s the kernel depends on that convention and changes sign across "
             "zenith, where both beams peak, so pixel sums converge slowly with nside (~5e-2 of the rms at nside 64) "
             "and other simulators agree only on the same pixels; give both antennas polarised E-field beams",
-            _name(oi),
-            _name(oj),
-            _name(unpol),
-            _name(pol_obj),
+            beam_name(oi),
+            beam_name(oj),
+            beam_name(unpol),
+            beam_name(pol_obj),
         )
     return k
 

@@ -45,7 +45,7 @@ import numpy as np
 
 from ..base.dtypes import require_x64
 from ..base.units import SPEED_OF_LIGHT, kelvin_sr_to_jy
-from ..sphere.frames import FrameMap, local_sidereal_angles
+from ..sphere.frames import FrameMap, local_sidereal_angles, time_array
 from ..sphere.rotation import euler_zyz
 from .antennas import AntennaArray, baseline_vectors
 from .beams import beam_amplitude, unique_beams
@@ -74,14 +74,6 @@ def _radec(ra_rad, dec_rad) -> tuple[np.ndarray, np.ndarray]:
     if np.any(np.abs(dec) > np.pi / 2):
         raise ValueError(f"dec_rad must lie in [-pi/2, pi/2] (radians), got {dec[np.abs(dec) > np.pi / 2][0]!r}")
     return ra, dec
-
-
-def _times_array(times):
-    from astropy.time import Time
-
-    if not isinstance(times, Time):
-        raise TypeError(f"times must be an astropy Time array, got {type(times).__name__}")
-    return Time(np.atleast_1d(times.jd1), np.atleast_1d(times.jd2), format="jd", scale=times.scale)
 
 
 def _mid_time(times):
@@ -145,7 +137,7 @@ def source_enu(
             raise ValueError("give either lsts_rad (idealised frame) or times with location, not both")
         if location is None:
             raise ValueError("real observing times need the site: pass location (astropy EarthLocation)")
-        times = _times_array(times)
+        times = time_array(times)
         span = (times.max() - times.min()).to_value(u.day)
         if span > 2.0:  # as gcrsky.sphere.observing_geometry: one fixed epoch for the frame
             raise ValueError(f"times span {span:.1f} days: one fixed frame epoch is accurate for a few days at most "
@@ -312,7 +304,7 @@ def problem_source_response(problem, array: AntennaArray, *, ra_rad, dec_rad, ti
                          "location (the problem does not record them)")
     import astropy.units as u
 
-    times = _times_array(times)
+    times = time_array(times)
     era = local_sidereal_angles(times, float(location.lon.to_value(u.deg)))
     if era.shape != lsts.shape or np.abs(np.angle(np.exp(1j * (era - lsts)))).max() > 1e-9:
         raise ValueError("the local Earth rotation angles of these times differ from the problem's lsts_rad: pass "

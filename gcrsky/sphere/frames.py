@@ -62,6 +62,19 @@ __all__ = [
 ]
 
 
+def time_array(times):
+    """``times`` (an astropy ``Time``, scalar or array) as a 1-D ``Time`` array (jd1/jd2 kept exactly, same scale).
+
+    Raises:
+        TypeError: ``times`` is not an astropy ``Time``.
+    """
+    from astropy.time import Time
+
+    if not isinstance(times, Time):
+        raise TypeError(f"times must be an astropy Time array, got {type(times).__name__}")
+    return Time(np.atleast_1d(times.jd1), np.atleast_1d(times.jd2), format="jd", scale=times.scale)
+
+
 def hours_to_rad(hours) -> np.ndarray:
     """Sidereal hours -> radians of rotation (24 h = 2 pi)."""
     return np.asarray(hours, np.float64) * (2 * np.pi / 24.0)
