@@ -32,7 +32,7 @@ import warnings
 import numpy as np
 
 from ..model.observation import Observation
-from .observation import _observation, _unproject, read_uvdata
+from .observation import observation_of, read_uvdata, unproject
 
 __all__ = ["apply_calibration", "match_antennas", "read_calibrated_observation", "read_calibration"]
 
@@ -184,6 +184,6 @@ def read_calibrated_observation(data, cal, *, pol=None, **selection) -> tuple[Ob
     if uvd is data:
         uvd = uvd.copy()
     info = apply_calibration(uvd, cal)
-    phase_type, notes = _unproject(uvd)
+    phase_type, notes = unproject(uvd)
     notes = [*notes, f"calibrated with {cal} ({info['cal_style']}, gain_convention {info['gain_convention']})"]
-    return _observation(uvd, source=source, selection=sel, phase_type=phase_type, notes=notes), info
+    return observation_of(uvd, source=source, selection=sel, phase_type=phase_type, notes=notes), info

@@ -196,7 +196,7 @@ def read_uvdata(data, *, pol="pI", freq_chans=None, freq_range_hz=None, times_jd
 # ---------------------------------------------------------------- arranging the samples
 
 
-def _unproject(uvd) -> tuple[str, list]:
+def unproject(uvd) -> tuple[str, list]:
     """Unproject a projected ``uvd`` in place: (phase type, notes)."""
     types = {int(k): v.get("cat_type") for k, v in uvd.phase_center_catalog.items()}
     used = {int(i) for i in np.unique(uvd.phase_center_id_array)}
@@ -326,7 +326,7 @@ def _site_and_antennas(uvd, rows: _Rows) -> dict:
     }
 
 
-def _observation(uvd, *, source: str, selection: dict, phase_type: str, notes) -> Observation:
+def observation_of(uvd, *, source: str, selection: dict, phase_type: str, notes) -> Observation:
     """The Observation of an (unprojected, selected) ``UVData``."""
     rows = _row_index(uvd)
     lsts = np.zeros(rows.times_jd.size)
@@ -378,7 +378,7 @@ def read_observation(
     uvd, source, selection = read_uvdata(
         data, pol=pol, freq_chans=freq_chans, freq_range_hz=freq_range_hz, times_jd=times_jd,
         lst_range_hours=lst_range_hours, antennas=antennas, bls=bls, autos=autos, memory_budget=memory_budget)
-    phase_type, notes = _unproject(uvd)
+    phase_type, notes = unproject(uvd)
     for line in notes:
         log.info(line)
-    return _observation(uvd, source=source, selection=selection, phase_type=phase_type, notes=notes)
+    return observation_of(uvd, source=source, selection=selection, phase_type=phase_type, notes=notes)

@@ -40,12 +40,12 @@ from ..model.system import LinearSystem, precision_apply, wiener_rhs
 from ..solvers.info import DrawInfo, SolveInfo, direct_info, exact_info
 from ..solvers.mmode import (
     MModeBlocks,
-    _bucket_factor_jit,
-    _from_buckets,
-    _to_buckets,
-    _tri,
+    bucket_factor_jit,
+    from_buckets,
     mmode_buckets,
     mmode_check,
+    to_buckets,
+    tri_solve,
 )
 from ..solvers.options import MModeOptions
 from ..sphere.modes import lmax_from_nparams
@@ -98,7 +98,7 @@ def mmode_factor_on(system: LinearSystem, devices: Sequence, bucket: int = MMode
     where = dict(zip(owned, bucket_devices(len(owned), devices)))
     inputs = {d: jax.device_put((op.response, w, system.prior.inv_var), d) for d in dict.fromkeys(where.values())}
     arrays = tuple(
-        _bucket_factor_jit(*inputs[where[i]], *jax.device_put((jnp.asarray(g), jnp.asarray(mk), jnp.asarray(sc)),
+        bucket_factor_jit(*inputs[where[i]], *jax.device_put((jnp.asarray(g), jnp.asarray(mk), jnp.asarray(sc)),
                                                                where[i])) if i in where else None
         for i, (g, mk, sc) in enumerate(zip(lay.gather, lay.mask, lay.scale)))
     return MModeBlocks(arrays, lay.lmax, lay.quantum)
@@ -106,7 +106,7 @@ def mmode_factor_on(system: LinearSystem, devices: Sequence, bucket: int = MMode
 
 @jax.jit
 def _solve_bucket(L: jax.Array, g: jax.Array) -> jax.Array:
-    return _tri(L, _tri(L, g[..., None], False), True)[..., 0]
+    return tri_solve(L, tri_solve(L, g[..., None], False), True)[..., 0]
 
 
 def _block_solve_on(chol: MModeBlocks, b: jax.Array) -> jax.Array:
@@ -118,8 +118,8 @@ def _block_solve_on(chol: MModeBlocks, b: jax.Array) -> jax.Array:
             return jnp.zeros_like(g)
         return jax.device_put(_solve_bucket(L, jax.device_put(g, next(iter(L.devices())))), home)
 
-    pieces = [piece(L, g) for L, g in zip(chol.arrays, _to_buckets(b, chol.layout))]
-    return _from_buckets(pieces, chol.layout, jnp.zeros_like(b))
+    pieces = [piece(L, g) for L, g in zip(chol.arrays, to_buckets(b, chol.layout))]
+    return from_buckets(pieces, chol.layout, jnp.zeros_like(b))
 
 
 @partial(jax.jit, static_argnames=("tol",))
@@ -227,4 +227,4 @@ def draw_mmode_on(key: jax.Array, state: MModeSplitState, ndraws: int):
 
 @jax.jit
 def _tri_t(L: jax.Array, z: jax.Array) -> jax.Array:
-    return _tri(L, z, True)
+    return tri_solve(L, z, True)

@@ -163,17 +163,17 @@ def joint_evidence_terms(system: JointSystem) -> dict:
     }
 
 
-def _whitening(prior: FrequencyPrior):
+def prior_whitening(prior: FrequencyPrior):
     """``(L_R (Nf, Nf), sqrt(c) (n,))``: ``G = L_R (x) diag(sqrt c)``."""
     return jnp.linalg.cholesky(prior.freq_cov), jnp.sqrt(prior.mode_var)
 
 
-def _g(LR, sc, u):
+def color_apply(LR, sc, u):
     """``G u`` for u (..., Nf, n)."""
     return jnp.einsum("hf,...fk->...hk", LR, u) * sc
 
 
-def _gt(LR, sc, v):
+def whiten_apply(LR, sc, v):
     """``G^T v`` for v (..., Nf, n)."""
     return jnp.einsum("hf,...hk->...fk", LR, v * sc)
 
@@ -240,19 +240,19 @@ def prepare_joint_dense(system: JointSystem, *, check: bool = True) -> JointDens
 
 @jax.jit
 def _prepare_dense(system: JointSystem) -> JointDenseState:
-    LR, sc = _whitening(system.prior)
+    LR, sc = prior_whitening(system.prior)
     H = _data_precision(data_system(system))
     nf, n = H.shape[0], H.shape[1]
     Hs = H * sc[None, :, None] * sc[None, None, :]
     M = jnp.einsum("hf,hg,hkj->fkgj", LR, LR, Hs).reshape(nf * n, nf * n) + jnp.eye(nf * n, dtype=H.dtype)
     L = jnp.linalg.cholesky(M)
     terms = joint_evidence_terms(system)
-    u = jsl.cho_solve((L, True), _gt(LR, sc, terms["b_res"]).reshape(-1)).reshape(nf, n)
-    a_wf = system.prior.mean + _g(LR, sc, u)
+    u = jsl.cho_solve((L, True), whiten_apply(LR, sc, terms["b_res"]).reshape(-1)).reshape(nf, n)
+    a_wf = system.prior.mean + color_apply(LR, sc, u)
     return JointDenseState(system, a_wf, L, LR, sc, terms)
 
 
-def _noise_terms(key, system: JointSystem, ndraws: int):
+def joint_noise_terms(key, system: JointSystem, ndraws: int):
     """``(X^T W^1/2 w_d, w_a)`` for ``ndraws`` draws: (ndraws, Nf, n) each."""
     ds = data_system(system)
     kd, ka = jax.random.split(key)
@@ -264,12 +264,12 @@ def _noise_terms(key, system: JointSystem, ndraws: int):
 @partial(jax.jit, static_argnames=("ndraws",))
 def draw_joint_dense(key: jax.Array, state: JointDenseState, ndraws: int) -> jax.Array:
     """``ndraws`` exact joint posterior draws (ndraws, Nf, n) by the GCR equation (module docstring)."""
-    xw, wa = _noise_terms(key, state.system, ndraws)
+    xw, wa = joint_noise_terms(key, state.system, ndraws)
     LR, sc = state.chol_r, state.sqrt_c
-    y = _gt(LR, sc, state.terms["b_res"] + xw) + wa
+    y = whiten_apply(LR, sc, state.terms["b_res"] + xw) + wa
     nf, n = state.a_wf.shape
     u = jax.vmap(lambda v: jsl.cho_solve((state.chol, True), v.reshape(-1)).reshape(nf, n))(y)
-    return state.system.prior.mean + _g(LR, sc, u)
+    return state.system.prior.mean + color_apply(LR, sc, u)
 
 
 def _evidence(state, logdet_m):
@@ -314,13 +314,13 @@ def joint_wiener_info(system: JointSystem, a_wf: jax.Array, tol: float, *, solve
         a :class:`~gcrsky.solvers.SolveInfo` with (Nf,) fields (the joint solve's figures,
         the same for every channel: the channels are solved together).
     """
-    LR, sc = _whitening(system.prior)
+    LR, sc = prior_whitening(system.prior)
     delta = jnp.asarray(a_wf) - system.prior.mean
     b_res = joint_evidence_terms(system)["b_res"]
     h_delta = adjoint(system.op, system.inv_noise * apply(system.op, delta))
     u = jsl.solve_triangular(LR, (delta / sc).reshape(delta.shape[0], -1), lower=True)
-    y = _gt(LR, sc, b_res)
-    r = y - u - _gt(LR, sc, h_delta)
+    y = whiten_apply(LR, sc, b_res)
+    r = y - u - whiten_apply(LR, sc, h_delta)
     if solve is None:
         err = jnp.linalg.norm(r)
     else:
@@ -342,9 +342,9 @@ def whitened_solve(state, v: jax.Array) -> jax.Array:
     if isinstance(state, JointDenseState):
         return jsl.cho_solve((state.chol, True), v.reshape(-1)).reshape(nf, n)
     lay = mmode_buckets(state.lmax, state.quantum)
-    eye, ones = jnp.eye(nf, dtype=v.dtype), _bucket_sc(jnp.ones(n, v.dtype), lay)
-    us = _bucket_solve(state.chol, _whiten_buckets(eye, ones, v, lay))
-    return _color_buckets(eye, ones, us, lay, nf, n)
+    eye, ones = jnp.eye(nf, dtype=v.dtype), bucket_scales(jnp.ones(n, v.dtype), lay)
+    us = bucket_solve(state.chol, whiten_buckets(eye, ones, v, lay))
+    return color_buckets(eye, ones, us, lay, nf, n)
 
 
 # ---------------------------------------------------------------- m-mode
@@ -375,12 +375,12 @@ class JointMModeState(eqx.Module):
     quantum: int = eqx.field(static=True)
 
 
-def _bucket_sc(sc, lay):
+def bucket_scales(sc, lay):
     """Per bucket (G, S): ``sqrt c`` on real entries, 0 on padding."""
     return tuple(jnp.where(mk, sc[g], 0.0) for g, mk in zip(lay.gather, lay.mask))
 
 
-def _whiten_buckets(LR, scb, v, lay):
+def whiten_buckets(LR, scb, v, lay):
     """``G^T v`` for v (..., Nf, n), per bucket (..., G, Nf S)."""
     out = []
     for g, mk, s in zip(lay.gather, lay.mask, scb):
@@ -390,7 +390,7 @@ def _whiten_buckets(LR, scb, v, lay):
     return tuple(out)
 
 
-def _color_buckets(LR, scb, us, lay, nf, n):
+def color_buckets(LR, scb, us, lay, nf, n):
     """``G u`` from per bucket u (..., G, Nf S) to (..., Nf, n)."""
     out = None
     for u, s, src, dst in zip(us, scb, lay.src, lay.dst):
@@ -403,7 +403,7 @@ def _color_buckets(LR, scb, us, lay, nf, n):
     return out
 
 
-def _bucket_solve(chols, ys):
+def bucket_solve(chols, ys):
     """``M_m^-1 y`` per bucket: chols (G, K, K), ys (..., G, K)."""
     out = []
     for L, y in zip(chols, ys):
@@ -416,11 +416,11 @@ def _bucket_solve(chols, ys):
 
 @partial(jax.jit, static_argnames=("quantum",))
 def _prepare_mmode(system: JointSystem, quantum: int) -> JointMModeState:
-    LR, sc = _whitening(system.prior)
+    LR, sc = prior_whitening(system.prior)
     nf, n = system.prior.mean.shape
     blocks = mmode_blocks(data_system(system), quantum)  # (Nf, G, S, S): H_nu's m-blocks, identity on padding
     lay = blocks.layout
-    scb = _bucket_sc(sc, lay)
+    scb = bucket_scales(sc, lay)
     chols = []
     for Hd, s in zip(blocks.arrays, scb):
         G, S = s.shape
@@ -429,8 +429,8 @@ def _prepare_mmode(system: JointSystem, quantum: int) -> JointMModeState:
         chols.append(jnp.linalg.cholesky(M + jnp.eye(nf * S, dtype=M.dtype)))
     chols = tuple(chols)
     terms = joint_evidence_terms(system)
-    us = _bucket_solve(chols, _whiten_buckets(LR, scb, terms["b_res"], lay))
-    a_wf = system.prior.mean + _color_buckets(LR, scb, us, lay, nf, n)
+    us = bucket_solve(chols, whiten_buckets(LR, scb, terms["b_res"], lay))
+    a_wf = system.prior.mean + color_buckets(LR, scb, us, lay, nf, n)
     return JointMModeState(system, a_wf, chols, LR, sc, terms, blocks.lmax, quantum)
 
 
@@ -467,15 +467,15 @@ def prepare_joint_mmode(system: JointSystem, options: MModeOptions | None = None
 @partial(jax.jit, static_argnames=("ndraws",))
 def draw_joint_mmode(key: jax.Array, state: JointMModeState, ndraws: int) -> jax.Array:
     """``ndraws`` exact joint posterior draws (ndraws, Nf, n) on the m-mode path (GCR equation)."""
-    xw, wa = _noise_terms(key, state.system, ndraws)
+    xw, wa = joint_noise_terms(key, state.system, ndraws)
     lay = mmode_buckets(state.lmax, state.quantum)
     LR, sc = state.chol_r, state.sqrt_c
-    scb = _bucket_sc(sc, lay)
+    scb = bucket_scales(sc, lay)
     nf, n = state.a_wf.shape
-    ys = _whiten_buckets(LR, scb, state.terms["b_res"] + xw, lay)
-    wab = _whiten_buckets(jnp.eye(nf, dtype=LR.dtype), _bucket_sc(jnp.ones_like(sc), lay), wa, lay)
-    us = _bucket_solve(state.chol, tuple(y + w for y, w in zip(ys, wab)))
-    return state.system.prior.mean + _color_buckets(LR, scb, us, lay, nf, n)
+    ys = whiten_buckets(LR, scb, state.terms["b_res"] + xw, lay)
+    wab = whiten_buckets(jnp.eye(nf, dtype=LR.dtype), bucket_scales(jnp.ones_like(sc), lay), wa, lay)
+    us = bucket_solve(state.chol, tuple(y + w for y, w in zip(ys, wab)))
+    return state.system.prior.mean + color_buckets(LR, scb, us, lay, nf, n)
 
 
 def joint_log_evidence_mmode(state: JointSystem | JointMModeState, *, check: bool = True) -> jax.Array:

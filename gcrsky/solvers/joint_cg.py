@@ -96,17 +96,17 @@ from .cg import cg_solve
 from .info import DrawInfo, SolveInfo
 from .joint import (
     JointSystem,
-    _bucket_sc,
-    _bucket_solve,
-    _color_buckets,
-    _g,
-    _gt,
-    _noise_terms,
-    _whiten_buckets,
-    _whitening,
+    bucket_scales,
+    bucket_solve,
     check_joint_system,
+    color_apply,
+    color_buckets,
     data_system,
     joint_evidence_terms,
+    joint_noise_terms,
+    prior_whitening,
+    whiten_apply,
+    whiten_buckets,
 )
 from .mmode import mmode_blocks, mmode_buckets, mmode_check
 from .options import CGOptions, MModeOptions
@@ -181,8 +181,8 @@ def joint_matvec(system: JointSystem, chol_r: jax.Array, sqrt_c: jax.Array, u: j
 
     Cost: one operator product and its adjoint over all channels, ``O(Nf Nt Nbl n)``.
     """
-    a = _g(chol_r, sqrt_c, u)
-    return u + _gt(chol_r, sqrt_c, adjoint(system.op, system.inv_noise * apply(system.op, a)))
+    a = color_apply(chol_r, sqrt_c, u)
+    return u + whiten_apply(chol_r, sqrt_c, adjoint(system.op, system.inv_noise * apply(system.op, a)))
 
 
 # ---------------------------------------------------------------- preconditioners
@@ -244,7 +244,7 @@ def _whitened_mblocks(system: JointSystem, chol_r, sqrt_c, quantum: int):
     blocks = mmode_blocks(data_system(system), quantum)  # (Nf, G, S, S) H_nu's m-blocks, identity on padding
     lay = blocks.layout
     out = []
-    for Hd, s in zip(blocks.arrays, _bucket_sc(sqrt_c, lay)):
+    for Hd, s in zip(blocks.arrays, bucket_scales(sqrt_c, lay)):
         G, S = s.shape
         Hs = Hd * s[None, :, :, None] * s[None, :, None, :]  # padding rows and columns now 0
         M = jnp.einsum("hf,hk,hgij->gfikj", chol_r, chol_r, Hs).reshape(G, nf * S, nf * S)
@@ -275,11 +275,11 @@ def joint_preconditioner(system: JointSystem, kind: str = "mblock", quantum: int
     if kind == "none":
         return None
     if kind == "nystrom":
-        return _nystrom(system, *_whitening(system.prior), min(int(sketch_size), nf * n))
+        return _nystrom(system, *prior_whitening(system.prior), min(int(sketch_size), nf * n))
     if system.op.frame is not None:
         raise ValueError("the joint m-block and mode preconditioners need op.frame is None (a frame map couples m); "
                          "use 'nystrom' or 'none'")
-    chol_r, sqrt_c = _whitening(system.prior)
+    chol_r, sqrt_c = prior_whitening(system.prior)
     if kind == "mblock":
         Ms, blocks = _whitened_mblocks(system, chol_r, sqrt_c, quantum)
         return JointMBlockPreconditioner(tuple(jnp.linalg.cholesky(M) for M in Ms), blocks.lmax, quantum)
@@ -308,9 +308,9 @@ def joint_precondition(pc, r: jax.Array) -> jax.Array:
         return x.T
     lay = mmode_buckets(pc.lmax, pc.quantum)
     one = jnp.eye(nf, dtype=r.dtype)
-    scb = _bucket_sc(jnp.ones((n,), r.dtype), lay)
-    us = _bucket_solve(pc.chol, _whiten_buckets(one, scb, r, lay))
-    return _color_buckets(one, scb, us, lay, nf, n)
+    scb = bucket_scales(jnp.ones((n,), r.dtype), lay)
+    us = bucket_solve(pc.chol, whiten_buckets(one, scb, r, lay))
+    return color_buckets(one, scb, us, lay, nf, n)
 
 
 # ---------------------------------------------------------------- solves
@@ -379,11 +379,11 @@ def _resolve(system: JointSystem, options: JointCGOptions | None) -> JointCGOpti
 
 @partial(jax.jit, static_argnames=("options",))
 def _prepare(system: JointSystem, options: JointCGOptions) -> JointCGState:
-    chol_r, sqrt_c = _whitening(system.prior)
+    chol_r, sqrt_c = prior_whitening(system.prior)
     pc = joint_preconditioner(system, options.preconditioner, options.bucket, options.sketch_size)
     terms = joint_evidence_terms(system)
-    u, info = _solve(system, chol_r, sqrt_c, pc, _gt(chol_r, sqrt_c, terms["b_res"]), options)
-    a_wf = system.prior.mean + _g(chol_r, sqrt_c, u)
+    u, info = _solve(system, chol_r, sqrt_c, pc, whiten_apply(chol_r, sqrt_c, terms["b_res"]), options)
+    a_wf = system.prior.mean + color_apply(chol_r, sqrt_c, u)
     return JointCGState(system, a_wf, info, pc, chol_r, sqrt_c, terms, options)
 
 
@@ -430,7 +430,7 @@ def draw_joint_cg(key: jax.Array, state: JointCGState, ndraws: int):
         and ``draws`` (fields (ndraws,)), ``a_wf``.
     """
     system = state.system
-    xw, wa = _noise_terms(key, system, ndraws)
-    y = _gt(state.chol_r, state.sqrt_c, state.terms["b_res"] + xw) + wa
+    xw, wa = joint_noise_terms(key, system, ndraws)
+    y = whiten_apply(state.chol_r, state.sqrt_c, state.terms["b_res"] + xw) + wa
     u, info = _solve(system, state.chol_r, state.sqrt_c, state.pc, y, state.options)
-    return system.prior.mean + _g(state.chol_r, state.sqrt_c, u), DrawInfo(state.wiener, info, state.a_wf)
+    return system.prior.mean + color_apply(state.chol_r, state.sqrt_c, u), DrawInfo(state.wiener, info, state.a_wf)

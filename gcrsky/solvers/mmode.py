@@ -236,12 +236,12 @@ def mmode_buckets(lmax: int, quantum: int = MModeOptions.bucket) -> MModeBuckets
     return MModeBuckets(lmax, quantum, *(tuple(v) for v in out.values()))
 
 
-def _to_buckets(x: jax.Array, lay: MModeBuckets) -> tuple:
+def to_buckets(x: jax.Array, lay: MModeBuckets) -> tuple:
     """(..., n) -> per bucket (..., G, 2H), zeros on padding."""
     return tuple(jnp.where(mk, x[..., g], 0) for g, mk in zip(lay.gather, lay.mask))
 
 
-def _from_buckets(ys, lay: MModeBuckets, out: jax.Array) -> jax.Array:
+def from_buckets(ys, lay: MModeBuckets, out: jax.Array) -> jax.Array:
     """Per bucket (..., G, 2H) -> their real entries added into ``out`` (..., n)."""
     for y, src, dst in zip(ys, lay.src, lay.dst):
         out = out.at[..., dst].add(y.reshape(y.shape[:-2] + (-1,))[..., src])
@@ -296,7 +296,7 @@ def _bucket_blocks(R, w, inv_var, gather, mask, scale):
 
 
 _bucket_blocks_jit = jax.jit(_bucket_blocks)
-_bucket_factor_jit = jax.jit(lambda *args: jnp.linalg.cholesky(_bucket_blocks(*args)))
+bucket_factor_jit = jax.jit(lambda *args: jnp.linalg.cholesky(_bucket_blocks(*args)))
 
 
 def _per_bucket(fn, system: LinearSystem, quantum: int) -> MModeBlocks:
@@ -328,7 +328,7 @@ def mmode_blocks(system: LinearSystem, bucket: int = MModeOptions.bucket) -> MMo
 def mmode_factor(system: LinearSystem, bucket: int = MModeOptions.bucket) -> MModeBlocks:
     """The lower Cholesky factors of :func:`mmode_blocks`, built and factorised bucket by bucket
     (each bucket's unfactorised blocks are freed once factorised)."""
-    return _per_bucket(_bucket_factor_jit, system, bucket)
+    return _per_bucket(bucket_factor_jit, system, bucket)
 
 
 def blocks_to_dense(blocks: MModeBlocks) -> np.ndarray:
@@ -370,7 +370,7 @@ class MModeState(eqx.Module):
     method: ClassVar[str] = "mmode"
 
 
-def _tri(L, b, trans: bool):
+def tri_solve(L, b, trans: bool):
     """Batched ``L^-1 b`` (``L^-T b`` if ``trans``): L (..., S, S) lower, b (..., S, k).
 
     One LAPACK ``trsm`` per block (``lax.map`` over the batch): XLA's CPU lowering of a
@@ -386,9 +386,9 @@ def _tri(L, b, trans: bool):
 
 def block_solve(chol: MModeBlocks, b: jax.Array) -> jax.Array:
     """``P^-1 b`` through the factorised m-blocks: b (Nf, n) -> (Nf, n)."""
-    ys = tuple(_tri(L, _tri(L, g[..., None], False), True)[..., 0]
-               for L, g in zip(chol.arrays, _to_buckets(b, chol.layout)))
-    return _from_buckets(ys, chol.layout, jnp.zeros_like(b))
+    ys = tuple(tri_solve(L, tri_solve(L, g[..., None], False), True)[..., 0]
+               for L, g in zip(chol.arrays, to_buckets(b, chol.layout)))
+    return from_buckets(ys, chol.layout, jnp.zeros_like(b))
 
 
 def _all_finite(blocks: MModeBlocks) -> jax.Array:
@@ -529,7 +529,7 @@ def draw_mmode(key: jax.Array, prepared: MModeState, ndraws: int):
     out = jnp.broadcast_to(a_wf[:, None, :], (nf, ndraws, n))
     for Lb, start, size, src, dst in zip(L.arrays, np.cumsum([0, *rows]), rows, lay.src, lay.dst):
         zb = jax.lax.slice_in_dim(z, int(start), int(start) + size, axis=1).reshape(Lb.shape[:3] + (ndraws,))
-        delta = jnp.moveaxis(_tri(Lb, zb, True), -1, 1)  # (Nf, ndraws, G, 2H)
+        delta = jnp.moveaxis(tri_solve(Lb, zb, True), -1, 1)  # (Nf, ndraws, G, 2H)
         out = out.at[..., dst].add(delta.reshape(nf, ndraws, -1)[..., src])
     finite = jnp.all(jnp.isfinite(out), axis=-1)
     return out, DrawInfo(prepared.wiener, exact_info(prepared.wiener, finite, (nf, ndraws)), a_wf)
