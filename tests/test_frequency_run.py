@@ -30,7 +30,6 @@ from gcrsky.run import Draws, Output, RunSpec, execute
 from gcrsky.run.frequency import (
     FREQ_KEY_SCHEME,
     channel_flags,
-    choose_joint_method,
     frequency_prior_of,
     joint_system_of,
 )
@@ -43,6 +42,7 @@ from gcrsky.solvers.joint import (
     prepare_joint_mmode,
     whitened_solve,
 )
+from gcrsky.solvers.plan import choose_joint_path
 
 LMAX = 4
 N = (LMAX + 1) ** 2
@@ -89,13 +89,13 @@ def test_the_run_draws_exactly_the_joint_posterior(partial, coupled_run):
     joint, _ = joint_system_of(partial, MODEL)
     state = prepare_joint_dense(joint)
     with h5py.File(out / "results.h5", "r") as h:
-        assert h.attrs["method"] == "joint-cholesky" and h.attrs["key_scheme"] == FREQ_KEY_SCHEME
+        assert h.attrs["method"] == "cholesky" and h.attrs["key_scheme"] == FREQ_KEY_SCHEME
         wf, draws = np.asarray(h["wiener_filter"]), np.asarray(h["draws"])
     np.testing.assert_array_equal(wf, np.asarray(state.a_wf))
     key = jax.random.PRNGKey(3)
     want = np.concatenate([np.asarray(draw_joint_dense(jax.random.fold_in(key, b), state, 4)) for b in (0, 1)])
     np.testing.assert_array_equal(draws, np.moveaxis(want, 0, 1))  # (Nf, ndraws, n), batch by batch
-    assert summary.solver["all_converged"] and summary.run["method"] == "joint-cholesky"
+    assert summary.solver["all_converged"] and summary.run["method"] == "cholesky"
     # the measured bound is rounding: M's whitened residual (tolerance 1e-6 sigma, measured ~1e-9 here)
     assert summary.solver["wiener"]["err_sigma_max"] < 1e-6
 
@@ -139,9 +139,9 @@ def test_full_day_coverage_takes_the_m_mode_path(small_array, tmp_path):
     prob = eqx.tree_at(lambda p: p.sigma, prob, jnp.broadcast_to(prob.sigma.mean(axis=1, keepdims=True),
                                                                   prob.sigma.shape))
     joint, _ = joint_system_of(prob, MODEL)
-    assert choose_joint_method(joint, "auto") == "joint-mmode"
+    assert choose_joint_path(joint, "auto")[:2] == ("mmode", "mmode")
     summary, _ = execute(prob, _spec(tmp_path, nsamples=4))
-    assert summary.run["method"] == "joint-mmode" and summary.solver["all_converged"]
+    assert summary.run["method"] == "mmode" and summary.solver["all_converged"]
     with h5py.File(tmp_path / "results.h5", "r") as h:
         wf = np.asarray(h["wiener_filter"])
     e = (wf - np.asarray(prepare_joint_dense(joint).a_wf)).reshape(-1)
@@ -188,9 +188,9 @@ def test_bad_frequency_settings_are_refused(partial, tmp_path, capsys):
         RunSpec(Draws(4), Output(tmp_path), channels="loop", frequency=MODEL)
     joint, _ = joint_system_of(partial, MODEL)
     with pytest.raises(ValueError, match="not --method eigh"):
-        choose_joint_method(joint, "eigh")
+        choose_joint_path(joint, "eigh")
     with pytest.raises(ValueError, match="m-mode path does not apply"):
-        choose_joint_method(joint, "mmode")
+        choose_joint_path(joint, "mmode")
     for argv, msg in ((["--freq-xi", "0.2"], "add --freq-prior"),
                       (["--freq-prior", "kernel", "--freq-nbasis", "2"], "do not apply to --freq-prior kernel"),
                       (["--freq-prior", "template", "--freq-fit"], "do not apply to --freq-prior template"),
@@ -232,12 +232,13 @@ def test_the_data_space_paths_run_the_same_posterior(small_array, partial, tmp_p
         prob = eqx.tree_at(lambda p: p.sigma, prob, jnp.broadcast_to(prob.sigma.mean(axis=1, keepdims=True),
                                                                       prob.sigma.shape))
     joint, _ = joint_system_of(prob, MODEL)
-    want = "joint-dataspace-mmode" if full_day else "joint-dataspace"
-    assert choose_joint_method(joint, "dataspace") == want
+    want = "mmode" if full_day else "dense"
+    assert choose_joint_path(joint, "dataspace")[:2] == ("dataspace", want)
     spec = RunSpec(Draws(4, seed=3, batch=4), Output(tmp_path, plots=False), Solver("dataspace"), frequency=MODEL)
     summary, _ = execute(prob, spec)
-    assert summary.run["method"] == want and summary.solver["all_converged"]
+    assert summary.run["method"] == "dataspace" and summary.solver["all_converged"]
     with h5py.File(tmp_path / "results.h5", "r") as h:
+        assert json.loads(h.attrs["solver_options_json"])["variant"] == want  # the form, beside the path's name
         e = (np.asarray(h["wiener_filter"]) - np.asarray(prepare_joint_dense(joint).a_wf)).reshape(-1)
     assert np.sqrt(e @ np.asarray(joint_precision_matrix(joint)) @ e) < 1e-6
 
@@ -247,9 +248,9 @@ def test_without_memory_auto_takes_cg_and_a_direct_path_is_refused_by_name(parti
 
     joint, _ = joint_system_of(partial, MODEL)
     monkeypatch.setenv("GCRSKY_MEMORY_BUDGET_GB", "1e-6")
-    assert choose_joint_method(joint, "auto") == "joint-cg"
-    with pytest.raises(InsufficientMemoryError, match="joint path joint-cholesky over 4 channels"):
-        choose_joint_method(joint, "cholesky")
+    assert choose_joint_path(joint, "auto")[:2] == ("cg", "cg")
+    with pytest.raises(InsufficientMemoryError, match=r"joint path cholesky \(dense\) over 4 channels"):
+        choose_joint_path(joint, "cholesky")
 
 
 def test_the_cg_path_runs_the_same_posterior(partial, tmp_path):
@@ -260,7 +261,7 @@ def test_the_cg_path_runs_the_same_posterior(partial, tmp_path):
     joint, _ = joint_system_of(partial, MODEL)
     spec = RunSpec(Draws(4, seed=3, batch=4), Output(tmp_path, plots=False), Solver("cg"), frequency=MODEL)
     summary, _ = execute(partial, spec)
-    assert summary.run["method"] == "joint-cg" and summary.solver["all_converged"]
+    assert summary.run["method"] == "cg" and summary.solver["all_converged"]
     assert summary.solver["wiener"]["err_sigma_max"] <= 1e-6
     with h5py.File(tmp_path / "results.h5", "r") as h:
         e = (np.asarray(h["wiener_filter"]) - np.asarray(prepare_joint_dense(joint).a_wf)).reshape(-1)

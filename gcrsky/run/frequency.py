@@ -9,8 +9,8 @@ variance to the reference one's, the spectral index ``beta`` of the prior's stan
 records how far its per-channel variances ``c_k R_ff`` are from the independent prior's.
 
 The draws (:func:`frequency_draws`) are those of the joint posterior over all channels, by an
-exact joint path (:data:`JOINT_PATHS`, :func:`choose_joint_method`): per order of m for uniform
-full-day coverage, else dense; in the a-space (:mod:`gcrsky.solvers.joint`) or the data space
+exact joint path (a path of :data:`gcrsky.solvers.registry.PATHS` with a joint flavour, planned by
+:func:`gcrsky.solvers.plan.choose_joint_path`): per order of m for uniform full-day coverage, else dense; in the a-space (:mod:`gcrsky.solvers.joint`) or the data space
 (:mod:`gcrsky.solvers.joint_dataspace`), whichever factor is narrower and fits in memory.  Key scheme
 :data:`FREQ_KEY_SCHEME`: batch ``b`` is ``draw(fold_in(PRNGKey(seed), b), batch)``, so a
 resumed run ends with the draws of an uninterrupted one.  The Wiener filter's accuracy is
@@ -27,62 +27,30 @@ from __future__ import annotations
 
 import json
 import logging
-from functools import partial
-from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..base.memory import available_memory_bytes, check_memory
 from ..model.spectral import (
     FrequencyPrior,
     log_frequency_kernel,
     spectral_basis_cov,
 )
-from ..solvers.info import exact_info
-from ..solvers.joint import (
-    JointSystem,
-    data_system,
-    draw_joint_dense,
-    draw_joint_mmode,
-    joint_wiener_info,
-    prepare_joint_dense,
-    prepare_joint_mmode,
-    whitened_solve,
-)
-from ..solvers.joint_cg import JointCGOptions, draw_joint_cg, prepare_joint_cg
-from ..solvers.joint_dataspace import (
-    draw_joint_dataspace,
-    draw_joint_dataspace_mmode,
-    joint_dataspace_bytes,
-    joint_dataspace_mmode_bytes,
-    prepare_joint_dataspace,
-    prepare_joint_dataspace_mmode,
-    whitened_solve_dataspace,
-)
-from ..solvers.mmode import mmode_check
+from ..solvers.joint import JointSystem
+from ..solvers.plan import choose_joint_path
+from ..solvers.registry import LEGACY_JOINT_NAMES, path_of
 from .draws import append_batches, record_setup
 from .output import OpenRun
 from .spec import FrequencyModel, RunSpec
 from .stages import StageTimer, Watch
 
-__all__ = ["FREQ_KEY_SCHEME", "JOINT_METHODS", "JOINT_PATHS", "JointPath", "channel_flags", "choose_joint_method", "frequency_draws",
-           "frequency_prior_of", "joint_system_of"]
+__all__ = ["FREQ_KEY_SCHEME", "channel_flags", "frequency_draws", "frequency_prior_of", "joint_system_of"]
 
 log = logging.getLogger(__name__)
 
 #: The key scheme of a frequency-coupled run's draws (recorded in ``results.h5``).
 FREQ_KEY_SCHEME = "joint-frequency-v1: batch b = draw_joint(fold_in(PRNGKey(seed), b), batch), (ndraws, Nf, n)"
-
-#: The ``--method`` values a frequency-coupled run takes (besides ``auto``), and what each asks for.
-JOINT_METHODS = {"cholesky": "the dense a-space joint precision", "mmode": "its blocks per order (full day)",
-                 "dataspace": "the data space, dense or per order (full day)",
-                 "cg": "matrix-free CG on the whitened joint precision (Nystrom or m-block preconditioner)"}
-
-#: Bytes per entry of the dense joint path's working set: M and its factor in float64, with slack.
-_DENSE_BYTES = 3 * 8
-
 
 def channel_flags(inv_noise) -> dict:
     """Which channels have data: ``{"flagged": [...], "partly_flagged": [...], "data_fraction": [...]}``.
@@ -225,92 +193,13 @@ def fit_kernel(joint: JointSystem, freqs_hz, model: FrequencyModel, info: dict) 
     return joint._replace(prior=fp), info
 
 
-class JointPath(NamedTuple):
-    """A joint path over channels: its recorded name, set-up ``(joint, tol) -> state``, draw
-    ``(key, state, ndraws) -> draws (ndraws, Nf, n)`` and ``M^-1`` (whitened) functions; an
-    iterative path (``solve`` None) reports its own solves' accuracy instead."""
-
-    name: str
-    prepare: Callable
-    draw: Callable
-    solve: Callable | None
-
-
-def _direct(prepare):
-    return lambda joint, tol: prepare(joint)
-
-
-def _prepare_cg(joint, tol):
-    return prepare_joint_cg(joint, JointCGOptions(tol=tol))
-
-
-#: The joint paths by recorded name (``results.h5``'s ``method``).
-JOINT_PATHS = {p.name: p for p in (
-    JointPath("joint-cholesky", _direct(prepare_joint_dense), draw_joint_dense, whitened_solve),
-    JointPath("joint-mmode", _direct(prepare_joint_mmode), draw_joint_mmode, whitened_solve),
-    JointPath("joint-dataspace", _direct(prepare_joint_dataspace), draw_joint_dataspace, whitened_solve_dataspace),
-    JointPath("joint-dataspace-mmode", _direct(prepare_joint_dataspace_mmode), draw_joint_dataspace_mmode,
-              whitened_solve_dataspace),
-    JointPath("joint-cg", _prepare_cg, draw_joint_cg, None),
-)}
-
-
-def _candidates(joint: JointSystem, full_day: bool) -> list[tuple[str, float]]:
-    """The exact joint paths that apply, cheapest first by their factor's width, with their memory (bytes).
-
-    Full day: per order, the a-space blocks are ``Nf s_m`` wide (``s_m = 2 (lmax - m + 1)``), the data
-    space's ``4 Nf Nbl``; otherwise the dense a-space ``Nf n`` against the data space's ``2 Nf Nt Nbl``.
-    """
-    nf, nt, nbl = (int(x) for x in np.shape(joint.data))
-    n = int(np.shape(joint.prior.mean)[1])
-    lmax = int(round(np.sqrt(n))) - 1
-    if full_day:
-        s = 2 * (lmax + 1 - np.arange(lmax + 1))
-        aspace = ("joint-mmode", float(np.sum(2 * 8.0 * (nf * s) ** 2)) + 8.0 * nf * n * n, float(np.mean(nf * s)))
-        dspace = ("joint-dataspace-mmode", joint_dataspace_mmode_bytes(nf, nbl, lmax), 4.0 * nf * nbl)
-    else:
-        aspace = ("joint-cholesky", _DENSE_BYTES * float(nf * n) ** 2 + 8.0 * nf * n * n, float(nf * n))
-        dspace = ("joint-dataspace", joint_dataspace_bytes(nf, nt, nbl, n), 2.0 * nf * nt * nbl)
-    return [(name, mem) for name, mem, _ in sorted((aspace, dspace), key=lambda c: c[2])]
-
-
-def choose_joint_method(joint: JointSystem, method: str) -> str:
-    """The exact joint path of ``--method`` (its name in :data:`JOINT_PATHS`), its memory checked.
-
-    ``auto``: with uniform full-day coverage (:func:`gcrsky.solvers.mmode_check`) the per-order paths,
-    else the dense ones; of the a-space (``cholesky`` / ``mmode``) and data-space (``dataspace``) form,
-    the narrower factor that fits in memory; where neither fits, CG (:mod:`gcrsky.solvers.joint_cg`:
-    matrix-free, its error bounded by its stop).  ``cholesky`` and ``mmode`` ask for the a-space form,
-    ``dataspace`` for the data space's (per order where the coverage allows), ``cg`` for CG.
-
-    Raises:
-        ValueError: a method no joint path serves, or ``mmode`` where it does not apply.
-        InsufficientMemoryError: no path asked for fits.
-    """
-    if method not in ("auto", *JOINT_METHODS):
-        raise ValueError(f"a frequency prior samples all channels jointly by {', '.join(JOINT_METHODS)} (or auto), "
-                         f"not --method {method}")
-    ok = mmode_check(data_system(joint))
-    if method == "mmode" and not ok:
-        raise ValueError(f"the joint m-mode path does not apply: {ok.reason}")
-    if method == "cg":
-        return "joint-cg"
-    cands = _candidates(joint, bool(ok))
-    if method != "auto":
-        want = {"cholesky": "joint-cholesky", "mmode": "joint-mmode", "dataspace": "joint-dataspace"}[method]
-        cands = [c for c in cands if c[0].startswith(want)]
-    budget = available_memory_bytes()
-    for name, mem in cands:
-        if mem <= budget:
-            return name
-    if method == "auto":
-        log.info("no direct joint path fits in %.3g GB: CG", budget / 2**30)
-        return "joint-cg"
-    name, mem = cands[0]
-    check_memory(mem, f"the joint path {name} over {np.shape(joint.data)[0]} channels",
-                 "use fewer channels (--freq-range, --chans), a lower --lmax, or fewer times or baselines",
-                 budget=budget)
-    return name
+def _recorded_path(state) -> tuple[str, str]:
+    """The path and joint form a resumed run recorded: ``(name, variant)``; runs before the joint paths
+    joined the registry recorded ``joint-cholesky`` etc. (:data:`~gcrsky.solvers.registry.LEGACY_JOINT_NAMES`)."""
+    method = str(state.attrs["method"])
+    if method in LEGACY_JOINT_NAMES:
+        return LEGACY_JOINT_NAMES[method]
+    return method, str(json.loads(state.attrs["solver_options_json"])["variant"])
 
 
 def frequency_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, watch: Watch) -> str:
@@ -322,21 +211,16 @@ def frequency_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, watch: Wa
     st.start("wiener")
     joint, info = joint_system_of(prob, spec.frequency)
     if run.state is None:
-        method = choose_joint_method(joint, spec.solver.method)
+        method, variant, _ = choose_joint_path(joint, spec.solver.method)
     else:
-        method = str(run.state.attrs["method"])
-    path = JOINT_PATHS[method]
-    state = path.prepare(joint, spec.solver.tol)
+        method, variant = _recorded_path(run.state)
+    path = path_of(method)
+    state = path.joint_prepare(joint, spec.solver.tol, variant)
     a_wf = np.asarray(jax.block_until_ready(state.a_wf))
-    nf = a_wf.shape[0]
-    if path.solve is None:  # CG: its own measured bound, the same for every channel (one joint solve)
-        winfo = jax.tree_util.tree_map(lambda v: np.broadcast_to(np.asarray(v), (nf,)).copy(), state.wiener)
-    else:
-        winfo = jax.tree_util.tree_map(np.asarray, joint_wiener_info(joint, a_wf, spec.solver.tol,
-                                                                      solve=partial(path.solve, state)))
-    log.info("joint Wiener filter over %d channels by %s: error <= %.3g posterior sigma", a_wf.shape[0], method,
-             float(winfo.err_sigma[0]))
-    options = json.dumps({"method": method, "frequency_prior": info})
+    winfo = state.wiener
+    log.info("joint Wiener filter over %d channels by %s (%s): error <= %.3g posterior sigma", a_wf.shape[0], method,
+             variant, float(winfo.err_sigma[0]))
+    options = json.dumps({"method": method, "variant": variant, "frequency_prior": info})
     record_setup(prob, spec, run, a_wf, winfo, rank=None, method=method, options=options,
                  key_scheme=FREQ_KEY_SCHEME)
     st.stop()
@@ -344,16 +228,9 @@ def frequency_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, watch: Wa
     key = jax.random.PRNGKey(d.seed)
 
     def draw_one(b):
-        out = jax.block_until_ready(path.draw(jax.random.fold_in(key, b), state, d.batch))
-        x, solved = out if path.solve is None else (out, None)
+        x, dinfo = path.joint_draw(jax.random.fold_in(key, b), state, d.batch)  # (Nf, batch, n)
         take = min(d.batch, d.nsamples - b * d.batch)
-        x = np.moveaxis(np.asarray(x)[:take], 0, 1)  # (Nf, take, n)
-        if solved is None:
-            dinfo = exact_info(winfo, np.isfinite(x).all(axis=-1), x.shape[:2])
-        else:  # CG's per-draw bound, the same for every channel
-            dinfo = jax.tree_util.tree_map(lambda v: np.broadcast_to(np.asarray(v)[:take], x.shape[:2]).copy(),
-                                           solved.draws)
-        return x, jax.tree_util.tree_map(np.asarray, dinfo)
+        return x[:, :take], jax.tree_util.tree_map(lambda v: v[:, :take], dinfo.draws)
 
     append_batches(run, d, watch, draw_one)
     return method

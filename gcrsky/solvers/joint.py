@@ -64,16 +64,24 @@ from ..model.system import (
     precision_matrix_by_time,
 )
 from ..sphere.modes import lmax_from_nparams
-from .info import SolveInfo, direct_info
-from .mmode import mmode_blocks, mmode_buckets, mmode_check
+from .dense import CholeskyPath
+from .info import DrawInfo, SolveInfo, direct_info, exact_info
+from .mmode import MModePath, mmode_blocks, mmode_buckets, mmode_check
 from .options import MModeOptions
-from .path import is_traced
+from .path import JointVariant, is_traced
 
 __all__ = [
+    "JointCholeskyPath",
     "JointDenseState",
+    "JointMModePath",
     "JointMModeState",
+    "JointState",
     "JointSystem",
     "check_joint_system",
+    "direct_joint_draw",
+    "direct_joint_state",
+    "joint_dense_bytes",
+    "joint_mmode_bytes",
     "data_system",
     "draw_joint_dense",
     "draw_joint_mmode",
@@ -88,6 +96,57 @@ __all__ = [
 ]
 
 LOG_2PI = float(np.log(2 * np.pi))
+
+#: Bytes per entry of the dense joint path's working set: M and its factor in float64, with slack.
+_DENSE_BYTES = 3 * 8
+
+
+class JointState(NamedTuple):
+    """A path's joint flavour, prepared (:meth:`gcrsky.solvers.path.SolverPath.joint_prepare`).
+
+    Attributes:
+        method: the path's name (:data:`gcrsky.solvers.registry.PATHS`).
+        variant: the form that was prepared (e.g. ``"dense"``, ``"mmode"``).
+        inner: the form's own state (:class:`JointDenseState`, :class:`JointMModeState`, ...).
+        wiener: the Wiener filter's measured :class:`SolveInfo`, (Nf,) host fields.
+    """
+
+    method: str
+    variant: str
+    inner: object
+    wiener: SolveInfo
+
+    @property
+    def a_wf(self) -> jax.Array:
+        """The joint Wiener filter (Nf, n), Kelvin."""
+        return self.inner.a_wf
+
+
+def direct_joint_state(method: str, variant: str, joint: JointSystem, inner, tol: float, solve) -> JointState:
+    """A direct joint form's :class:`JointState`: its Wiener filter's accuracy measured from the true
+    residual (:func:`joint_wiener_info`, through ``solve(inner, v)``, the whitened ``M^-1``)."""
+    a_wf = np.asarray(jax.block_until_ready(inner.a_wf))
+    winfo = jax.tree_util.tree_map(np.asarray, joint_wiener_info(joint, a_wf, tol, solve=partial(solve, inner)))
+    return JointState(method, variant, inner, winfo)
+
+
+def direct_joint_draw(draw, key: jax.Array, state: JointState, ndraws: int) -> tuple[np.ndarray, DrawInfo]:
+    """``draw(key, inner, ndraws)`` ((ndraws, Nf, n)) as (Nf, ndraws, n) host draws with the exact
+    factor's :class:`DrawInfo` (the Wiener filter's accuracy, ``NONFINITE`` where a draw is not finite)."""
+    x = np.moveaxis(np.asarray(jax.block_until_ready(draw(key, state.inner, ndraws))), 0, 1)
+    draws = jax.tree_util.tree_map(np.asarray, exact_info(state.wiener, np.isfinite(x).all(axis=-1), x.shape[:2]))
+    return x, DrawInfo(state.wiener, draws, np.asarray(state.a_wf))
+
+
+def joint_dense_bytes(nf: int, n: int) -> float:
+    """Estimated peak bytes of the dense a-space joint path (its ``(Nf n)^2`` factor and working set)."""
+    return _DENSE_BYTES * float(nf * n) ** 2 + 8.0 * nf * n * n
+
+
+def joint_mmode_bytes(nf: int, n: int, lmax: int) -> float:
+    """Estimated peak bytes of the a-space joint path per order (blocks ``Nf s_m`` wide, ``s_m = 2 (lmax - m + 1)``)."""
+    s = 2 * (lmax + 1 - np.arange(lmax + 1))
+    return float(np.sum(2 * 8.0 * (nf * s) ** 2)) + 8.0 * nf * n * n
 
 
 class JointSystem(NamedTuple):
@@ -492,3 +551,49 @@ def joint_log_evidence_mmode(state: JointSystem | JointMModeState, *, check: boo
         state = prepare_joint_mmode(state, check=check)
     logdet = sum(2.0 * jnp.sum(jnp.log(jnp.diagonal(L, axis1=-2, axis2=-1))) for L in state.chol)
     return _evidence(state, logdet)
+
+
+# ---------------------------------------------------------------- the paths' joint flavours
+
+
+class JointCholeskyPath(CholeskyPath):
+    """The Cholesky path (:class:`~gcrsky.solvers.dense.CholeskyPath`) with its joint flavour: the dense
+    a-space joint precision (:func:`prepare_joint_dense`, form ``"dense"``)."""
+
+    joint = True
+
+    def joint_variants(self, joint, full_day, requested):
+        if full_day and not requested:  # auto: the per-order a-space form (mmode) instead
+            return []
+        nf, n = (int(x) for x in np.shape(joint.prior.mean))
+        return [JointVariant("dense", joint_dense_bytes(nf, n), float(nf * n))]
+
+    def joint_prepare(self, joint, tol, variant):
+        return direct_joint_state(self.name, variant, joint, prepare_joint_dense(joint), tol, whitened_solve)
+
+    def joint_draw(self, key, state, ndraws):
+        return direct_joint_draw(draw_joint_dense, key, state, ndraws)
+
+
+class JointMModePath(MModePath):
+    """The m-mode path (:class:`~gcrsky.solvers.mmode.MModePath`) with its joint flavour: the joint
+    precision's blocks per order for uniform full-day coverage (:func:`prepare_joint_mmode`, form ``"mmode"``)."""
+
+    joint = True
+
+    def joint_check(self, joint, mmode):
+        return "" if bool(mmode) else f"the joint m-mode path does not apply: {mmode.reason}"
+
+    def joint_variants(self, joint, full_day, requested):
+        if not full_day:
+            return []
+        nf, n = (int(x) for x in np.shape(joint.prior.mean))
+        lmax = int(round(np.sqrt(n))) - 1
+        s = 2 * (lmax + 1 - np.arange(lmax + 1))
+        return [JointVariant("mmode", joint_mmode_bytes(nf, n, lmax), float(np.mean(nf * s)))]
+
+    def joint_prepare(self, joint, tol, variant):
+        return direct_joint_state(self.name, variant, joint, prepare_joint_mmode(joint), tol, whitened_solve)
+
+    def joint_draw(self, key, state, ndraws):
+        return direct_joint_draw(draw_joint_mmode, key, state, ndraws)

@@ -92,9 +92,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model.operator import adjoint, apply
-from .cg import cg_solve
+from .cg import CGPath, cg_solve
 from .info import DrawInfo, SolveInfo
 from .joint import (
+    JointState,
     JointSystem,
     bucket_scales,
     bucket_solve,
@@ -115,6 +116,7 @@ from .path import is_traced
 __all__ = [
     "MBLOCK_MAX_BYTES",
     "JointCGOptions",
+    "JointCGPath",
     "JointCGState",
     "JointMBlockPreconditioner",
     "JointModePreconditioner",
@@ -434,3 +436,24 @@ def draw_joint_cg(key: jax.Array, state: JointCGState, ndraws: int):
     y = whiten_apply(state.chol_r, state.sqrt_c, state.terms["b_res"] + xw) + wa
     u, info = _solve(system, state.chol_r, state.sqrt_c, state.pc, y, state.options)
     return system.prior.mean + color_apply(state.chol_r, state.sqrt_c, u), DrawInfo(state.wiener, info, state.a_wf)
+
+
+class JointCGPath(CGPath):
+    """The CG path (:class:`~gcrsky.solvers.cg.CGPath`) with its joint flavour: matrix-free CG on the
+    whitened joint precision (:func:`prepare_joint_cg`, form ``"cg"``); its solves report their own bounds."""
+
+    joint = True
+
+    def joint_prepare(self, joint, tol, variant):
+        inner = prepare_joint_cg(joint, JointCGOptions(tol=tol))
+        nf = int(np.shape(jax.block_until_ready(inner.a_wf))[0])
+        # one joint solve: its bound is the same for every channel
+        wiener = jax.tree_util.tree_map(lambda v: np.broadcast_to(np.asarray(v), (nf,)).copy(), inner.wiener)
+        return JointState(self.name, variant, inner, wiener)
+
+    def joint_draw(self, key, state, ndraws):
+        x, solved = jax.block_until_ready(draw_joint_cg(key, state.inner, ndraws))
+        x = np.moveaxis(np.asarray(x), 0, 1)  # (Nf, ndraws, n)
+        # CG's per-draw bound, the same for every channel
+        draws = jax.tree_util.tree_map(lambda v: np.broadcast_to(np.asarray(v), x.shape[:2]).copy(), solved.draws)
+        return x, DrawInfo(state.wiener, draws, np.asarray(state.a_wf))

@@ -73,15 +73,24 @@ import numpy as np
 from ..base.memory import check_memory
 from ..model.operator import apply, response_at
 from ..sphere.modes import lmax_from_nparams
-from .dataspace import to_rows
+from .dataspace import DataSpacePath, to_rows
 from .dense import cholesky_logdet, cholesky_solve
-from .joint import LOG_2PI, JointSystem, check_joint_system, data_system, joint_evidence_terms
+from .joint import (
+    LOG_2PI,
+    JointSystem,
+    check_joint_system,
+    data_system,
+    direct_joint_draw,
+    direct_joint_state,
+    joint_evidence_terms,
+)
 from .mmode import mmode_buckets, mmode_check
 from .options import MModeOptions
-from .path import is_traced
+from .path import JointVariant, is_traced
 
 __all__ = [
     "JointDataSpaceMState",
+    "JointDataSpacePath",
     "JointDataSpaceState",
     "draw_joint_dataspace",
     "draw_joint_dataspace_mmode",
@@ -506,3 +515,27 @@ def whitened_solve_dataspace(state: JointDataSpaceState | JointDataSpaceMState, 
         x = _order_solve(state.chol, u).reshape(M, nf, k)
         back = _from_orders(jnp.einsum("mfak,mfa->mfk", Z, x), lmax)
     return v - _g_transpose(prior, back)
+
+
+class JointDataSpacePath(DataSpacePath):
+    """The data-space path (:class:`~gcrsky.solvers.dataspace.DataSpacePath`) with its joint flavour: dense
+    over all channels' data (form ``"dense"``, :func:`prepare_joint_dataspace`) or per order of m for uniform
+    full-day coverage (form ``"mmode"``, :func:`prepare_joint_dataspace_mmode`)."""
+
+    joint = True
+
+    def joint_variants(self, joint, full_day, requested):
+        nf, nt, nbl = (int(x) for x in np.shape(joint.data))
+        n = int(np.shape(joint.prior.mean)[1])
+        if full_day:
+            lmax = int(round(np.sqrt(n))) - 1
+            return [JointVariant("mmode", joint_dataspace_mmode_bytes(nf, nbl, lmax), 4.0 * nf * nbl)]
+        return [JointVariant("dense", joint_dataspace_bytes(nf, nt, nbl, n), 2.0 * nf * nt * nbl)]
+
+    def joint_prepare(self, joint, tol, variant):
+        inner = prepare_joint_dataspace_mmode(joint) if variant == "mmode" else prepare_joint_dataspace(joint)
+        return direct_joint_state(self.name, variant, joint, inner, tol, whitened_solve_dataspace)
+
+    def joint_draw(self, key, state, ndraws):
+        draw = draw_joint_dataspace_mmode if state.variant == "mmode" else draw_joint_dataspace
+        return direct_joint_draw(draw, key, state, ndraws)

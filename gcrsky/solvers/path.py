@@ -11,6 +11,10 @@ stateless object that knows its options type and its state type, and answers
 * **sampling**: :meth:`~SolverPath.prepare` (factor / precondition once, Wiener filter),
   :meth:`~SolverPath.draw`, :meth:`~SolverPath.condition` (the same factor for a new
   data vector) and :meth:`~SolverPath.wiener`;
+* **joint frequency sampling** (a path with a joint flavour, ``joint = True``):
+  :meth:`~SolverPath.joint_variants` (its forms for a :class:`~gcrsky.solvers.joint.JointSystem`
+  and their memory), :meth:`~SolverPath.joint_check`, :meth:`~SolverPath.joint_prepare` and
+  :meth:`~SolverPath.joint_draw`; :func:`gcrsky.solvers.plan.choose_joint_path` plans between them;
 * **evidence**: :meth:`~SolverPath.evidence_parts` (the solve and log-determinant
   pieces of ``log p(d)``, from a system) and :meth:`~SolverPath.state_evidence_parts`
   (the same from a prepared state, without refactorising).
@@ -38,7 +42,7 @@ import numpy as np
 from ..model.system import LinearSystem
 from .info import DrawInfo, SolveInfo
 
-__all__ = ["AUTO_MEMORY_FRACTION", "EvidenceParts", "SolverPath", "has_flat_prior", "is_traced",
+__all__ = ["AUTO_MEMORY_FRACTION", "EvidenceParts", "JointVariant", "SolverPath", "has_flat_prior", "is_traced",
            "quadratic_from_state"]
 
 #: Fraction of the available memory a direct path's set-up peak may take under ``method="auto"``.
@@ -76,6 +80,20 @@ class EvidenceParts(NamedTuple):
     solve: SolveInfo
 
 
+class JointVariant(NamedTuple):
+    """One form of a path's joint flavour for one joint system (:meth:`SolverPath.joint_variants`).
+
+    Attributes:
+        variant: the form's name (recorded beside the path's name, e.g. ``"dense"``, ``"mmode"``).
+        memory: estimated peak bytes of its factor and working set (float64).
+        width: the width of its factor (the planner prefers the narrower).
+    """
+
+    variant: str
+    memory: float
+    width: float
+
+
 class SolverPath(abc.ABC):
     """One exact path (subclass per path; the registry keeps one instance of each).
 
@@ -85,12 +103,15 @@ class SolverPath(abc.ABC):
         state_type: its prepared-state Module.
         direct: True for a factorisation (the planner compares their costs), False for the
             iterative fallback (chosen only when no direct path applies and fits).
+        joint: True if the path also samples a frequency-coupled joint system
+            (:class:`~gcrsky.solvers.joint.JointSystem`, the ``joint_*`` hooks).
     """
 
     name: ClassVar[str]
     options_type: ClassVar[type]
     state_type: ClassVar[type]
     direct: ClassVar[bool] = True
+    joint: ClassVar[bool] = False
 
     # ------------------------------------------------------------ applicability
 
@@ -151,6 +172,34 @@ class SolverPath(abc.ABC):
         """The Wiener filter (Nf, n) and its :class:`SolveInfo`; by default through :meth:`prepare`."""
         state = self.prepare(system, options)
         return state.a_wf, state.wiener
+
+    # ------------------------------------------------------------ joint frequency sampling
+
+    def joint_check(self, joint, mmode) -> str:
+        """``""`` if the joint flavour applies to ``joint`` (a :class:`~gcrsky.solvers.joint.JointSystem`,
+        concrete arrays), else why not; ``mmode``: :func:`gcrsky.solvers.mmode_check` of its data."""
+        return "" if self.joint else f"method={self.name!r} has no joint (frequency-coupled) flavour"
+
+    def joint_variants(self, joint, full_day: bool, requested: bool) -> list[JointVariant]:
+        """The forms of the joint flavour a direct path offers for ``joint`` (:class:`JointVariant`).
+
+        Args:
+            joint: the :class:`~gcrsky.solvers.joint.JointSystem` (shapes only).
+            full_day: whether the coverage is uniform full day (the per-order forms apply).
+            requested: True when the user asked for this path by name (``method="auto"`` otherwise).
+        """
+        return []
+
+    def joint_prepare(self, joint, tol: float, variant: str):
+        """Set the joint flavour's form ``variant`` up once for ``joint``: a
+        :class:`~gcrsky.solvers.joint.JointState` (its Wiener filter (Nf, n) and measured
+        :class:`SolveInfo` (Nf,) fields); ``tol``: the solve's tolerance in posterior sigma."""
+        raise ValueError(f"method={self.name!r} has no joint (frequency-coupled) flavour")
+
+    def joint_draw(self, key: jax.Array, state, ndraws: int) -> tuple[np.ndarray, DrawInfo]:
+        """``ndraws`` joint posterior draws (Nf, ndraws, n) over all channels and their
+        :class:`DrawInfo` ((Nf, ndraws) fields), host arrays, from :meth:`joint_prepare`'s state."""
+        raise ValueError(f"method={self.name!r} has no joint (frequency-coupled) flavour")
 
     # ------------------------------------------------------------ evidence
 

@@ -52,21 +52,27 @@ from __future__ import annotations
 import logging
 from typing import NamedTuple
 
+import numpy as np
+
 from ..base.memory import available_memory_bytes, check_memory
 from ..model.operator import n_in
 from ..model.system import LinearSystem
 from .cg import CGOptions
 from .dataspace import DATASPACE_MAX_ND
 from .dense import DENSE_MAX_N
+from .joint import JointSystem, data_system
+from .mmode import mmode_check
 from .path import AUTO_MEMORY_FRACTION, SolverPath, has_flat_prior
-from .registry import PATHS, SolverOptions, method_of, options_for, path_of
+from .registry import PATHS, SolverOptions, joint_methods, method_of, options_for, path_of
 
 __all__ = [
     "DATASPACE_MAX_ND",
     "DENSE_MAX_N",
     "PLAN_DRAWS",
     "DENSE_MEMORY_FRACTION",
+    "JointPlan",
     "SamplerPlan",
+    "choose_joint_path",
     "choose_path",
     "path_cost_flop",
     "path_memory_bytes",
@@ -234,3 +240,66 @@ def choose_path(
                      budget=memory_budget)
         return chosen
     return path_of(chosen).resolve(system, chosen)
+
+
+class JointPlan(NamedTuple):
+    """What :func:`choose_joint_path` chose: the path's name (:data:`~gcrsky.solvers.registry.PATHS`),
+    the form of its joint flavour (``"dense"``, ``"mmode"``, ``"cg"``, ...) and its estimated memory
+    (bytes; NaN for the iterative path)."""
+
+    method: str
+    variant: str
+    memory_bytes: float
+
+
+def choose_joint_path(joint: JointSystem, method: str = "auto") -> JointPlan:
+    """The exact joint path of ``method`` for a frequency-coupled system, its memory checked.
+
+    ``auto``: with uniform full-day coverage (:func:`gcrsky.solvers.mmode_check`) the per-order forms,
+    else the dense ones; of the direct paths' forms (:meth:`~gcrsky.solvers.path.SolverPath.joint_variants`:
+    a-space ``mmode`` / ``cholesky``, data space ``dataspace``) the narrower factor that fits in memory;
+    where none fits, the iterative path (CG, :mod:`gcrsky.solvers.joint_cg`: matrix-free, its error
+    bounded by its stop).  A named path: its own forms (``cholesky``: dense a-space, ``mmode``: per order,
+    checked; ``dataspace``: per order where the coverage allows), or the iterative path as asked.
+
+    Args:
+        joint: the :class:`~gcrsky.solvers.joint.JointSystem` (concrete arrays).
+        method: ``"auto"`` or the name of a path with a joint flavour
+            (:func:`gcrsky.solvers.registry.joint_methods`, read at call time).
+
+    Raises:
+        ValueError: a method no joint path serves, or one that does not apply (``mmode`` off full day).
+        InsufficientMemoryError: the form asked for does not fit.
+    """
+    names = joint_methods()
+    if method not in ("auto", *names):
+        raise ValueError(f"a frequency prior samples all channels jointly by {', '.join(names)} (or auto), "
+                         f"not --method {method}")
+    ok = mmode_check(data_system(joint))
+    full_day = bool(ok)
+    if method != "auto":
+        path = PATHS[method]
+        why = path.joint_check(joint, ok)
+        if why:
+            raise ValueError(why)
+        if not path.direct:
+            return JointPlan(method, method, float("nan"))
+        paths = [path]
+    else:
+        paths = [p for p in PATHS.values() if p.joint and p.direct]
+    # the narrower factor first; equal widths keep the registry's order (a-space before data space)
+    cands = sorted(((p.name, v) for p in paths for v in p.joint_variants(joint, full_day, method != "auto")),
+                   key=lambda c: c[1].width)
+    budget = available_memory_bytes()
+    for name, v in cands:
+        if v.memory <= budget:
+            return JointPlan(name, v.variant, v.memory)
+    if method == "auto":
+        iterative = next(name for name, p in PATHS.items() if p.joint and not p.direct)
+        log.info("no direct joint path fits in %.3g GB: %s", budget / 2**30, iterative)
+        return JointPlan(iterative, iterative, float("nan"))
+    name, v = cands[0]
+    check_memory(v.memory, f"the joint path {name} ({v.variant}) over {np.shape(joint.data)[0]} channels",
+                 "use fewer channels (--freq-range, --chans), a lower --lmax, or fewer times or baselines",
+                 budget=budget)
+    return JointPlan(name, v.variant, v.memory)

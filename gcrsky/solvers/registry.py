@@ -5,6 +5,11 @@ the posterior, the evidence, the Gibbs kernels and the channel code find a path 
 name, options or prepared state (:func:`path_of`), and ask it what they need.  The order is
 the planner's order of preference between direct paths of equal estimated cost.
 
+The paths with a joint (frequency-coupled) flavour are the subclasses of
+:mod:`gcrsky.solvers.joint`, :mod:`~gcrsky.solvers.joint_dataspace` and :mod:`~gcrsky.solvers.joint_cg`
+(:class:`~gcrsky.solvers.joint.JointCholeskyPath`, ...): the same path, same name, with the ``joint_*``
+hooks of :class:`~gcrsky.solvers.path.SolverPath` (the joint modules build on the per-channel ones).
+
 Adding a path: a module with its options (a frozen dataclass with a ``method`` class
 attribute), its state (an equinox Module with ``system``, ``a_wf``, ``wiener`` and a
 ``method`` class attribute) and a :class:`~gcrsky.solvers.path.SolverPath` subclass; then one
@@ -16,21 +21,22 @@ from __future__ import annotations
 import dataclasses
 from typing import Union
 
-from .cg import CGPath
-from .dataspace import DataSpacePath
-from .dense import CholeskyPath, EighPath
-from .mmode import MModePath
+from .dense import EighPath
+from .joint import JointCholeskyPath, JointMModePath
+from .joint_cg import JointCGPath
+from .joint_dataspace import JointDataSpacePath
 from .path import SolverPath
 
-__all__ = ["METHODS", "PATHS", "SolverOptions", "method_of", "options_for", "path_of"]
+__all__ = ["LEGACY_JOINT_NAMES", "METHODS", "PATHS", "SolverOptions", "joint_methods", "method_of", "options_for",
+           "path_of"]
 
 #: Every exact path, by name (direct paths first, in order of preference).
 PATHS: dict[str, SolverPath] = {p.name: p for p in (
-    MModePath(),
-    CholeskyPath(),
-    DataSpacePath(),
+    JointMModePath(),
+    JointCholeskyPath(),
+    JointDataSpacePath(),
     EighPath(),
-    CGPath(),
+    JointCGPath(),
 )}
 
 
@@ -52,8 +58,23 @@ def path_of(what) -> SolverPath:
                     f"(gcrsky.prepare), got {type(what).__name__}")
 
 
-#: The exact paths' names.
+#: The exact paths' names (at import; code that must see a path added later reads :data:`PATHS`).
 METHODS = tuple(PATHS)
+
+#: What runs before the joint paths joined the registry recorded as ``method`` in ``results.h5``:
+#: ``{old name: (path name, joint variant)}`` (read on resume, never written).
+LEGACY_JOINT_NAMES = {
+    "joint-cholesky": ("cholesky", "dense"),
+    "joint-mmode": ("mmode", "mmode"),
+    "joint-dataspace": ("dataspace", "dense"),
+    "joint-dataspace-mmode": ("dataspace", "mmode"),
+    "joint-cg": ("cg", "cg"),
+}
+
+
+def joint_methods() -> tuple[str, ...]:
+    """The names of the paths with a joint (frequency-coupled) flavour, in registry order (read now)."""
+    return tuple(name for name, p in PATHS.items() if p.joint)
 
 #: The options of any path (a type for annotations).
 SolverOptions = Union[tuple(p.options_type for p in PATHS.values())]
