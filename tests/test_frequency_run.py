@@ -286,3 +286,40 @@ def test_freq_fit_fits_the_kernel_by_the_joint_evidence(partial, tmp_path):
     np.testing.assert_array_equal(np.asarray(joint.prior.mean), np.asarray(partial.prior.mean))
     summary, _ = execute(partial, _spec(tmp_path, model=model, nsamples=4))
     assert summary.channels["frequency_prior"]["fit"] == fit
+
+
+class _Interrupt(Exception):
+    """Stands for a kill between two batches."""
+
+
+def _stop_after(k):
+    def wrap(it):
+        for i, b in enumerate(it):
+            if i == k:
+                raise _Interrupt
+            yield b
+
+    return wrap
+
+
+def test_a_run_recorded_under_an_old_joint_name_resumes_bit_for_bit(partial, coupled_run, tmp_path):
+    """Runs before the joint paths joined the registry recorded ``method = "joint-cholesky"`` (and no form):
+    interrupted after one batch and relabelled so, it resumes by the same path and ends with exactly the draws
+    of the uninterrupted run (``coupled_run``), recorded under the path's own name from then on."""
+    from gcrsky.run import Watch
+
+    ref, _ = coupled_run
+    with pytest.raises(_Interrupt):
+        execute(partial, _spec(tmp_path), watch=Watch(progress=_stop_after(1)))
+    with h5py.File(tmp_path / "results.h5", "r+") as h:
+        assert h.attrs["method"] == "cholesky"
+        opts = json.loads(h.attrs["solver_options_json"])
+        assert opts.pop("variant") == "dense"
+        h.attrs["method"] = "joint-cholesky"
+        h.attrs["solver_options_json"] = json.dumps({**opts, "method": "joint-cholesky"})
+    spec = RunSpec(Draws(8, seed=3, batch=4), Output(tmp_path, "resume", plots=False), frequency=MODEL)
+    summary, prods = execute(partial, spec)
+    assert prods.resumed_at_batch == 1 and summary.run["method"] == "cholesky"
+    with h5py.File(ref / "results.h5", "r") as ha, h5py.File(tmp_path / "results.h5", "r") as hb:
+        assert np.asarray(hb["draws"]).tobytes() == np.asarray(ha["draws"]).tobytes()
+        assert hb.attrs["complete"]
