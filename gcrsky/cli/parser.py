@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from ..solvers import registry
 from ..solvers.options import DEFAULT_TOL
-from ..solvers.registry import METHODS
 from .options import (
     DEFAULT_BATCH,
     DEFAULT_NSAMPLES,
@@ -81,7 +81,7 @@ def _add_run_parser(sub) -> None:
     r.add_argument("--seed", type=int_at_least(0, "seed", MAX_SEED), default=0,
                    help="seed of the posterior draws (see --batch)")
     _add_simulation_options(r, _defaults())
-    r.add_argument("--method", choices=("auto", *METHODS), default=None,
+    r.add_argument("--method", choices=("auto", *registry.PATHS), default=None,
                    help="GCR solver (default auto: m-mode for uniform full-day coverage, else the cheaper of dense "
                    "Cholesky and data space (fewer data values than parameters) where they fit, else matrix-free "
                    "CG; or the scenario's: eigh where S^-1 = 0 makes P singular)")

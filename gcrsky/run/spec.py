@@ -23,13 +23,15 @@ from ..inference.batches import KEY_SCHEME
 from ..io.results import clean_json, json_default
 from ..model.gains import BASES
 from ..parallel.channels import CHANNEL_KEY_SCHEME
+from ..solvers import registry
 from ..solvers.options import DEFAULT_TOL
 
 __all__ = ["CHANNEL_MODES", "EXISTING", "FREQ_PRIORS", "METHODS", "Draws", "FrequencyModel", "GainSampling",
            "Output", "RunSpec", "Solver", "run_settings"]
 
-#: The paths a run may ask for (``"auto"``: chosen by size, :func:`gcrsky.solvers.plan.choose_path`).
-METHODS = ("auto", "cg", "cholesky", "eigh", "mmode", "dataspace")
+#: The paths a run may ask for (``"auto"``: chosen by size, :func:`gcrsky.solvers.plan.choose_path`): the
+#: registry's (:data:`gcrsky.solvers.registry.PATHS`, read again when a :class:`Solver` is checked).
+METHODS = ("auto", *registry.METHODS)
 #: What a run may do with a directory that already holds a run's files.
 EXISTING = ("refuse", "overwrite", "resume")
 #: The frequency models of a run: independent channels (each its own prior), or one prior over all of them
@@ -82,7 +84,7 @@ class Solver:
     tol: float = DEFAULT_TOL
 
     def __post_init__(self):
-        _choice("solver.method", self.method, METHODS)
+        _choice("solver.method", self.method, ("auto", *registry.PATHS))
         if isinstance(self.tol, bool) or not isinstance(self.tol, numbers.Real) or not (
                 self.tol > 0 and math.isfinite(self.tol)):
             raise ValueError(f"solver.tol must be a positive finite number, got {self.tol!r}")
