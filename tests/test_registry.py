@@ -126,3 +126,40 @@ def test_a_new_path_is_one_module_plus_one_registry_line(system, monkeypatch, ge
     ch = sample_channels(getkey(), system, 3, options=opts)
     assert np.abs(ch.a_wf - np.asarray(ref.a_wf)).max() < 1e-10 * scale
     assert isinstance(CholeskyOptions(), PATHS["cholesky"].options_type)
+
+
+# ---------------------------------------------------------------- a toy path through plan, RunSpec, CLI, joint run
+
+TOY_ARGV = ["--lmax", "4", "--nside", "16", "--nsamples", "4", "--batch", "2", "--no-plots", "--no-progress"]
+
+
+def _cli_draws(out, *argv):
+    import h5py
+
+    from gcrsky import cli
+
+    assert cli.main(["run", "--out", str(out), *TOY_ARGV, *argv]) == 0
+    with h5py.File(out / "results.h5", "r") as h:
+        return str(h.attrs["method"]), np.asarray(h["draws"]), np.asarray(h["wiener_filter"])
+
+
+def test_a_toy_path_in_the_registry_is_planned_and_run(system, monkeypatch, tmp_path):
+    """tests/_toy_path.py's path plus one registry entry: accepted by the planner and by ``RunSpec``, run by the
+    CLI per channel and jointly (``--freq-prior kernel``), its draws those of the cholesky path for the same key
+    (it wraps the same factor: equal bit for bit).  Negative control: unknown before the registry entry."""
+    from _toy_path import ToyOptions, ToyPath
+
+    from gcrsky.run import Solver
+    from gcrsky.solvers import choose_path, registry
+
+    with pytest.raises(ValueError, match="solver.method"):
+        Solver(method="toy")
+    monkeypatch.setitem(registry.PATHS, "toy", ToyPath())  # the one registry entry
+    assert isinstance(choose_path(system, "toy"), ToyOptions)
+    assert plan_sampler(system).method != "toy"  # auto never takes it (its own limits)
+    assert Solver(method="toy").method == "toy"
+    for argv in ((), ("--freq-prior", "kernel")):
+        name, toy, wf = _cli_draws(tmp_path / ("toy" + "".join(argv)), "--method", "toy", *argv)
+        ref_name, ref, ref_wf = _cli_draws(tmp_path / ("cholesky" + "".join(argv)), "--method", "cholesky", *argv)
+        assert (name, ref_name) == ("toy", "cholesky"), argv
+        assert toy.shape == ref.shape and np.array_equal(toy, ref) and np.array_equal(wf, ref_wf), argv
