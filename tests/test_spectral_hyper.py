@@ -161,10 +161,15 @@ def test_evidence_limits_independent_and_template(op):
 
 
 def test_choose_method_and_mmode_agrees(coupled_data):
-    assert choose_method(coupled_data) == "dense"  # Nf n = 64 <= DENSE_SMALL
+    assert choose_method(coupled_data) == "cholesky"  # Nf n = 64 <= DENSE_SMALL
     assert choose_method(coupled_data, "mmode") == "mmode"  # full-day coverage passes the check
     theta = {k: jnp.asarray(v) for k, v in TRUE.items()}
-    dense = float(spectral_log_evidence(coupled_data, MODEL, theta, method="dense"))
+    dense = float(spectral_log_evidence(coupled_data, MODEL, theta, method="cholesky"))
+    with pytest.warns(DeprecationWarning, match="'dense' is deprecated"):  # the former name, still the same path
+        assert float(spectral_log_evidence(coupled_data, MODEL, theta, method="dense")) == dense
+        assert choose_method(coupled_data, "dense") == "cholesky"
+    with pytest.raises(ValueError, match="'cholesky', 'mmode'"):
+        choose_method(coupled_data, "eigh")
     mm = float(spectral_log_evidence(coupled_data, MODEL, theta, method="mmode"))
     assert abs(dense - mm) < 1e-10 * abs(dense), (dense, mm)  # measured 2e-15 relative
     part = coupled_data._replace(op=coupled_data.op._replace(angles=coupled_data.op.angles[:5]),
@@ -172,7 +177,7 @@ def test_choose_method_and_mmode_agrees(coupled_data):
     with pytest.raises(ValueError, match="m-mode path does not apply"):
         choose_method(part, "mmode")
     with pytest.raises(ValueError, match="memory_budget"):
-        choose_method(part, "dense", memory_budget=1000.0)
+        choose_method(part, "cholesky", memory_budget=1000.0)
 
 
 def test_bad_inputs_are_refused_naming_them(coupled_data):
@@ -288,7 +293,7 @@ def _sbc_ranks(op, seed, m, num_warmup, n_kept):
         a = jnp.linalg.cholesky(prior.freq_cov) @ jax.random.normal(k_a, (NF, N)) * jnp.sqrt(prior.mode_var)
         system = JointSystem(op, apply(op, a) + draw_noise(k_n, jnp.full((NF, NT, NBL), SIGMA)), w, prior)
         flat0, _, logd = spectral_log_density(system, MODEL._replace(nugget=nugget), start, log_prior=SBC_PRIOR,
-                                              method="dense")
+                                              method="cholesky")
         pos, _, info = nuts_chain(k_chain, logd, flat0, num_warmup=num_warmup, num_samples=n_kept * SBC_THIN,
                                   max_num_doublings=SBC_DOUBLINGS)
         kept = pos[SBC_THIN - 1::SBC_THIN]

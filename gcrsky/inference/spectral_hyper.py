@@ -26,10 +26,12 @@ The prior mean is a power law of one (n,) map at nu0, ``a0(nu) = (nu/nu0)^beta m
 mean and their evidences are of the same data under comparable priors.
 
 The joint log evidence ``log p(d | theta)`` of all channels together is exact and differentiable
-(:func:`gcrsky.solvers.joint.joint_log_evidence_dense` / ``_mmode``); ``method`` picks the path:
-``"dense"`` for small joint systems (``Nf n <= DENSE_SMALL``), else ``"mmode"`` where the coverage
+(:func:`gcrsky.solvers.joint.joint_log_evidence_dense` / ``_mmode``); ``method`` picks the path, by its
+name in :data:`gcrsky.solvers.registry.PATHS`:
+``"cholesky"`` for small joint systems (``Nf n <= DENSE_SMALL``), else ``"mmode"`` where the coverage
 is uniform over the full day with time-constant noise (:func:`gcrsky.solvers.mmode_check`: blocks of
-``Nf s_m``), else ``"dense"`` (one ``(Nf n)^2`` Cholesky; refused beyond ``memory_budget``).  ``"auto"`` decides on concrete
+``Nf s_m``), else ``"cholesky"`` (one ``(Nf n)^2`` Cholesky; refused beyond ``memory_budget``).  ``"dense"``, the
+former name of ``"cholesky"``, is still accepted (deprecated: a ``DeprecationWarning``).  ``"auto"`` decides on concrete
 arrays; under a trace give it explicitly.
 
 * :func:`fit_spectral_hyperparameters`: BFGS (optimistix) on ``log p(d | theta) + log_prior(theta)``
@@ -56,6 +58,7 @@ or ``xi -> inf``, where the evidence goes flat).
 from __future__ import annotations
 
 import logging
+import warnings
 from functools import partial
 from typing import Any, Callable, NamedTuple
 
@@ -80,8 +83,8 @@ from ..solvers.joint import (
     prepare_joint_mmode,
 )
 from ..solvers.mmode import mmode_check
-from ..solvers.options import CholeskyOptions, MModeOptions
 from ..solvers.path import is_traced
+from ..solvers.registry import options_for
 from .collapsed import CollapsedSamples, blackjax_module, nuts_chain
 from .hyper import FitResult, fit_hyperparameters
 
@@ -239,28 +242,45 @@ def template_system(system: JointSystem, model: SpectralModel, theta, fixed=None
 # ---------------------------------------------------------------- the evidence and its path
 
 
+#: The joint evidence's paths (names of :data:`gcrsky.solvers.registry.PATHS`): their exact joint log evidence
+#: and joint draws ``(prepare, draw)`` (:mod:`gcrsky.solvers.joint`).
+_EVIDENCE = {"cholesky": joint_log_evidence_dense, "mmode": joint_log_evidence_mmode}
+_DRAWS = {"cholesky": (prepare_joint_dense, draw_joint_dense), "mmode": (prepare_joint_mmode, draw_joint_mmode)}
+
+
+def _path_name(method: str) -> str:
+    """``method`` by its registry name: ``"dense"`` (deprecated) is ``"cholesky"``."""
+    if method == "dense":
+        warnings.warn("method='dense' is deprecated: the joint evidence's dense path is the registry's 'cholesky'",
+                      DeprecationWarning, stacklevel=3)
+        return "cholesky"
+    return method
+
+
 def choose_method(system: JointSystem, method: str = "auto", *, memory_budget: float | None = 2**31) -> str:
-    """``"mmode"`` or ``"dense"``: the joint evidence's path (module docstring).
+    """``"mmode"`` or ``"cholesky"``: the joint evidence's path (module docstring).
 
     Args:
         system: the joint system (concrete arrays for ``"auto"``).
-        method: ``"auto"`` (dense up to ``Nf n = DENSE_SMALL``, else m-mode where it applies, else
-            dense), ``"mmode"`` (checked: :func:`gcrsky.solvers.mmode_check` on concrete
-            arrays) or ``"dense"``.
+        method: ``"auto"`` (Cholesky up to ``Nf n = DENSE_SMALL``, else m-mode where it applies, else
+            Cholesky), ``"mmode"`` (checked: :func:`gcrsky.solvers.mmode_check` on concrete
+            arrays) or ``"cholesky"`` (``"dense"``: its deprecated former name).
         memory_budget: bytes the dense path's ``(Nf n)^2`` factor may take (None: no limit).
 
     Raises:
         ValueError: an unknown method, ``"auto"`` under a trace, m-mode that does not apply, or a
             dense factor beyond the budget.
     """
-    if method not in ("auto", "mmode", "dense"):
-        raise ValueError(f"method must be 'auto', 'mmode' or 'dense', got {method!r}")
+    method = _path_name(method)
+    if method not in ("auto", *_EVIDENCE):
+        raise ValueError(f"method must be 'auto' or one of the joint evidence's paths {', '.join(map(repr, _EVIDENCE))}"
+                         f" (gcrsky.solvers.registry.PATHS), got {method!r}")
     traced = is_traced(system)
     if method == "auto" and traced:
         raise ValueError("method='auto' needs concrete arrays: give 'mmode' or 'dense' under a trace")
     nf, n = np.shape(system.prior.mean)
     if method == "auto" and nf * n <= DENSE_SMALL:
-        return "dense"
+        return "cholesky"
     if method in ("auto", "mmode") and not traced:
         check = mmode_check(data_system(system))
         if bool(check):
@@ -274,30 +294,29 @@ def choose_method(system: JointSystem, method: str = "auto", *, memory_budget: f
         raise ValueError(f"the dense joint evidence needs a ({nf * n}, {nf * n}) factor, {need / 2**30:.2f} GiB, "
                          f"beyond memory_budget = {memory_budget / 2**30:.2f} GiB (m-mode needs uniform full-day "
                          "coverage)")
-    return "dense"
+    return "cholesky"
 
 
 def spectral_log_evidence(system: JointSystem, model: SpectralModel, theta, *, fixed=None,
-                          method: str = "dense") -> jax.Array:
+                          method: str = "cholesky") -> jax.Array:
     """``log p(d | theta)`` of all channels under the coupled prior (scalar, nats; pure, differentiable).
 
-    ``method``: ``"dense"`` or ``"mmode"`` (no checks here: :func:`choose_method` first).
+    ``method``: ``"cholesky"`` or ``"mmode"`` (no checks here: :func:`choose_method` first; ``"dense"``:
+    the deprecated name of ``"cholesky"``).
     """
-    js = joint_system(system, model, theta, fixed)
-    if method == "mmode":
-        return joint_log_evidence_mmode(js, check=False)
-    if method == "dense":
-        return joint_log_evidence_dense(js, check=False)
-    raise ValueError(f"method must be 'dense' or 'mmode' here, got {method!r}")
+    method = _path_name(method)
+    if method not in _EVIDENCE:
+        raise ValueError(f"method must be one of {', '.join(map(repr, _EVIDENCE))} here, got {method!r}")
+    return _EVIDENCE[method](joint_system(system, model, theta, fixed), check=False)
 
 
 def spectral_log_density(system: JointSystem, model: SpectralModel, theta0, *, fixed=None,
-                         log_prior: Callable | None = WEAK_HYPERPRIOR, method: str = "dense"):
+                         log_prior: Callable | None = WEAK_HYPERPRIOR, method: str = "cholesky"):
     """The collapsed log posterior of the flattened ``theta``: ``(flat0, unravel, logdensity)``.
 
     ``logdensity(flat) = log p(d | theta) + log_prior(theta)``, ``theta = unravel(flat)``; pure (the
     system may be traced, e.g. one replicate's data inside a ``vmap``), for
-    :func:`gcrsky.inference.collapsed.nuts_chain`.  ``method``: ``"dense"`` or ``"mmode"``.
+    :func:`gcrsky.inference.collapsed.nuts_chain`.  ``method``: ``"cholesky"`` or ``"mmode"``.
     """
     flat0, unravel = ravel_pytree(theta0)
     flat0 = jnp.asarray(flat0, jnp.float64)
@@ -370,7 +389,7 @@ def fit_spectral_hyperparameters(
         fixed: dict of the hyperparameters held fixed (the rest of :data:`HYPER_NAMES`).
         log_prior: ``theta -> scalar`` (hashable: a :class:`GaussianHyperprior` or a function);
             default :data:`WEAK_HYPERPRIOR`; None for flat.
-        method: the evidence path, ``"auto"`` / ``"mmode"`` / ``"dense"`` (:func:`choose_method`).
+        method: the evidence path, ``"auto"`` / ``"mmode"`` / ``"cholesky"`` (:func:`choose_method`).
         memory_budget: bytes for the dense path.
         rtol, atol, max_steps: BFGS's tolerances and step cap.
 
@@ -500,10 +519,8 @@ def draw_given_spectral_hyperparameters(
 def _draw_given(keys, system, model, theta_samples, fixed, method, ndraws, batch_size):
     def one(args):
         k, theta = args
-        js = joint_system(system, model, theta, fixed)
-        if method == "mmode":
-            return draw_joint_mmode(k, prepare_joint_mmode(js, check=False), ndraws)
-        return draw_joint_dense(k, prepare_joint_dense(js, check=False), ndraws)
+        prepare, draw = _DRAWS[method]
+        return draw(k, prepare(joint_system(system, model, theta, fixed), check=False), ndraws)
 
     return jax.lax.map(one, (keys, theta_samples), batch_size=batch_size)
 
@@ -572,7 +589,7 @@ def evidence_table(
     """
     theta0 = dict(theta0 or {"log_amplitude": 0.0, "beta": -2.5, "log_xi": float(np.log(0.1))})
     method = _checked(system, model, theta0, None, method, memory_budget)
-    options = MModeOptions() if method == "mmode" else CholeskyOptions()
+    options = options_for(method)
     two = {k: jnp.asarray(theta0[k], jnp.float64) for k in ("log_amplitude", "beta")}
     fits = {
         "independent": _fit_linear(system, model, two, log_prior, options, "independent"),
