@@ -43,7 +43,7 @@ from ..solvers.cg import cg_solve, freq_slice, resolve_cg_options, solve_cg
 from ..solvers.info import SolveInfo, direct_info
 from ..solvers.options import CGOptions, CholeskyOptions
 from ..solvers.preconditioners import make_preconditioner, nystrom_preconditioner
-from ..solvers.registry import path_of
+from ..solvers.registry import options_for, path_of
 from ..sphere.modes import lmax_from_nparams, mode_table
 from .cl import sample_cl, sample_power_law
 
@@ -85,32 +85,42 @@ def gcr_step(
     system: LinearSystem,
     *,
     tol: float | None = None,
-    options: CGOptions | None = None,
+    options=None,
     pc=None,
 ) -> tuple[GCRState, SolveInfo]:
     """One exact conditional draw ``a ~ p(a | d, S, N, a0)`` (pure; jit/scan it yourself).
 
-    Solves the full GCR equation by preconditioned CG warm-started at the previous
-    position (which is typically within a few posterior sigma of the new draw).
+    Any exact path: ``options`` are the options of a path in the registry
+    (:func:`gcrsky.solvers.path_of`: ``CGOptions``, ``CholeskyOptions``, ``EighOptions``,
+    ``MModeOptions``, ``DataSpaceOptions``, or a path added there later).  The CG path
+    (the default) solves the GCR equation by preconditioned CG warm-started at the
+    previous position (typically within a few posterior sigma of the new draw); every
+    other path sets itself up for ``system`` (``path.prepare``) and draws once
+    (``path.draw``), so a step costs that path's factorisation.  Where only the noise
+    scale and the prior amplitude change between steps, :func:`gcrsky.inference.prepare_scalar`
+    factors once and each draw costs O(n^2).
 
     Args:
         key: PRNG key of this step.
         state: the chain's :class:`GCRState`.
         system: the current linear system.
-        tol: CG tolerance in posterior-sigma units (overrides ``options.tol``).
-        options: :class:`~gcrsky.solvers.CGOptions`; default matrix-free
-            (``dense=False``).  Its preconditioner (``"auto"`` means Nystrom under
-            a trace, which needs ``S^-1 > 0`` in every mode; pass ``"mblock"`` for a
-            flat prior) is rebuilt each step from ``system`` unless a prebuilt ``pc``
-            is passed.  A stale ``pc`` (built for an earlier S) only costs
-            iterations: the draw stays exact because convergence is checked
-            against the current system.
-        pc: optional prebuilt preconditioner (:mod:`gcrsky.solvers.preconditioners`).
+        tol: CG tolerance in posterior-sigma units (overrides ``options.tol`` on the CG path;
+            a direct path keeps its own ``tol``, the accuracy its factor must reach).
+        options: a path's options; default ``CGOptions(dense=False)`` (matrix-free).  CG's
+            preconditioner (``"auto"`` means Nystrom under a trace, which needs ``S^-1 > 0``
+            in every mode; pass ``"mblock"`` for a flat prior) is rebuilt each step from
+            ``system`` unless a prebuilt ``pc`` is passed.  A stale ``pc`` (built for an
+            earlier S) only costs iterations: the draw stays exact because convergence is
+            checked against the current system.
+        pc: optional prebuilt preconditioner (:mod:`gcrsky.solvers.preconditioners`; CG only).
 
     Returns:
-        (GCRState, SolveInfo with (Nf,) fields).
+        (GCRState with position (Nf, n), SolveInfo with (Nf,) fields: the draw's, or on a direct
+        path the factor's measured accuracy).
     """
     options = STEP_OPTIONS if options is None else options
+    if not isinstance(options, CGOptions):
+        return _path_step(key, system, options, tol, pc)
     if tol is not None:
         options = dataclasses.replace(options, tol=float(tol))
     options = resolve_cg_options(system, options)
@@ -121,6 +131,16 @@ def gcr_step(
     b = wiener_rhs(system) + fluctuation_rhs(key, system)
     x, info = solve_cg(system, precision, pc, b, state.position, options)
     return GCRState(x), info
+
+
+def _path_step(key, system: LinearSystem, options, tol, pc) -> tuple[GCRState, SolveInfo]:
+    """:func:`gcr_step` on a path other than CG: its own set-up and one draw, through the registry."""
+    if pc is not None:
+        raise ValueError(f"pc= is a CG preconditioner; {type(options).__name__} takes none")
+    path = path_of(options)
+    options = path.resolve(system, options_for(path.name, options, tol=tol))
+    draws, info = path.draw(key, path.prepare(system, options), 1)
+    return GCRState(draws[:, 0]), jax.tree_util.tree_map(lambda x: x[:, 0], info.draws)
 
 
 # ---------------------------------------------------------------- the hierarchical (a, C_l) kernel
