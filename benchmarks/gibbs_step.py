@@ -46,7 +46,19 @@ from gcrsky.inference import prepare_scalar, scalar_draw, scalar_log_evidence, s
 from gcrsky.model import Prior, apply, scale_noise, with_prior  # noqa: E402
 
 MEASURED = """
-(filled in from one run; see the README's benchmark table)
+standard case lmax 10: n = 121, Nf = 2, build 4.7 s
+
+| loop | ms/step | steps timed | speed-up | note |
+|---|---|---|---|---|
+| gcr_step, CG (today) | 336 | 20 | 1x | 1.0 CG iterations a step |
+| gcr_step, Cholesky | 13 | 20 | 26x |  |
+| scalar state | 0.0857 | 3000 | 3924x | set-up once: 229 ms (3.8 s with compiling) |
+
+chain (20000 steps) vs exact grid (largest grid-edge weight 7.0e-26):
+| channel | E[s] chain | E[s] grid | (chain-grid)/err | E[A] chain | E[A] grid | (chain-grid)/err |
+|---|---|---|---|---|---|---|
+| 0 | 1.00267 | 1.00275 | -0.23 | 0.4498 | 0.4520 | -0.98 |
+| 1 | 0.99844 | 0.99892 | -1.55 | 1.3120 | 1.3083 | +0.66 |
 """
 
 A_SHAPE, A_SCALE = 1.0, 1e-2
