@@ -286,3 +286,32 @@ def test_gibbs_loop_over_scales_matches_the_evidence_grid(standard):
     # a negative control: the grid of a system whose noise is 30% larger is far outside the chain's error
     es_wrong, _ = _grid_means(prepare_scalar(scale_noise(standard.system(), 1.3)))
     assert np.all(np.abs(s.mean(axis=0) - es_wrong) > 10 * _batch_mean_error(s))
+
+
+# ---------------------------------------------------------------- the hierarchical kernel on every path
+
+
+@pytest.mark.parametrize("name", list(PATHS))
+def test_sky_step_on_every_path_draws_the_dense_posterior(full_day, name):
+    """gibbs_setup with any registered path's options: sky_step's draws for a new spectrum (not the system's)
+    and for new data have the dense posterior's mean and covariance for that prior and those data."""
+    from gcrsky.inference import gibbs_setup, sky_step
+    from gcrsky.model import prior_from_cl
+
+    system = full_day.system()
+    options = PATHS[name].options_type()
+    if isinstance(options, CGOptions):
+        options = CGOptions(dense=False, tol=1e-10)
+    fixed = gibbs_setup(system, options=options, sketch_size=32)
+    nf, n = system.prior.mean.shape
+    cl = jnp.tile(80.0 / (1.0 + jnp.arange(7.0)) ** 2, (nf, 1))  # 1.6x the system's own spectrum
+    data = system.data * 1.05
+    step = jax.jit(jax.vmap(lambda k: sky_step(k, fixed, system.prior.mean, cl=cl, data=data)))
+    a, info = step(jax.random.split(jax.random.PRNGKey(13), NDRAWS))
+    assert bool(np.all(np.asarray(info.converged))), name
+    target = with_prior(system._replace(data=data), Prior(system.prior.mean, prior_from_cl(cl).inv_var))
+    a_wf, L = _dense_posterior(target)
+    assert _gaussian_ok(_whiten(np.swapaxes(np.asarray(a), 0, 1), a_wf, L)), name
+    # negative control: the same draws against the posterior of the system's own spectrum fail
+    a_own, L_own = _dense_posterior(system._replace(data=data))
+    assert not _gaussian_ok(_whiten(np.swapaxes(np.asarray(a), 0, 1), a_own, L_own)), name
