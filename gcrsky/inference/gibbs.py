@@ -3,8 +3,10 @@
 ``gcr_init(position) -> GCRState`` and ``gcr_step(key, state, system) -> (state, info)``
 are pure and jittable, usable inside ``lax.scan``; the library does not jit for
 you.  ``system`` may change between steps (e.g. a Gibbs update of the prior), so
-each step draws exactly from the current conditional ``a | d, S, N, a0``.  It
-rebuilds its preconditioner from ``system`` each call.
+each step draws exactly from the current conditional ``a | d, S, N, a0``, on any
+registered path (``options``: CG by default, warm-started, its preconditioner rebuilt from
+``system`` each call; any other path sets itself up and draws once).  Where only a noise
+scale and a prior amplitude change, :mod:`gcrsky.inference.scalar_gibbs` factors once.
 
 The hierarchical kernel alternates ``a | C_l, d`` (exact) and ``C_l | a``
 (:mod:`gcrsky.inference.cl`)::
@@ -20,7 +22,8 @@ on the CG path (``CGOptions``), CG warm-started at the previous draw with a
 preconditioner updated in O(n k^2): a rank-k Nystrom approximation ``H ~ G G^T`` built
 once, and per step ``M = S^-1(C_l) + G G^T`` inverted by Woodbury (a k x k Cholesky).
 A stale approximation of H only costs iterations: the draw is exact to the CG
-tolerance for the current ``C_l``.
+tolerance for the current ``C_l``.  Any other registered path's options set that path up
+per step (its own factorisation) and draw through it.
 """
 
 from __future__ import annotations
