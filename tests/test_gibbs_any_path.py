@@ -8,9 +8,10 @@ Gaussian density ``N(d; X a0, s N + A X S X^T)`` built from the dense response, 
 Statistical tests: draws whitened by the dense posterior, ``w = L^T (a - a_wf)`` with
 ``L L^T = P``, are exactly N(0, I).  With D draws of n parameters in Nf channels the sum
 of ``|w|^2`` is chi-square with ``D n Nf`` degrees of freedom and ``D |mean(w)|^2`` chi-square
-with ``n Nf``; each is tested two-sided at a false-alarm rate of 1e-4 (5 tests per path:
-<= 2.5e-3 in all for the file).  The negative control (draws of a system whose noise is
-30% larger, whitened by the true P) fails the variance test by > 20 sigma.
+with ``n Nf``; each is tested two-sided at a false-alarm rate of 1e-4 (2 tests for each of
+5 paths in gcr_step and in sky_step: <= 2e-3 in all for the file).  The negative controls
+(draws of a system whose noise is 30% larger, or sky_step draws against the posterior of the
+wrong spectrum) fail them.
 """
 
 from __future__ import annotations
