@@ -6,6 +6,9 @@
 - ``gibbs``: :func:`gcr_init` / :func:`gcr_step`: the GCR step as a kernel for a user's Gibbs loop;
   :func:`gibbs_setup` / :func:`gibbs_init` / :func:`gibbs_step`: the hierarchical ``(a, C_l)``
   kernel that reuses the data term
+- ``scalar_gibbs``: :func:`prepare_scalar`, :func:`scalar_draw`, :func:`scalar_log_evidence`,
+  :func:`scalar_quadratics`: the sky and the exact evidence for any noise scale and prior
+  amplitude from one eigendecomposition (O(n^2) a draw, O(n) an evidence)
 - ``collapsed``: :func:`sample_hyperparameters`: NUTS (blackjax, the ``[nuts]`` extra) on
   the exact evidence, then :func:`draw_given_hyperparameters`: exact draws of ``a`` per sample
 - ``cl``: :func:`cl_hat`, :func:`sample_cl` (``C_l | a``), :func:`sample_power_law`
@@ -85,6 +88,14 @@ from .posterior import (
     prepare_system,
     sample_system,
     wiener_filter_system,
+)
+from .scalar_gibbs import (
+    ScalarQuadratics,
+    ScalarState,
+    prepare_scalar,
+    scalar_draw,
+    scalar_log_evidence,
+    scalar_quadratics,
 )
 from .sources import (
     FluxBlock,
@@ -173,6 +184,12 @@ __all__ = [
     "sky_step",
     "source_visibilities",
     "warn_unconverged",
+    "ScalarQuadratics",
+    "ScalarState",
+    "prepare_scalar",
+    "scalar_draw",
+    "scalar_log_evidence",
+    "scalar_quadratics",
     "wiener_filter",
     "wiener_filter_system",
 ]

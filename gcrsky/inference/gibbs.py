@@ -3,8 +3,10 @@
 ``gcr_init(position) -> GCRState`` and ``gcr_step(key, state, system) -> (state, info)``
 are pure and jittable, usable inside ``lax.scan``; the library does not jit for
 you.  ``system`` may change between steps (e.g. a Gibbs update of the prior), so
-each step draws exactly from the current conditional ``a | d, S, N, a0``.  It
-rebuilds its preconditioner from ``system`` each call.
+each step draws exactly from the current conditional ``a | d, S, N, a0``, on any
+registered path (``options``: CG by default, warm-started, its preconditioner rebuilt from
+``system`` each call; any other path sets itself up and draws once).  Where only a noise
+scale and a prior amplitude change, :mod:`gcrsky.inference.scalar_gibbs` factors once.
 
 The hierarchical kernel alternates ``a | C_l, d`` (exact) and ``C_l | a``
 (:mod:`gcrsky.inference.cl`)::
@@ -20,7 +22,8 @@ on the CG path (``CGOptions``), CG warm-started at the previous draw with a
 preconditioner updated in O(n k^2): a rank-k Nystrom approximation ``H ~ G G^T`` built
 once, and per step ``M = S^-1(C_l) + G G^T`` inverted by Woodbury (a k x k Cholesky).
 A stale approximation of H only costs iterations: the draw is exact to the CG
-tolerance for the current ``C_l``.
+tolerance for the current ``C_l``.  Any other registered path's options set that path up
+per step (its own factorisation) and draw through it.
 """
 
 from __future__ import annotations
@@ -43,7 +46,7 @@ from ..solvers.cg import cg_solve, freq_slice, resolve_cg_options, solve_cg
 from ..solvers.info import SolveInfo, direct_info
 from ..solvers.options import CGOptions, CholeskyOptions
 from ..solvers.preconditioners import make_preconditioner, nystrom_preconditioner
-from ..solvers.registry import path_of
+from ..solvers.registry import options_for, path_of
 from ..sphere.modes import lmax_from_nparams, mode_table
 from .cl import sample_cl, sample_power_law
 
@@ -85,32 +88,42 @@ def gcr_step(
     system: LinearSystem,
     *,
     tol: float | None = None,
-    options: CGOptions | None = None,
+    options=None,
     pc=None,
 ) -> tuple[GCRState, SolveInfo]:
     """One exact conditional draw ``a ~ p(a | d, S, N, a0)`` (pure; jit/scan it yourself).
 
-    Solves the full GCR equation by preconditioned CG warm-started at the previous
-    position (which is typically within a few posterior sigma of the new draw).
+    Any exact path: ``options`` are the options of a path in the registry
+    (:func:`gcrsky.solvers.path_of`: ``CGOptions``, ``CholeskyOptions``, ``EighOptions``,
+    ``MModeOptions``, ``DataSpaceOptions``, or a path added there later).  The CG path
+    (the default) solves the GCR equation by preconditioned CG warm-started at the
+    previous position (typically within a few posterior sigma of the new draw); every
+    other path sets itself up for ``system`` (``path.prepare``) and draws once
+    (``path.draw``), so a step costs that path's factorisation.  Where only the noise
+    scale and the prior amplitude change between steps, :func:`gcrsky.inference.prepare_scalar`
+    factors once and each draw costs O(n^2).
 
     Args:
         key: PRNG key of this step.
         state: the chain's :class:`GCRState`.
         system: the current linear system.
-        tol: CG tolerance in posterior-sigma units (overrides ``options.tol``).
-        options: :class:`~gcrsky.solvers.CGOptions`; default matrix-free
-            (``dense=False``).  Its preconditioner (``"auto"`` means Nystrom under
-            a trace, which needs ``S^-1 > 0`` in every mode; pass ``"mblock"`` for a
-            flat prior) is rebuilt each step from ``system`` unless a prebuilt ``pc``
-            is passed.  A stale ``pc`` (built for an earlier S) only costs
-            iterations: the draw stays exact because convergence is checked
-            against the current system.
-        pc: optional prebuilt preconditioner (:mod:`gcrsky.solvers.preconditioners`).
+        tol: CG tolerance in posterior-sigma units (overrides ``options.tol`` on the CG path;
+            a direct path keeps its own ``tol``, the accuracy its factor must reach).
+        options: a path's options; default ``CGOptions(dense=False)`` (matrix-free).  CG's
+            preconditioner (``"auto"`` means Nystrom under a trace, which needs ``S^-1 > 0``
+            in every mode; pass ``"mblock"`` for a flat prior) is rebuilt each step from
+            ``system`` unless a prebuilt ``pc`` is passed.  A stale ``pc`` (built for an
+            earlier S) only costs iterations: the draw stays exact because convergence is
+            checked against the current system.
+        pc: optional prebuilt preconditioner (:mod:`gcrsky.solvers.preconditioners`; CG only).
 
     Returns:
-        (GCRState, SolveInfo with (Nf,) fields).
+        (GCRState with position (Nf, n), SolveInfo with (Nf,) fields: the draw's, or on a direct
+        path the factor's measured accuracy).
     """
     options = STEP_OPTIONS if options is None else options
+    if not isinstance(options, CGOptions):
+        return _path_step(key, system, options, tol, pc)
     if tol is not None:
         options = dataclasses.replace(options, tol=float(tol))
     options = resolve_cg_options(system, options)
@@ -121,6 +134,16 @@ def gcr_step(
     b = wiener_rhs(system) + fluctuation_rhs(key, system)
     x, info = solve_cg(system, precision, pc, b, state.position, options)
     return GCRState(x), info
+
+
+def _path_step(key, system: LinearSystem, options, tol, pc) -> tuple[GCRState, SolveInfo]:
+    """:func:`gcr_step` on a path other than CG: its own set-up and one draw, through the registry."""
+    if pc is not None:
+        raise ValueError(f"pc= is a CG preconditioner; {type(options).__name__} takes none")
+    path = path_of(options)
+    options = path.resolve(system, options_for(path.name, options, tol=tol))
+    draws, info = path.draw(key, path.prepare(system, options), 1)
+    return GCRState(draws[:, 0]), jax.tree_util.tree_map(lambda x: x[:, 0], info.draws)
 
 
 # ---------------------------------------------------------------- the hierarchical (a, C_l) kernel
@@ -143,8 +166,9 @@ class GibbsFixed(eqx.Module):
             O(lmax k^2) per step; or None.
         factor: the system's own prior, factorised once: the lower Cholesky factor of
             ``H + S^-1`` (Nf, n, n) on the dense path, of the Woodbury core
-            ``I + G^T S G`` (Nf, k, k) on the CG path.
-        options: the a-step's solver options (``CholeskyOptions`` or ``CGOptions``).
+            ``I + G^T S G`` (Nf, k, k) on the CG path, the path's prepared state on any
+            other path.
+        options: the a-step's solver options (any registered path's).
     """
 
     system: LinearSystem
@@ -153,8 +177,8 @@ class GibbsFixed(eqx.Module):
     data_sqrt: jax.Array | None
     lowrank: jax.Array | None
     lowrank_blocks: jax.Array | None
-    factor: jax.Array
-    options: CholeskyOptions | CGOptions = eqx.field(static=True)
+    factor: jax.Array | eqx.Module
+    options: object = eqx.field(static=True)
 
 
 class GibbsState(NamedTuple):
@@ -207,9 +231,12 @@ def gibbs_setup(system: LinearSystem, *, options=None, sketch_size: int | str = 
         system: the linear system (data, noise, response and prior; the prior's mean is
             the hierarchical prior's mean, its inverse variance the one :func:`sky_step`
             uses when given no ``C_l``, and the scale of the CG preconditioner's sketch).
-        options: ``CholeskyOptions()`` (default: dense ``H``, one Cholesky per step) or
+        options: ``CholeskyOptions()`` (default: dense ``H``, one Cholesky per step),
             ``CGOptions(...)`` (its ``dense``, tolerance and iteration cap are used; the
-            preconditioner is the Woodbury update of a rank-``sketch_size`` sketch of H).
+            preconditioner is the Woodbury update of a rank-``sketch_size`` sketch of H), or
+            any other registered path's options (``EighOptions``, ``MModeOptions``,
+            ``DataSpaceOptions``, ...): that path set up once for the system's own prior and
+            once per step for a new one (its own factorisation each step), then one draw.
         sketch_size: sketch size k of the CG path's approximation ``H ~ G G^T``, or ``"auto"``
             (host-side, not under ``jit``): sketch ``min(n, 512)`` directions, then keep
             1.25 x the number whose eigenvalue in the system's prior-whitened frame is
@@ -245,7 +272,7 @@ class _DenseSky:
         zeros = jnp.zeros(m.shape[0])
         return m, direct_info(zeros, zeros, jnp.all(jnp.isfinite(m), axis=1), fixed.options.tol)
 
-    def draw(self, key, fixed, cond, rhs0, x0):
+    def draw(self, key, fixed, cond, rhs0, x0, data=None):
         mean = fixed.system.prior.mean
         z = jax.random.normal(key, mean.shape, mean.dtype)
 
@@ -299,21 +326,41 @@ class _CGSky:
     def mean(self, fixed, cond, rhs):
         return _cg_solve(fixed, cond, rhs, fixed.system.prior.mean)
 
-    def draw(self, key, fixed, cond, rhs0, x0):
+    def draw(self, key, fixed, cond, rhs0, x0, data=None):
         return _cg_solve(fixed, cond, rhs0 + _fluctuation(key, fixed, cond.inv_var), x0)
 
 
-#: The a-step of each solver path that has one (by the registry's names).
-_SKY_SOLVERS = {"cholesky": _DenseSky(), "cg": _CGSky()}
+class _PathSky:
+    """The a-step on any other registered path (:func:`gcrsky.solvers.path_of`): the path set up for the
+    system's own prior once, and for each new prior per step (``path.prepare``, its own factorisation),
+    then one draw (``path.draw``); new data by ``path.condition`` (the factor reused)."""
+
+    def setup(self, system, options, size, key):
+        return None, None, None, None, path_of(options).prepare(system, options)
+
+    def factor(self, fixed, cl, inv_var):
+        system = fixed.system
+        return path_of(fixed.options).prepare(system._replace(prior=system.prior._replace(inv_var=inv_var)),
+                                              fixed.options)
+
+    def mean(self, fixed, cond, rhs):
+        return cond.factor.a_wf, cond.factor.wiener
+
+    def draw(self, key, fixed, cond, rhs0, x0, data=None):
+        path = path_of(fixed.options)
+        state = cond.factor if data is None else path.condition(cond.factor, data)
+        draws, info = path.draw(key, state, 1)
+        return draws[:, 0], jax.tree_util.tree_map(lambda x: x[:, 0], info.draws)
+
+
+#: The a-steps specialised to reuse the data term (by options type); every other path: :class:`_PathSky`.
+_SKY_SOLVERS = {CholeskyOptions: _DenseSky(), CGOptions: _CGSky()}
 
 
 def _sky_solver(options):
-    """The a-step of ``options``' path (:func:`gcrsky.solvers.path_of`)."""
-    name = path_of(options).name if not isinstance(options, str) else options
-    if name not in _SKY_SOLVERS:
-        raise TypeError(f"gibbs_setup takes CholeskyOptions or CGOptions, got {type(options).__name__} "
-                        f"(the {name!r} path has no hierarchical a-step)")
-    return _SKY_SOLVERS[name]
+    """The a-step of ``options``' path: a specialised one, or the path's own prepare and draw."""
+    path_of(options)  # a TypeError for what is not a registered path's options
+    return _SKY_SOLVERS.get(type(options), _PathSky())
 
 
 def gibbs_init(fixed: GibbsFixed, cl, *, position=None, alpha=None, amplitude=None) -> GibbsState:
@@ -412,10 +459,11 @@ def _cg_solve(fixed: GibbsFixed, cond: _Conditional, b, x0):
     return jax.vmap(one)(jnp.arange(b.shape[0]), b, x0)
 
 
-def _draw(key, fixed: GibbsFixed, cond: _Conditional, data_rhs, x0):
-    """Exact draw of ``a | d, S`` for the prior ``cond``: (Nf, n) and SolveInfo."""
+def _draw(key, fixed: GibbsFixed, cond: _Conditional, data_rhs, x0, data=None):
+    """Exact draw of ``a | d, S`` for the prior ``cond``: (Nf, n) and SolveInfo (``data``: the
+    visibilities behind ``data_rhs`` where they are not the system's)."""
     rhs0 = data_rhs + cond.inv_var * fixed.system.prior.mean
-    return _sky_solver(fixed.options).draw(key, fixed, cond, rhs0, x0)
+    return _sky_solver(fixed.options).draw(key, fixed, cond, rhs0, x0, data)
 
 
 def sky_step(
@@ -447,7 +495,9 @@ def sky_step(
     """
     mean = fixed.system.prior.mean
     x0 = mean if position is None else jnp.broadcast_to(jnp.asarray(position, mean.dtype), mean.shape)
-    return _draw(key, fixed, _conditional(fixed, cl, inv_var), _data_rhs(fixed, data), x0)
+    if data is not None:
+        data = jnp.asarray(data, fixed.system.data.dtype)
+    return _draw(key, fixed, _conditional(fixed, cl, inv_var), _data_rhs(fixed, data), x0, data)
 
 
 def _a_step(key, fixed: GibbsFixed, cl, x0):
@@ -649,6 +699,8 @@ def joint_step(
         raise ValueError(f"family must be 'free' or 'power_law', got {family!r}")
     if rescale not in RESCALINGS:
         raise ValueError(f"rescale must be one of {RESCALINGS}, got {rescale!r}")
+    if refresh and isinstance(_sky_solver(fixed.options), _PathSky):
+        raise ValueError("joint_step(refresh=True) needs gibbs_setup with CholeskyOptions or CGOptions")
     if rescale == "posterior" and not isinstance(_sky_solver(fixed.options), _DenseSky):
         raise ValueError("rescale='posterior' needs the Cholesky path (gibbs_setup(..., options=CholeskyOptions()))")
     if family == "free" and cl_prior not in ("jeffreys", "uniform", "inverse_gamma"):
