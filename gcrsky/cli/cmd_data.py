@@ -1,6 +1,6 @@
 """``gcrsky run --data FILE``: the posterior of a visibility file's sky (no truth: no truth metrics).
 
-The problem is read by :func:`gcrsky.io.from_uvdata` and run by :func:`gcrsky.run.execute`
+The problem is read by :func:`gcrsky.ingest.from_uvdata` and run by :func:`gcrsky.run.execute`
 with the paper's beam-region metrics and posterior figures
 (:class:`gcrsky.paper.report.PaperReport`; the beam FWHM is the file's configuration's).
 Nothing here imports :mod:`gcrsky.sim`.
@@ -126,8 +126,8 @@ def _data_settings(args, selection: dict) -> dict:
 
 
 def _read_problem(args, selection: dict):
-    """The :class:`~gcrsky.model.Problem` of the file (:func:`gcrsky.io.from_uvdata`)."""
-    from ..io.uvdata import from_uvdata
+    """The :class:`~gcrsky.model.Problem` of the file (:func:`gcrsky.ingest.from_uvdata`)."""
+    from ..ingest.uvdata import from_uvdata
 
     return from_uvdata(args.data, lmax=args.lmax, nside=args.nside, beam=args.beam,  # a path: its file is recorded
                        dish_diameter_m=args.dish_diameter, prior=args.prior, prior_scale=args.prior_scale,

@@ -1,4 +1,4 @@
-"""``gcrsky inspect FILE``: what a run on the file would use (:func:`gcrsky.io.inspect_uvdata`), without solving."""
+"""``gcrsky inspect FILE``: what a run on the file would use (:func:`gcrsky.ingest.inspect_uvdata`), without solving."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ def _inspect(args) -> int:
     import json
 
     from ..base.memory import format_bytes
-    from ..io.uvdata import inspect_uvdata
+    from ..ingest.uvdata import inspect_uvdata
     from .inspect_checks import check_lines, inspect_check_kwargs
 
     info = inspect_uvdata(args.file, lmax=args.lmax, nside=args.nside, **data_kwargs(args),

@@ -10,7 +10,7 @@ Two steps, each usable on its own:
 
 1. :func:`gcrsky.io.read_observation`: the file, selected and read partially, in gcrsky's
    conventions (baseline order and conjugation, drift-scan phase), as an
-   :class:`~gcrsky.model.Observation` (:mod:`gcrsky.io.observation`);
+   :class:`~gcrsky.io.Observation` (:mod:`gcrsky.io.observation`);
 2. :func:`gcrsky.model.problem_from_observation`: the physics (modelled products, units,
    radiometer noise, weights, responses, redundant compression;
    :mod:`gcrsky.model.observed`).
@@ -28,8 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.files import check_input_file, reading
+from ..io.observation import read_bytes, read_uvdata
+from ..io.visdata import POLS, Observation, parse_products
 from ..model.bandlimit import check_quadrature, observation_lmax, observation_reach
-from ..model.observation import POLS, Observation, parse_products
 from ..model.observed import (
     COMPRESS_RTOL,
     DataConfig,
@@ -46,8 +48,6 @@ from ..model.prior import Prior, flat_prior, isotropic_prior
 from ..model.problem import Problem
 from ..model.skyprior import check_gsm_cl_frequencies, gsm_cl
 from ..sphere.modes import n_params
-from .files import check_input_file, reading
-from .observation import read_bytes, read_uvdata
 
 __all__ = [
     "COMPRESS_RTOL",
@@ -225,7 +225,7 @@ def _checked_observation(data, *, pol, noise, prior, cal, flag_outliers, **read)
 
 def _prepared_beams(beam, dish_diameter_m, obs: Observation, **how) -> tuple[list, str, dict]:
     """``(beams per antenna, description, checks["beam"])``: the beams resolved and prepared for ``obs``
-    (:func:`gcrsky.io.beamprior.prepare_beams`; ``how``: its normalisation and frequency options)."""
+    (:func:`gcrsky.ingest.beamprior.prepare_beams`; ``how``: its normalisation and frequency options)."""
     from .beamprior import prepare_beams
 
     beams, note = _resolve_beams(beam, dish_diameter_m, obs)
@@ -353,7 +353,7 @@ def inspect_uvdata(path, *, pol="pI", lmax: int | None = None, nside: int | None
     the memory of the read and, with ``lmax`` (and ``nside``), of the dense posterior
     precision; then the data checks (``"data_checks"``: calibration, noise excess and
     outliers, fully flagged antennas, the flux scale with ``beam`` or ``dish_diameter_m``;
-    :func:`gcrsky.io.datachecks.inspect_checks`) and ``"problems"``: what a run would refuse.
+    :func:`gcrsky.ingest.datachecks.inspect_checks`) and ``"problems"``: what a run would refuse.
     With a beam, ``"band_limit"`` is the lmax a run would choose (the reach of every used
     baseline, :func:`gcrsky.model.bandlimit.observation_lmax`) and the sizes are at it
     (``"lmax_for_sizes"``: ``lmax`` if given, else that reach, else :data:`SIZES_LMAX`).

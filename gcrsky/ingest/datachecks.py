@@ -16,10 +16,10 @@ import logging
 
 import numpy as np
 
+from ..io.observation import read_observation
+from ..io.visdata import Observation, parse_products
 from ..model.datachecks import DEFAULT_K, find_outliers, flag_outliers, flagged_antennas, noise_excess
 from ..model.fluxscale import FLUX_BOUNDS, flux_scale_check
-from ..model.observation import Observation, parse_products
-from .observation import read_observation
 
 __all__ = ["FLUX_SCALE_MODES", "flag_checks", "flux_checks", "inspect_checks", "read_checked"]
 
@@ -35,7 +35,7 @@ def read_checked(data, *, cal=None, pol="pI", **selection) -> tuple[Observation,
         obs = read_observation(data, pol=pol, **selection)
         state = {"applied": None, "vis_units": obs.vis_units}
         return obs, {"calibration": state}
-    from .calibration import read_calibrated_observation
+    from ..io.calibration import read_calibrated_observation
 
     obs, info = read_calibrated_observation(data, cal, pol=pol, **selection)
     used = {str(int(a)) for a in obs.antenna_numbers}
