@@ -1,268 +1,169 @@
 """Real observations in: a :class:`~gcrsky.model.Problem` from any file pyuvdata reads.
 
-:func:`from_uvdata` turns a visibility file (UVH5; UVFITS, Measurement Sets, MIRIAD
-where pyuvdata's optional readers are installed) or a ``UVData`` object into the
-inference problem whose parameters are the ICRS coefficients of the sky (DESIGN
-section 2, mode (b): the file's real observing times at the file's site).
-:func:`inspect_uvdata` says what would be used without solving.
+:func:`ingest` turns a visibility file (UVH5; UVFITS, Measurement Sets, MIRIAD where
+pyuvdata's optional readers are installed) or a ``UVData`` object into the inference
+problem whose parameters are the ICRS coefficients of the sky (DESIGN section 2, mode (b):
+the file's real observing times at the file's site), as an :class:`~gcrsky.ingest.IngestSpec`
+says; :func:`from_uvdata` is the same with the spec's settings as keywords.
+:func:`gcrsky.ingest.inspect_uvdata` says what would be used without solving.
 
-Two steps, each usable on its own:
+The stages, each a function here or in its module:
 
-1. :func:`gcrsky.io.read_observation`: the file, selected and read partially, in gcrsky's
-   conventions (baseline order and conjugation, drift-scan phase), as an
-   :class:`~gcrsky.io.Observation` (:mod:`gcrsky.io.observation`);
-2. :func:`gcrsky.model.problem_from_observation`: the physics (modelled products, units,
-   radiometer noise, weights, responses, redundant compression;
-   :mod:`gcrsky.model.observed`).
+1. read, calibrate and check (:func:`checked_observation`): :func:`gcrsky.io.read_observation`
+   (the file, selected and read partially, in gcrsky's conventions, as an
+   :class:`~gcrsky.io.Observation`), the calibration and the data checks
+   (:mod:`gcrsky.ingest.datachecks`);
+2. the beams (:func:`gcrsky.ingest.beams.prepared_beams`) and the flux-scale check through them;
+3. the band limit (:func:`band_limited`: lmax and the quadrature check, :mod:`gcrsky.model.bandlimit`);
+4. the prior (:func:`prepared_prior`: :mod:`gcrsky.ingest.prior`, the prior's mean);
+5. the Problem (:func:`gcrsky.model.problem_from_observation`: modelled products, units,
+   radiometer noise, weights, responses, redundant compression).
 
-This module adds what reads files besides the visibilities: the beams (a beam object or
-file, per antenna by number or name) and the prior (``"gsm"``, ``"flat"``, a C_l file or
-a HEALPix map / alm FITS file as the prior mean).  The conventions are on the docs'
-ingest page (``docs/ingest.md``).
+The conventions are on the docs' ingest page (``docs/ingest.md``).
 """
 
 from __future__ import annotations
 
 import logging
-from pathlib import Path
+from typing import NamedTuple
 
-import numpy as np
-
-from ..io.files import check_input_file, reading
-from ..io.observation import read_bytes, read_uvdata
-from ..io.visdata import POLS, Observation, parse_products
+from ..io.visdata import Observation, parse_products
 from ..model.bandlimit import check_quadrature, observation_lmax, observation_reach
-from ..model.observed import (
-    COMPRESS_RTOL,
-    DataConfig,
-    check_observation,
-    conventions,
-    default_prior,
-    kelvin_sr_per_unit,
-    modelled_product,
-    noise_kind,
-    problem_from_observation,
-    raw_variance,
-)
-from ..model.prior import Prior, flat_prior, isotropic_prior
+from ..model.observed import check_observation, noise_kind, problem_from_observation
+from ..model.prior import Prior
 from ..model.problem import Problem
-from ..model.skyprior import check_gsm_cl_frequencies, gsm_cl
-from ..sphere.modes import n_params
+from ..model.skyprior import check_gsm_cl_frequencies
+from .beamprior import apply_prior_mean, feed_pol_of, with_checks
+from .beams import PreparedBeams, prepared_beams
+from .datachecks import flag_checks, flux_checks, read_checked
+from .prior import resolve_prior
+from .spec import IngestSpec
 
 __all__ = [
-    "COMPRESS_RTOL",
-    "DataConfig",
-    "POLS",
+    "BandLimit",
+    "CheckedObservation",
+    "PreparedPrior",
+    "band_limited",
+    "checked_observation",
     "from_uvdata",
-    "inspect_uvdata",
-    "read_uvdata",
+    "ingest",
+    "prepared_prior",
+    "read_selection",
 ]
 
 log = logging.getLogger(__name__)
 
 
-# ---------------------------------------------------------------- beams and priors
+class CheckedObservation(NamedTuple):
+    """The file read, calibrated and checked: the Observation a Problem is built from and the checks' record."""
+
+    obs: Observation
+    checks: dict
 
 
-def _resolve_beams(beam, dish_diameter_m, obs: Observation):
-    """One beam object per antenna of ``obs`` (in its ``antenna_numbers`` order) and a description."""
-    from ..instrument.beams import gaussian_beam, load_beam
+class BandLimit(NamedTuple):
+    """The band limit: ``lmax`` and its record (``DataConfig.checks["band_limit"]``'s source)."""
 
-    if beam is None and dish_diameter_m is None:
-        raise ValueError("give the beam (a pyuvdata beam object or a beam file) or dish_diameter_m (a Gaussian beam "
-                         "with the Airy FWHM of that dish)")
-    if beam is not None and dish_diameter_m is not None:
-        raise ValueError("give beam or dish_diameter_m, not both")
-    if beam is None:
-        b = gaussian_beam(float(dish_diameter_m))
-        return [b] * obs.n_antennas, f"Gaussian, Airy-matched FWHM of a {float(dish_diameter_m):g} m dish"
-    if isinstance(beam, (list, tuple)):
-        nums = [int(n) for n in obs.telescope_antenna_numbers]
-        if len(beam) != len(nums):
-            raise ValueError(f"a beam list needs one beam per antenna of the file's telescope ({len(nums)}), "
-                             f"in its antenna_numbers order; got {len(beam)} (or pass a dict number/name -> beam)")
-        beam = dict(zip(nums, beam))
-    if isinstance(beam, dict):
-        return _beams_by_antenna(beam, obs)
-    b = load_beam(beam)
-    return [b] * obs.n_antennas, _describe_beam(beam, b)
+    lmax: int
+    note: dict
 
 
-def _beams_by_antenna(beam: dict, obs: Observation):
-    """Per-antenna beams from a dict antenna number or name -> beam (object or file; each file read once)."""
-    from ..instrument.beams import load_beam
+class PreparedPrior(NamedTuple):
+    """The prior at the data's frequencies and ``lmax``, its description and ``checks["prior"]``."""
 
-    names = [str(n) for n in obs.telescope_antenna_names]
-    nums = [int(n) for n in obs.telescope_antenna_numbers]
-    by_num = {}
-    for key, b in beam.items():
-        num = int(key) if isinstance(key, (int, np.integer)) else (
-            nums[names.index(str(key))] if str(key) in names else None)
-        if num is None:
-            raise ValueError(f"beam key {key!r} is neither an antenna number nor a name in the file")
-        by_num[num] = b
-    missing = [int(a) for a in obs.antenna_numbers if int(a) not in by_num]
-    if missing:
-        raise ValueError(f"no beam given for antennas {missing}")
-    cache: dict = {}
-    out = []
-    for a in obs.antenna_numbers:
-        b = by_num[int(a)]
-        key = id(b) if not isinstance(b, (str, Path)) else str(b)
-        if key not in cache:
-            cache[key] = load_beam(b)
-        out.append(cache[key])
-    return out, f"per antenna ({len(cache)} distinct beams)"
+    prior: Prior
+    note: str
+    record: dict
 
 
-def _describe_beam(arg, b) -> str:
-    if isinstance(arg, (str, Path)):
-        return f"file {arg}"
-    return type(b).__name__
+def read_selection(spec: IngestSpec) -> dict:
+    """The read keywords of ``spec`` (:func:`gcrsky.io.read_observation`'s selection and memory budget)."""
+    s = spec.selection
+    return dict(freq_chans=s.freq_chans, freq_range_hz=s.freq_range_hz, times_jd=s.times_jd,
+                lst_range_hours=s.lst_range_hours, antennas=s.antennas, bls=s.bls,
+                memory_budget=spec.memory_budget)
 
 
-def _read_cl_file(path: Path, nf: int, lmax: int) -> np.ndarray:
-    arr = np.load(path) if path.suffix == ".npy" else np.loadtxt(path, ndmin=2)
-    arr = np.asarray(arr, np.float64)
-    if arr.ndim == 1:
-        arr = arr[None]
-    if path.suffix != ".npy" and arr.shape[1] >= 2 and np.array_equal(arr[:, 0], np.arange(arr.shape[0])):
-        arr = arr[:, 1:].T  # text: a column of l then one column per frequency
-    if arr.shape[-1] < lmax + 1:
-        raise ValueError(f"{path}: the C_l table stops at l = {arr.shape[-1] - 1}, lmax is {lmax}")
-    arr = arr[..., : lmax + 1]
-    if arr.shape[0] not in (1, nf):
-        raise ValueError(f"{path}: {arr.shape[0]} spectra for {nf} frequencies")
-    return np.broadcast_to(arr, (nf, lmax + 1))
+def checked_observation(data, spec: IngestSpec, pol) -> CheckedObservation:
+    """The file read (and calibrated), checked, its outliers flagged, checked again; the GSM prior's band
+    checked too: everything that can refuse a file before a beam is read or a response built.
 
-
-def _fits_mean(path: Path, nf: int, lmax: int) -> np.ndarray:
-    """Realified ICRS coefficients (Nf, n) from a HEALPix map or alm FITS file."""
-    import healpy as hp
-
-    from ..sphere.modes import realify
-
-    try:
-        alm = hp.read_alm(str(path), hdu=1)
-        lmax_f = hp.Alm.getlmax(alm.size)
-        cols = [alm]
-        hdu = 2
-        while True:
-            try:
-                cols.append(hp.read_alm(str(path), hdu=hdu))
-                hdu += 1
-            except (IndexError, OSError, ValueError):
-                break
-        out = np.zeros((len(cols), hp.Alm.getsize(lmax)), complex)
-        ell, m = hp.Alm.getlm(min(lmax, lmax_f))
-        for k, c in enumerate(cols):
-            out[k, hp.Alm.getidx(lmax, ell, m)] = c[hp.Alm.getidx(lmax_f, ell, m)]
-        a = realify(out, lmax)
-    except Exception:  # noqa: BLE001 - not an alm file: read it as a map
-        maps = np.atleast_2d(hp.read_map(str(path), field=None))
-        a = realify(np.stack([hp.map2alm(m, lmax=lmax, iter=3) for m in maps]), lmax)
-    if a.shape[0] not in (1, nf):
-        raise ValueError(f"{path}: {a.shape[0]} columns for {nf} frequencies")
-    return np.broadcast_to(a, (nf, n_params(lmax)))
-
-
-#: What a prior file may be, for read errors.
-PRIOR_FORMATS = "HEALPix map or alm FITS file, .npy or text C_l file"
-
-
-def _resolve_prior(prior, prior_scale, freqs, lmax) -> tuple[Prior, str]:
-    """The prior and its description (module docstring of :func:`from_uvdata`)."""
-    nf, n = freqs.size, n_params(lmax)
-    if not (np.isfinite(prior_scale) and prior_scale > 0):
-        raise ValueError(f"prior_scale must be a positive finite number, got {prior_scale!r}")
-    if isinstance(prior, Prior):
-        if np.shape(prior.mean) != (nf, n) or np.shape(prior.inv_var) != (nf, n):
-            raise ValueError(f"the prior's arrays must be (Nf, n) = {(nf, n)}")
-        return prior, "given (a Prior)"
-    if prior is None or (isinstance(prior, str) and prior == "gsm"):
-        return default_prior(freqs, lmax, prior_scale)
-    if isinstance(prior, str) and prior == "flat":
-        return flat_prior(nf, n), "flat (S^-1 = 0: the posterior may be improper where the data are blind)"
-    if isinstance(prior, (str, Path)):
-        if not Path(prior).exists():
-            raise ValueError(f"prior {prior!r} is neither 'gsm', 'flat' nor an existing file")
-        path = check_input_file(prior, "prior file")
-        if path.suffix.lower() in (".fits", ".fit", ".fz") or path.name.endswith(".fits.gz"):
-            with reading(path, "a prior (HEALPix map or alm FITS, ICRS, K)", PRIOR_FORMATS):
-                mean = _fits_mean(path, nf, lmax)
-            cl = prior_scale * gsm_cl(freqs, lmax)
-            return isotropic_prior(cl, n, mean=mean), (f"mean from {path} (HEALPix map or alm, ICRS), variance "
-                                                       f"{prior_scale:g} x the GSM's C_l")
-        with reading(path, "a prior's C_l (.npy, or text: l and C_l per frequency)", PRIOR_FORMATS):
-            cl = prior_scale * _read_cl_file(path, nf, lmax)
-        return isotropic_prior(cl, n), f"isotropic, zero mean, C_l from {path} x {prior_scale:g}"
-    cl = np.asarray(prior, np.float64)
-    if cl.ndim not in (1, 2) or cl.shape[-1] != lmax + 1 or (cl.ndim == 2 and cl.shape[0] not in (1, nf)):
-        raise ValueError(f"a C_l prior must be (lmax+1,) or (Nf, lmax+1) = {(nf, lmax + 1)}, got {cl.shape}")
-    return isotropic_prior(prior_scale * np.broadcast_to(cl, (nf, lmax + 1)), n), \
-        f"isotropic, zero mean, given C_l x {prior_scale:g}"
-
-
-# ---------------------------------------------------------------- the problem
-
-
-def _checked_observation(data, *, pol, noise, prior, cal, flag_outliers, **read) -> tuple[Observation, dict]:
-    """``(obs, checks)``: the file read (and calibrated), checked, its outliers flagged, checked again; the GSM
-    prior's band checked too: everything that can refuse a file before a beam is read or a response built."""
-    from .datachecks import flag_checks, read_checked
-
-    obs, checks = read_checked(data, cal=cal, pol=pol, autos=noise_kind(noise) == "autos", **read)
+    Args:
+        data: a visibility file or a ``UVData``.
+        spec: the settings (selection, checks, noise, prior).
+        pol: the modelled product(s) in the file's feed names (:func:`gcrsky.ingest.beamprior.feed_pol_of`).
+    """
+    obs, checks = read_checked(data, cal=spec.checks.cal, pol=pol, autos=noise_kind(spec.noise) == "autos",
+                               **read_selection(spec))
     for line in obs.notes:
         log.warning(line)
-    check_observation(obs, pol, noise)  # units, products, autos, data
+    check_observation(obs, pol, spec.noise)  # units, products, autos, data
+    prior = spec.prior.prior
     if prior is None or (isinstance(prior, str) and prior == "gsm"):
         check_gsm_cl_frequencies(obs.freqs_hz)  # the prior's band
-    obs, flags = flag_checks(obs, flag=flag_outliers)
+    obs, flags = flag_checks(obs, flag=spec.checks.flag_outliers)
     checks.update(flags)
-    check_observation(obs, pol, noise)  # still something to fit once the outliers are flagged
-    return obs, checks
+    check_observation(obs, pol, spec.noise)  # still something to fit once the outliers are flagged
+    return CheckedObservation(obs, checks)
 
 
-def _prepared_beams(beam, dish_diameter_m, obs: Observation, **how) -> tuple[list, str, dict]:
-    """``(beams per antenna, description, checks["beam"])``: the beams resolved and prepared for ``obs``
-    (:func:`gcrsky.ingest.beamprior.prepare_beams`; ``how``: its normalisation and frequency options)."""
-    from .beamprior import prepare_beams
+def band_limited(obs: Observation, beams: list, spec: IngestSpec, pol) -> BandLimit:
+    """``lmax`` (``spec.lmax``, or every used baseline's reach capped by memory) and the check that
+    ``spec.nside``'s quadrature resolves the kept rows (:mod:`gcrsky.model.bandlimit`)."""
+    lmax, note = observation_lmax(obs, beams, spec.lmax, n_products=len(parse_products(pol)[0]),
+                                  frame_pad=spec.frame_pad, budget_bytes=spec.memory_budget,
+                                  compress=spec.compress and spec.band_limit != "marginalise")
+    check_quadrature(observation_reach(obs, beams, isotropic=True)[0], lmax, spec.nside, spec.band_limit,
+                     frame_pad=spec.frame_pad)
+    return BandLimit(lmax, note)
 
-    beams, note = _resolve_beams(beam, dish_diameter_m, obs)
-    beams, rec = prepare_beams(beams, beam, obs, **how)
-    return beams, note, rec
+
+def prepared_prior(spec: IngestSpec, freqs_hz, lmax: int) -> PreparedPrior:
+    """The prior of ``spec.prior`` (:func:`gcrsky.ingest.prior.resolve_prior`) with the mean ``prior_mean``
+    asks for (:func:`gcrsky.ingest.beamprior.apply_prior_mean`), at ``freqs_hz`` (Nf,) and ``lmax``."""
+    p = spec.prior
+    return PreparedPrior(*apply_prior_mean(*resolve_prior(p.prior, p.prior_scale, freqs_hz, lmax),
+                                           p.prior_mean, p.prior, freqs_hz, lmax))
 
 
-def from_uvdata(
-    data,
-    *,
-    lmax: int | None = None,
-    nside: int,
-    beam=None,
-    dish_diameter_m: float | None = None,
-    pol="pI",
-    prior=None,
-    prior_scale: float = 1.0,
-    noise="autos",
-    freq_chans=None,
-    freq_range_hz=None,
-    times_jd=None,
-    lst_range_hours=None,
-    antennas=None,
-    bls=None,
-    compress: bool = True,
-    frame_pad: int = 4,
-    memory_budget: float | None = None,
-    beam_normalization: str = "peak",
-    beam_freq_scaling: str | None = None,
-    accept_x_orientation_mismatch: bool = False,
-    prior_mean: str | None = None,
-    band_limit: str = "truncate",
-    cal=None,
-    flag_outliers: bool = True,
-    flux_scale: str = "accept",
-) -> Problem:
+def ingest(data, spec: IngestSpec) -> Problem:
     """The inference problem of a visibility file: ICRS coefficients at ``lmax`` (module docstring).
+
+    Args:
+        data: a path to any file ``UVData.from_file`` reads, or a ``UVData`` (not modified).
+        spec: what to make of it (:class:`~gcrsky.ingest.IngestSpec`; ``spec.nside`` is required).
+
+    Returns:
+        a :class:`~gcrsky.model.Problem` (``pols``: each row's product; ``config``: a
+        :class:`~gcrsky.ingest.DataConfig` whose ``checks`` say what was checked: calibration, flags,
+        flux_scale, beam, prior, band_limit, pol).
+    """
+    from ..base.dtypes import require_x64
+
+    require_x64("from_uvdata")
+    if not isinstance(spec, IngestSpec):
+        raise TypeError(f"spec must be an IngestSpec, got {type(spec).__name__}")
+    if spec.nside is None:
+        raise ValueError("nside must be given: the HEALPix nside of the response quadrature (IngestSpec.nside)")
+    pol, pol_rec = feed_pol_of(data, spec.selection.pol)
+    parse_products(pol)
+    obs, checks = checked_observation(data, spec, pol)
+    b = spec.beam
+    beams: PreparedBeams = prepared_beams(b.beam, b.dish_diameter_m, obs, normalization=b.beam_normalization,
+                                          freq_scaling=b.beam_freq_scaling,
+                                          accept_x_orientation_mismatch=b.accept_x_orientation_mismatch)
+    checks.update(flux_checks(obs, beams.beams[0], pol=pol, mode=spec.checks.flux_scale))  # through the beam
+    band = band_limited(obs, beams.beams, spec, pol)
+    prior = prepared_prior(spec, obs.freqs_hz, band.lmax)
+    prob = problem_from_observation(obs, beams.beams, lmax=band.lmax, nside=spec.nside, pol=pol, prior=prior.prior,
+                                    noise=spec.noise, compress=spec.compress, frame_pad=spec.frame_pad,
+                                    beam_note=beams.note, prior_note=prior.note, band_limit=spec.band_limit,
+                                    band_note=band.note, checks=checks)
+    return with_checks(prob, {"beam": beams.record, "prior": prior.record, **({"pol": pol_rec} if pol_rec else {})})
+
+
+def from_uvdata(data, spec: IngestSpec | None = None, **keywords) -> Problem:
+    """:func:`ingest` with the settings as keywords (:meth:`IngestSpec.from_keywords`), or a spec.
 
     Args:
         data: a path to any file ``UVData.from_file`` reads, or a ``UVData`` (not modified).
@@ -305,145 +206,14 @@ def from_uvdata(
     products through its ``x_orientation``.
 
     Returns:
-        a :class:`~gcrsky.model.Problem` (``pols``: each row's product; ``config``: a
-        :class:`DataConfig` whose ``checks`` say what was checked: calibration, flags,
-        flux_scale, beam, prior, band_limit, pol).
+        :func:`ingest`'s Problem.
+
+    Raises:
+        TypeError: an unknown keyword, or both a spec and keywords.
+        ValueError: a bad setting (naming it), or a file that cannot give a Problem.
     """
-    from ..base.dtypes import require_x64
-    from .beamprior import apply_prior_mean, feed_pol_of, with_checks
-    from .datachecks import flux_checks
-
-    require_x64("from_uvdata")
-    pol, pol_rec = feed_pol_of(data, pol)
-    parse_products(pol)
-    obs, checks = _checked_observation(
-        data, pol=pol, noise=noise, prior=prior, cal=cal, flag_outliers=flag_outliers, freq_chans=freq_chans,
-        freq_range_hz=freq_range_hz, times_jd=times_jd, lst_range_hours=lst_range_hours, antennas=antennas, bls=bls,
-        memory_budget=memory_budget)
-    beams, beam_note, beam_rec = _prepared_beams(
-        beam, dish_diameter_m, obs, normalization=beam_normalization, freq_scaling=beam_freq_scaling,
-        accept_x_orientation_mismatch=accept_x_orientation_mismatch)
-    checks.update(flux_checks(obs, beams[0], pol=pol, mode=flux_scale))  # through the prepared beam
-    lmax, band_note = observation_lmax(obs, beams, lmax, n_products=len(parse_products(pol)[0]),
-                                       frame_pad=frame_pad, budget_bytes=memory_budget,
-                                       compress=compress and band_limit != "marginalise")
-    check_quadrature(observation_reach(obs, beams, isotropic=True)[0], lmax, nside, band_limit, frame_pad=frame_pad)
-    prior_obj, prior_note, prior_rec = apply_prior_mean(*_resolve_prior(prior, prior_scale, obs.freqs_hz, lmax),
-                                                        prior_mean, prior, obs.freqs_hz, lmax)
-    prob = problem_from_observation(obs, beams, lmax=lmax, nside=nside, pol=pol, prior=prior_obj, noise=noise,
-                                    compress=compress, frame_pad=frame_pad, beam_note=beam_note,
-                                    prior_note=prior_note, band_limit=band_limit, band_note=band_note,
-                                    checks=checks)
-    return with_checks(prob, {"beam": beam_rec, "prior": prior_rec, **({"pol": pol_rec} if pol_rec else {})})
-
-
-# ---------------------------------------------------------------- inspect
-
-
-def inspect_uvdata(path, *, pol="pI", lmax: int | None = None, nside: int | None = None, cal=None,
-                  flag_outliers: bool = True, flux_scale: str = "check", beam=None,
-                  dish_diameter_m: float | None = None, redundancy_tol_m: float = 0.5, **selection) -> dict:
-    """What :func:`from_uvdata` would use, without building the response or solving (a JSON-friendly dict).
-
-    Reads the selection (so flags and autos are known), applies ``cal`` if given, and reports
-    the antennas, baselines (and unique ones, within ``redundancy_tol_m`` metres), times and
-    LST coverage, channels, products, units, conventions, the flagged fraction, a radiometer
-    noise estimate from the autos (median per-component sigma of the modelled product, K sr,
-    or the file's units when uncalibrated: the run's own noise, :func:`gcrsky.model.raw_variance`),
-    the memory of the read and, with ``lmax`` (and ``nside``), of the dense posterior
-    precision; then the data checks (``"data_checks"``: calibration, noise excess and
-    outliers, fully flagged antennas, the flux scale with ``beam`` or ``dish_diameter_m``;
-    :func:`gcrsky.ingest.datachecks.inspect_checks`) and ``"problems"``: what a run would refuse.
-    With a beam, ``"band_limit"`` is the lmax a run would choose (the reach of every used
-    baseline, :func:`gcrsky.model.bandlimit.observation_lmax`) and the sizes are at it
-    (``"lmax_for_sizes"``: ``lmax`` if given, else that reach, else :data:`SIZES_LMAX`).
-    """
-    from .beamprior import feed_pol_of
-    from .datachecks import inspect_checks, read_checked
-
-    pol = feed_pol_of(path, pol)[0]
-    prods, _ = parse_products(pol)
-    obs, checks = read_checked(path, cal=cal, pol=pol, **selection)
-    out = _describe_observation(obs, prods, redundancy_tol_m)
-    beams, b, beam_problem = None, None, None
-    if beam is not None or dish_diameter_m is not None:
-        try:  # the beams a run would use (peak-normalised, frequencies checked): the flux check's, the reach's
-            beams = _prepared_beams(beam, dish_diameter_m, obs)[0]
-            b = beams[0]
-        except ValueError as e:
-            beam_problem = f"the beam: {e}"
-    obs, checks, problems = inspect_checks(obs, checks, pol=pol, flag=flag_outliers, flux_scale=flux_scale, beam=b)
-    problems = problems + ([beam_problem] if beam_problem else [])
-    out["flagged_fraction"] = obs.flagged_fraction  # after the outliers are flagged, as a run would use them
-    try:
-        to_ksr, out["noise_units"] = kelvin_sr_per_unit(obs), "K sr"
-    except ValueError:
-        to_ksr, out["noise_units"] = np.ones(obs.n_freqs), obs.vis_units
-    sig = None
-    if obs.has_autos:
-        var = {r: raw_variance(obs, r, "autos") for r in POLS[prods[0]]}
-        v, ok = modelled_product(obs, prods[0], var)[1:]
-        with np.errstate(invalid="ignore"):
-            s = np.where(ok, np.sqrt(v) * to_ksr[:, None, None], np.nan)
-            sig = float(np.nanmedian(s)) if np.any(ok) else None
-    out["noise_sigma_median_k_sr"] = sig
-    out["read_bytes"] = read_bytes(obs.nblts_read, obs.n_freqs, obs.n_pols)
-    lat, lon, _ = obs.site_lat_lon_alt
-    out["site_lat_lon_deg"] = [lat, lon]
-    if beams is not None:  # the band limit a run would choose: the reach of every used baseline (lmax None)
-        chosen, out["band_limit"] = observation_lmax(obs, beams, lmax, n_products=len(prods))
-        lmax = chosen if lmax is None else lmax
-    out["lmax_for_sizes"] = lmax = SIZES_LMAX if lmax is None else lmax
-    out.update(_memory(obs, len(prods), out["n_rows_exact"], lmax, nside))
-    out["data_checks"] = checks
-    out["problems"] = problems
-    return out
-
-
-def _describe_observation(obs: Observation, prods, redundancy_tol_m: float = 0.5) -> dict:
-    """The part of :func:`inspect_uvdata`'s report that describes the file (in the report's key order)."""
-    from ..instrument.redundancy import redundant_groups
-
-    groups = redundant_groups(obs.antpos_enu_m, obs.antpairs, tol_m=redundancy_tol_m)
-    return {
-        "source": obs.source,
-        "selection": obs.selection,
-        "antennas": [int(a) for a in obs.antenna_numbers],
-        "n_antennas": obs.n_antennas,
-        "n_baselines": obs.n_baselines,
-        "n_unique_baselines": groups.n_groups,
-        "redundancy_tol_m": float(redundancy_tol_m),
-        "redundancy_max_offset_m": float(np.max(groups.max_offset_m)),
-        "n_rows_exact": redundant_groups(obs.antpos_enu_m, obs.antpairs).n_groups,  # what the run's compression keeps
-        "n_times": obs.n_times,
-        "time_range_jd": [float(obs.times_jd.min()), float(obs.times_jd.max())],
-        "lst_range_hours": [float(np.rad2deg(obs.lsts_rad.min()) / 15), float(np.rad2deg(obs.lsts_rad.max()) / 15)],
-        "n_channels": obs.n_freqs,
-        "freq_range_hz": [float(obs.freqs_hz.min()), float(obs.freqs_hz.max())],
-        "channel_width_hz": float(np.median(obs.channel_width_hz)),
-        "file_polarizations": list(obs.file_pol_names),
-        "modelled_products": list(prods),
-        "conventions": conventions(obs),
-        "notes": list(obs.notes),
-        "flagged_fraction": obs.flagged_fraction,
-        "has_autos": obs.has_autos,
-    }
-
-
-def _memory(obs: Observation, nprods: int, n_unique: int, lmax: int, nside: int | None) -> dict:
-    """Sizes of the dense precision, the real data values and (with ``nside``) the response."""
-    n = n_params(lmax)
-    out = {"n_params": n, "dense_precision_bytes": float(obs.n_freqs * n * n * 8),
-           "real_data_values": int(2 * n_unique * obs.n_times * obs.n_freqs * nprods)}
-    if nside is not None:
-        out["response_bytes"] = float(obs.n_freqs * n_unique * nprods * n_params(lmax + frame_pad_default()) * 16)
-    return out
-
-
-#: The degree :func:`inspect_uvdata` sizes the problem at when neither ``lmax`` nor a beam (a reach) is given.
-SIZES_LMAX = 20
-
-
-def frame_pad_default() -> int:
-    """The default degree margin of the frame map (:func:`from_uvdata`'s ``frame_pad``)."""
-    return 4
+    if spec is None:
+        spec = IngestSpec.from_keywords(**keywords)
+    elif keywords:
+        raise TypeError(f"give an IngestSpec or keywords, not both (got {sorted(keywords)})")
+    return ingest(data, spec)
