@@ -23,7 +23,7 @@ pytest.importorskip("matvis")
 from gcrsky.base.units import kelvin_sr_to_jy  # noqa: E402
 from gcrsky.checks.matvis import HERA_SITE, observing_times, random_sky, site  # noqa: E402
 from gcrsky.checks.uvsim import simulate_uvdata  # noqa: E402
-from gcrsky.ingest.uvdata import from_uvdata, inspect_uvdata  # noqa: E402
+from gcrsky.ingest import from_uvdata, inspect_uvdata  # noqa: E402
 from gcrsky.instrument import gaussian_beam, hex_array  # noqa: E402
 from gcrsky.model import gsm_cl  # noqa: E402
 

@@ -20,7 +20,8 @@ from .datachecks import inspect_checks, read_checked
 from .spec import IngestSpec
 from .uvdata import read_selection
 
-__all__ = ["SIZES_LMAX", "describe_observation", "inspect_beams", "inspect_uvdata", "memory_sizes"]
+__all__ = ["SIZES_LMAX", "describe_observation", "inspect_beams", "inspect_uvdata", "memory_sizes",
+           "noise_sigma_median"]
 
 
 def inspect_uvdata(path, spec: IngestSpec | None = None, *, redundancy_tol_m: float = 0.5, **keywords) -> dict:
@@ -64,14 +65,7 @@ def inspect_uvdata(path, spec: IngestSpec | None = None, *, redundancy_tol_m: fl
         to_ksr, out["noise_units"] = kelvin_sr_per_unit(obs), "K sr"
     except ValueError:
         to_ksr, out["noise_units"] = np.ones(obs.n_freqs), obs.vis_units
-    sig = None
-    if obs.has_autos:
-        var = {r: raw_variance(obs, r, "autos") for r in POLS[prods[0]]}
-        v, ok = modelled_product(obs, prods[0], var)[1:]
-        with np.errstate(invalid="ignore"):
-            s = np.where(ok, np.sqrt(v) * to_ksr[:, None, None], np.nan)
-            sig = float(np.nanmedian(s)) if np.any(ok) else None
-    out["noise_sigma_median_k_sr"] = sig
+    out["noise_sigma_median_k_sr"] = noise_sigma_median(obs, prods[0], to_ksr)
     out["read_bytes"] = read_bytes(obs.nblts_read, obs.n_freqs, obs.n_pols)
     lat, lon, _ = obs.site_lat_lon_alt
     out["site_lat_lon_deg"] = [lat, lon]
@@ -84,6 +78,18 @@ def inspect_uvdata(path, spec: IngestSpec | None = None, *, redundancy_tol_m: fl
     out["data_checks"] = checks
     out["problems"] = problems
     return out
+
+
+def noise_sigma_median(obs: Observation, prod: str, to_ksr) -> float | None:
+    """The median radiometer sigma (autos) per component of the modelled product ``prod`` over the usable
+    samples, times ``to_ksr`` (Nf,) per channel; None without autos or usable samples."""
+    if not obs.has_autos:
+        return None
+    var = {r: raw_variance(obs, r, "autos") for r in POLS[prod]}
+    v, ok = modelled_product(obs, prod, var)[1:]
+    with np.errstate(invalid="ignore"):
+        s = np.where(ok, np.sqrt(v) * to_ksr[:, None, None], np.nan)
+        return float(np.nanmedian(s)) if np.any(ok) else None
 
 
 def inspect_beams(spec: IngestSpec, obs: Observation) -> tuple[list | None, str | None]:
