@@ -35,13 +35,12 @@ from ..model.problem import Problem
 from ..model.skyprior import check_gsm_cl_frequencies
 from .beamprior import apply_prior_mean, feed_pol_of, with_checks
 from .beams import PreparedBeams, prepared_beams
-from .datachecks import flag_checks, flux_checks, read_checked
+from .datachecks import CheckedObservation, flag_checks, flux_checks, read_checked
 from .prior import resolve_prior
 from .spec import IngestSpec
 
 __all__ = [
     "BandLimit",
-    "CheckedObservation",
     "PreparedPrior",
     "band_limited",
     "checked_observation",
@@ -52,13 +51,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-
-class CheckedObservation(NamedTuple):
-    """The file read, calibrated and checked: the Observation a Problem is built from and the checks' record."""
-
-    obs: Observation
-    checks: dict
 
 
 class BandLimit(NamedTuple):
