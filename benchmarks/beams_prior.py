@@ -40,7 +40,7 @@ def _hera():
 def normalisation_table() -> None:
     from gcrsky.checks.matvis import HERA_SITE, observing_times, random_sky, site
     from gcrsky.checks.uvsim import simulate_uvdata
-    from gcrsky.io.uvdata import from_uvdata
+    from gcrsky.ingest.uvdata import from_uvdata
 
     lmax, nside, freqs = 4, 16, np.array([100e6, 101e6])
     pos = np.array([[0.0, 0, 0], [14.6, 0, 0], [7.3, 12.64, 0], [21.9, 12.64, 0]])

@@ -4,7 +4,7 @@ Redundant calibration fixes neither the overall amplitude nor the phase gradient
 after its omnical solutions is ~300x below Jy by its autocorrelations (the flux-scale check of
 :mod:`gcrsky.model.fluxscale`: data autos / GSM autos through the beam).  Here the gains are
 sampled with the sky from the cross-correlations alone: the file read by
-:func:`gcrsky.io.from_uvdata` (``--cal`` applied, pI, channels 30 and 40 = 146.9 and 162.5 MHz,
+:func:`gcrsky.ingest.from_uvdata` (``--cal`` applied, pI, channels 30 and 40 = 146.9 and 162.5 MHz,
 lmax 10 (``--lmax``) with the sky above it marginalised as noise, 14 m Gaussian beam, the GSM prior with the
 GSM's coefficients as its mean), gains of 1 x 1 modes per antenna (constant over the 1.6 min
 and the two channels) with a 10 % prior, applied gains ``gbar = sqrt(autos ratio)`` so that
@@ -39,7 +39,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from gcrsky.inference import effective_sample_size, gain_init, gain_setup, gibbs_setup, joint_gain_step, recentre  # noqa: E402
-from gcrsky.io.uvdata import from_uvdata  # noqa: E402
+from gcrsky.ingest.uvdata import from_uvdata  # noqa: E402
 from gcrsky.model import gain_model, phase_gradient_directions  # noqa: E402
 
 DATA = "zen.2458098.45361.HH_downselected.uvh5"

@@ -26,7 +26,7 @@ from .inference.evidence import log_evidence
 from .inference.gibbs import GCRState, gcr_init, gcr_step
 from .inference.hyper import fit_hyperparameters
 from .inference.posterior import draw, prepare_system, sample_system, wiener_filter_system
-from .io.uvdata import from_uvdata
+from .ingest.uvdata import from_uvdata
 from .model.compress import compress_problem, compress_system
 from .model.operator import VisOperator, dense_matrix
 from .model.prior import Prior, flat_prior, isotropic_prior, paper_prior, power_law_cl, prior_from_cl

@@ -31,7 +31,7 @@ from gcrsky.checks.imports import (
 )
 
 PKG = Path(gcrsky.__file__).parent
-SUBPACKAGES = ("base", "sphere", "instrument", "model", "solvers", "inference", "parallel", "io", "run", "sim", "paper",
+SUBPACKAGES = ("base", "sphere", "instrument", "model", "solvers", "inference", "parallel", "io", "ingest", "run", "sim", "paper",
                "checks", "cli")
 
 
@@ -81,6 +81,40 @@ def test_checker_flags_a_circle_and_an_upward_import(tmp_path):
     assert all("core layer 'model' imports application layer 'sim'" in v.why for v in vio)
 
 
+#: What the file layer may import: the foundations, and the mode layout the alm FITS files are written in.
+IO_MAY_IMPORT = ("base", "sphere", "io")
+
+
+def _io_physics_imports(g) -> list[tuple[str, str]]:
+    return sorted((m, d) for m, deps in g.items() if layer_of(m) == "io" for d in deps
+                  if layer_of(d) not in IO_MAY_IMPORT)
+
+
+def test_io_is_the_file_layer_without_physics(graph):
+    """gcrsky.io reads and writes files: it imports base (and sphere's mode layout), never the instrument, the
+    model, the solvers, the inference or the ingest above it (a lazy import inside a function counts too)."""
+    assert LAYERS.index("io") <= 2 and LAYERS.index("io") < LAYERS.index("instrument")
+    assert "gcrsky.io.visdata" in graph and "gcrsky.io.results" in graph
+    assert _io_physics_imports(graph) == []
+
+
+def test_io_check_flags_a_physics_import(tmp_path):
+    """Negative control: a lazy ``from ..model.x import y`` and an ``import gcrsky.solvers.s`` inside io are found."""
+    pkg = tmp_path / "gcrsky"
+    for sub in ("io", "model", "solvers", "base"):
+        (pkg / sub).mkdir(parents=True)
+        (pkg / sub / "__init__.py").write_text("")
+    (pkg / "__init__.py").write_text("")
+    (pkg / "model" / "x.py").write_text("y = 1\n")
+    (pkg / "solvers" / "s.py").write_text("z = 1\n")
+    (pkg / "base" / "u.py").write_text("w = 1\n")
+    (pkg / "io" / "a.py").write_text("from ..base.u import w\ndef f():\n    from ..model.x import y\n    return y\n")
+    (pkg / "io" / "b.py").write_text("import gcrsky.solvers.s\n")
+    got = _io_physics_imports(import_graph(pkg))
+    assert got == [("gcrsky.io.a", "gcrsky.model"), ("gcrsky.io.a", "gcrsky.model.x"),
+                   ("gcrsky.io.b", "gcrsky.solvers"), ("gcrsky.io.b", "gcrsky.solvers.s")]
+
+
 def test_no_module_uses_another_modules_private_names():
     """A module's private names are its own: a helper two modules share is public where it belongs."""
     assert [f"{p.importer}:{p.line} uses {p.owner}.{p.name}" for p in private_imports(PKG)] == []
@@ -110,8 +144,8 @@ def test_floors_are_finite_and_the_core_is_below_the_apps(graph):
 
 
 def test_the_run_layer_imports_only_the_core_below_it(graph):
-    """gcrsky.run (one run to disk) sits on io: it imports base .. io and itself, no application."""
-    assert CORE[-2:] == ("io", "run") and APPS[0] == "sim"
+    """gcrsky.run (one run to disk) sits on ingest: it imports base .. ingest and itself, no application."""
+    assert CORE[-2:] == ("ingest", "run") and APPS[0] == "sim"
     below = set(CORE)
     mods = [m for m in graph if layer_of(m) == "run"]
     assert "gcrsky.run.runner" in mods and "gcrsky.run.spec" in mods

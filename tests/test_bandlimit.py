@@ -249,7 +249,7 @@ def test_matvis_file_cut_and_marginalised_pass_truncation_fails(matvis_file, ben
     Measured z2 per channel: cut 0.96, 0.99; marginalise 0.69, 0.75 (the diagonal is
     conservative here: its posterior is wider than the exact one); truncate 4.8, 32.
     """
-    from gcrsky.io import from_uvdata
+    from gcrsky.ingest import from_uvdata
 
     uvd, truth, prior_cl = matvis_file
     prob = from_uvdata(uvd, lmax=bench.LMAX, nside=32, dish_diameter_m=bench.DISH_M, prior=prior_cl,
@@ -274,7 +274,7 @@ def test_matvis_file_cut_and_marginalised_pass_truncation_fails(matvis_file, ben
 
 def test_matvis_file_default_lmax_is_the_reach(matvis_file, bench):
     """Without lmax, from_uvdata models every baseline: lmax = the reach of the longest at 45 MHz, nothing cut."""
-    from gcrsky.io import from_uvdata
+    from gcrsky.ingest import from_uvdata
 
     uvd, _, prior_cl = matvis_file
     prob = from_uvdata(uvd, nside=16, dish_diameter_m=bench.DISH_M, prior=np.concatenate([prior_cl, [prior_cl[-1]] * 8]),

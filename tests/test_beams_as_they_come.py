@@ -1,4 +1,4 @@
-"""Beams as they come (gcrsky.instrument.beamprep, gcrsky.io.beamprior): normalisation, frequencies, images, feeds.
+"""Beams as they come (gcrsky.instrument.beamprep, gcrsky.ingest.beamprior): normalisation, frequencies, images, feeds.
 
 One small matvis simulation (4 antennas at HERA, 3 integrations, 100 and 101 MHz, a white
 sky at lmax 4) made with matvis' HERA dipole E-field beam (peak-normalised) is read back
@@ -20,6 +20,8 @@ pytest.importorskip("matvis")
 
 from gcrsky.checks.matvis import HERA_SITE, matvis_hera_beam_path, observing_times, random_sky, site  # noqa: E402
 from gcrsky.checks.uvsim import simulate_uvdata  # noqa: E402
+from gcrsky.ingest.beamprior import feed_pol_of  # noqa: E402
+from gcrsky.ingest.uvdata import from_uvdata  # noqa: E402
 from gcrsky.instrument.beamprep import (  # noqa: E402
     check_x_orientation,
     image_beam,
@@ -27,9 +29,7 @@ from gcrsky.instrument.beamprep import (  # noqa: E402
     resample_beam,
 )
 from gcrsky.instrument.beams import beam_amplitude, beam_fwhm_rad  # noqa: E402
-from gcrsky.io.beamprior import feed_pol_of  # noqa: E402
-from gcrsky.io.uvdata import from_uvdata  # noqa: E402
-from gcrsky.model.observation import feed_pol  # noqa: E402
+from gcrsky.io.visdata import feed_pol  # noqa: E402
 
 LMAX, NSIDE = 4, 32  # nside 32: the quadrature resolves the fringes (from_uvdata refuses 16 here)
 FREQS = np.array([100e6, 101e6])

@@ -67,7 +67,7 @@ def test_gains_are_divided_out_with_the_right_conjugation(raw, calibrated):
 
 
 def test_h1c_flux_scale_is_refused_then_accepted(calibrated, caplog):
-    from gcrsky.io.datachecks import flux_checks
+    from gcrsky.ingest.datachecks import flux_checks
 
     obs, _ = calibrated
     beam = gaussian_beam(14.0)
@@ -112,7 +112,7 @@ def test_model_autos_against_the_beam_solid_angle(raw, monkeypatch):
 def test_a_file_300x_off_is_caught(raw, monkeypatch):
     """Autos equal to the beam-integrated constant sky (analytic): ratio 1, accepted; x 300: refused."""
     from gcrsky.base.units import kelvin_sr_to_jy
-    from gcrsky.io.datachecks import flux_checks
+    from gcrsky.ingest.datachecks import flux_checks
 
     beam = gaussian_beam(14.0)
     omega = np.pi * np.array([beam_fwhm_rad(beam, f) for f in raw.freqs_hz]) ** 2 / (4 * np.log(2))
@@ -138,7 +138,7 @@ def _no_response(monkeypatch):
 
 
 def test_refusals_come_before_any_build(raw, monkeypatch):
-    from gcrsky.io.uvdata import from_uvdata
+    from gcrsky.ingest.uvdata import from_uvdata
 
     _no_response(monkeypatch)
     with pytest.raises(ValueError, match="--cal FILE"):  # uncalibrated, no --cal
@@ -152,7 +152,7 @@ def test_refusals_come_before_any_build(raw, monkeypatch):
 def test_all_flagged_file_is_refused_before_any_build(tmp_path, monkeypatch):
     from pyuvdata import UVData
 
-    from gcrsky.io.uvdata import from_uvdata
+    from gcrsky.ingest.uvdata import from_uvdata
 
     uvd = UVData.from_file(str(H1C), freq_chans=CHANS)
     uvd.flag_array[:] = True
@@ -206,8 +206,8 @@ def test_matvis_autos_of_the_gsm_give_a_ratio_near_one():
     pytest.importorskip("matvis")
     from gcrsky.checks.matvis import HERA_SITE, observing_times, site
     from gcrsky.checks.uvsim import simulate_uvdata
+    from gcrsky.ingest.datachecks import flux_checks
     from gcrsky.instrument import hex_array
-    from gcrsky.io.datachecks import flux_checks
     from gcrsky.io.observation import read_observation
     from gcrsky.sim.sky import sky_truth
 

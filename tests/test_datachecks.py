@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from conftest import H1C  # noqa: E402
 
+from gcrsky.io.visdata import Observation
 from gcrsky.model.datachecks import (
     dead_channels,
     find_outliers,
@@ -25,7 +26,6 @@ from gcrsky.model.datachecks import (
     outlier_rule,
     refuse_empty,
 )
-from gcrsky.model.observation import Observation
 
 if not H1C.exists():
     H1C = Path("/work/shared/data/real/zen.2458098.45361.HH_downselected.uvh5")

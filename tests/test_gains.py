@@ -514,7 +514,8 @@ def test_unit_gains_recentre_and_a_calfits_pyuvdata_reads_back(tmp_path):
     written as calfits and calh5 read back by pyuvdata (``gain_convention`` divide, both feeds of a pI unit)."""
     from pyuvdata import UVCal
 
-    from gcrsky.io.gaincal import posterior_mean_gains, write_gain_calibration
+    from gcrsky.ingest.gaincal import posterior_mean_gains
+    from gcrsky.io.gaincal import write_gain_calibration
     from gcrsky.model import unit_gains
 
     rng = np.random.default_rng(9)

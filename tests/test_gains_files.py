@@ -59,8 +59,8 @@ from gcrsky.checks.gainsim import corrupt_with_gains, smooth_gains
 from gcrsky.checks.matvis import HERA_SITE, observing_times, site
 from gcrsky.checks.uvsim import simulate_uvdata
 from gcrsky.inference import gain_init, gain_setup, gibbs_setup, joint_gain_step, recentre
+from gcrsky.ingest.uvdata import from_uvdata
 from gcrsky.instrument import gaussian_beam, hex_array
-from gcrsky.io.uvdata import from_uvdata
 from gcrsky.model import gain_model, isotropic_prior, n_gain_params, perturbations, unit_gains
 from gcrsky.model.operator import dense_matrix
 
@@ -381,7 +381,8 @@ def test_posterior_mean_gains_written_as_calfits_calibrate_the_corrupted_file(fi
     from pyuvdata import UVCal, UVData
     from pyuvdata.utils import uvcalibrate
 
-    from gcrsky.io.gaincal import posterior_mean_gains, write_gain_calibration
+    from gcrsky.ingest.gaincal import posterior_mean_gains
+    from gcrsky.io.gaincal import write_gain_calibration
 
     model = chain["model"]
     units = np.asarray(model.units)

@@ -1,4 +1,4 @@
-"""Reading visibility files: conventions, selections, noise, flags and errors (gcrsky.io.uvdata).
+"""Reading visibility files: conventions, selections, noise, flags and errors (gcrsky.ingest.uvdata).
 
 Every file here is written by pyuvdata from a matvis simulation (gcrsky.checks.uvsim), then
 rewritten in the variants the ingest must read the same: another conjugation of every
@@ -23,8 +23,8 @@ pytest.importorskip("matvis")
 from gcrsky.base.units import kelvin_sr_to_jy  # noqa: E402
 from gcrsky.checks.matvis import HERA_SITE, observing_times, random_sky, site  # noqa: E402
 from gcrsky.checks.uvsim import simulate_uvdata  # noqa: E402
+from gcrsky.ingest import from_uvdata, inspect_uvdata  # noqa: E402
 from gcrsky.instrument import gaussian_beam, hex_array  # noqa: E402
-from gcrsky.io.uvdata import from_uvdata, inspect_uvdata  # noqa: E402
 from gcrsky.model import gsm_cl  # noqa: E402
 
 LMAX, NSIDE = 6, 32
@@ -96,7 +96,7 @@ def test_a_projected_file_is_unprojected(sim, base, caplog):
     uvd = sim.uvdata.copy()
     uvd.phase(ra=1.0, dec=-0.5, cat_name="target", phase_frame="icrs")
     assert not np.allclose(uvd.data_array, sim.uvdata.data_array)  # the phasing changed the data
-    with caplog.at_level("WARNING", logger="gcrsky.io.uvdata"):
+    with caplog.at_level("WARNING", logger="gcrsky.ingest.uvdata"):
         p = _problem(uvd)
     assert "unprojected" in caplog.text
     _same(p, base, rtol=1e-9)  # pyuvdata's phase / unphase round trip: 1e-9 relative (uvw rounding)
@@ -239,6 +239,6 @@ def test_priors(sim, tmp_path):
 
 
 def test_ingest_is_jax_x64_only():
-    from gcrsky.io import uvdata
+    from gcrsky.ingest import uvdata
 
-    assert uvdata.from_uvdata.__module__ == "gcrsky.io.uvdata" and jax.config.jax_enable_x64
+    assert uvdata.from_uvdata.__module__ == "gcrsky.ingest.uvdata" and jax.config.jax_enable_x64

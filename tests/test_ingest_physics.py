@@ -51,8 +51,8 @@ pytest.importorskip("matvis")
 import gcrsky  # noqa: E402
 from gcrsky.checks.matvis import HERA_SITE, matvis_hera_beam_path, observing_times, site  # noqa: E402
 from gcrsky.checks.uvsim import simulate_uvdata  # noqa: E402
+from gcrsky.ingest import uvdata as ingest  # noqa: E402
 from gcrsky.instrument import beam_fwhm_rad, gaussian_beam, hex_array  # noqa: E402
-from gcrsky.io import uvdata as ingest  # noqa: E402
 from gcrsky.model import observed, paper_prior  # noqa: E402
 from gcrsky.sphere.maps import alm_to_map  # noqa: E402
 

@@ -23,8 +23,9 @@ import numpy as np
 import pytest
 from conftest import H1C, H2C  # noqa: E402
 
-from gcrsky.io import from_uvdata, read_observation
-from gcrsky.model import Observation, problem_from_observation, radiometer_variance, raw_variance
+from gcrsky.ingest import from_uvdata
+from gcrsky.io import Observation, read_observation
+from gcrsky.model import problem_from_observation, radiometer_variance, raw_variance
 
 
 def _uvdata(path):

@@ -40,7 +40,7 @@ __all__ = [
 ]
 
 #: Subpackages (and top-level modules) from the bottom of the data flow to the top.
-LAYERS = ("base", "sphere", "instrument", "model", "solvers", "inference", "parallel", "io", "run",
+LAYERS = ("base", "sphere", "io", "instrument", "model", "solvers", "inference", "parallel", "ingest", "run",
           "sim", "checks", "paper", "cli")
 #: The library core: never imports an application layer.
 CORE = LAYERS[: LAYERS.index("run") + 1]

@@ -1,6 +1,6 @@
 """``gcrsky run --data FILE``: the posterior of a visibility file's sky (no truth: no truth metrics).
 
-The problem is read by :func:`gcrsky.io.from_uvdata` and run by :func:`gcrsky.run.execute`
+The problem is read by :func:`gcrsky.ingest.ingest` (the :class:`~gcrsky.ingest.IngestSpec` of the options) and run by :func:`gcrsky.run.execute`
 with the paper's beam-region metrics and posterior figures
 (:class:`gcrsky.paper.report.PaperReport`; the beam FWHM is the file's configuration's).
 Nothing here imports :mod:`gcrsky.sim`.
@@ -15,7 +15,7 @@ from pathlib import Path
 from ..io.files import check_input_file
 from ..solvers.options import DEFAULT_TOL
 from .errors import report_user_error
-from .options import DEFAULT_NSAMPLES, beam_prior_kwargs, check_kwargs, data_kwargs, gain_sampling
+from .options import CLI_SELECTION, DEFAULT_NSAMPLES, gain_sampling, ingest_spec
 from .runs import EXIT_REFUSED, execute_with_bars, report_run, run_spec
 from .terminal import band_limit_line, refusal_message
 
@@ -115,24 +115,26 @@ def _file_digest(path) -> str:
     return h.hexdigest()
 
 
-def _data_settings(args, selection: dict) -> dict:
-    """The settings that identify a run on a file (``RunSpec.extra``): the file, its digest, beam, prior, selection."""
+def _data_settings(args, spec) -> dict:
+    """The settings that identify a run on a file (``RunSpec.extra``): the file, its digest and the
+    :class:`~gcrsky.ingest.IngestSpec`'s settings (beam, prior, noise, band limit, checks, selection)."""
+    kw = spec.keywords()
     return {"data_file": str(Path(args.data).resolve()), "data_sha256": _file_digest(args.data),
-            "beam": args.beam, "dish_diameter": args.dish_diameter, "prior": args.prior,
-            "prior_scale": args.prior_scale, "noise": args.noise, "compress": not args.no_compress,
-            "lmax": args.lmax, "nside": args.nside, "band_limit": args.band_limit, **beam_prior_kwargs(args),
-            **check_kwargs(args), "cal_sha256": _file_digest(args.cal) if args.cal else None,
-            "selection": {k: (list(v) if isinstance(v, tuple) else v) for k, v in selection.items()}}
+            "beam": kw["beam"], "dish_diameter": kw["dish_diameter_m"], "prior": kw["prior"],
+            "prior_scale": kw["prior_scale"], "noise": kw["noise"], "compress": kw["compress"],
+            "lmax": kw["lmax"], "nside": kw["nside"], "band_limit": kw["band_limit"],
+            **{k: kw[k] for k in ("beam_normalization", "beam_freq_scaling", "accept_x_orientation_mismatch",
+                                  "prior_mean", "cal", "flag_outliers", "flux_scale")},
+            "cal_sha256": _file_digest(args.cal) if args.cal else None,
+            "selection": {k: (list(kw[k]) if isinstance(kw[k], tuple) else kw[k]) for k in CLI_SELECTION}}
 
 
-def _read_problem(args, selection: dict):
-    """The :class:`~gcrsky.model.Problem` of the file (:func:`gcrsky.io.from_uvdata`)."""
-    from ..io.uvdata import from_uvdata
+def _read_problem(args, spec):
+    """The :class:`~gcrsky.model.Problem` of the file (:func:`gcrsky.ingest.ingest`; the beam a path: its file
+    is recorded)."""
+    from ..ingest.uvdata import ingest
 
-    return from_uvdata(args.data, lmax=args.lmax, nside=args.nside, beam=args.beam,  # a path: its file is recorded
-                       dish_diameter_m=args.dish_diameter, prior=args.prior, prior_scale=args.prior_scale,
-                       noise=args.noise, compress=not args.no_compress, band_limit=args.band_limit,
-                       **beam_prior_kwargs(args), **check_kwargs(args), **selection)
+    return ingest(args.data, spec)
 
 
 def _run_data(args) -> int:
@@ -145,9 +147,9 @@ def _run_data(args) -> int:
     from ..run import RunExistsError, check_out_dir, check_unlocked, existing_run_files
 
     _gain_inputs(args)
-    selection = data_kwargs(args)
+    ingested = ingest_spec(args, run=True)
     spec = run_spec(args, nsamples=args.nsamples or DEFAULT_NSAMPLES, method=args.method or "auto",
-                    tol=args.tol or DEFAULT_TOL, extra=_data_settings(args, selection))
+                    tol=args.tol or DEFAULT_TOL, extra=_data_settings(args, ingested))
     out = spec.output.out
     if not args.process_id:
         check_out_dir(out)  # a writable directory (the message says what is wrong)
@@ -162,7 +164,7 @@ def _run_data(args) -> int:
             print(refusal_message(RunExistsError(out, taken), resume=False), file=sys.stderr)
             return EXIT_REFUSED
     t0 = time.perf_counter()
-    prob = _read_problem(args, selection)
+    prob = _read_problem(args, ingested)
     build_s = time.perf_counter() - t0
     cfg = prob.config
     print(f"gcrsky: {args.data}: {len(cfg.conventions['antenna_numbers'])} antennas, {prob.data.shape[2]} rows "

@@ -1,9 +1,9 @@
-"""``gcrsky inspect FILE``: what a run on the file would use (:func:`gcrsky.io.inspect_uvdata`), without solving."""
+"""``gcrsky inspect FILE``: what a run on the file would use (:func:`gcrsky.ingest.inspect_uvdata`), without solving."""
 
 from __future__ import annotations
 
 from .errors import report_user_error
-from .options import data_kwargs
+from .options import ingest_spec
 
 __all__ = ["inspect_command"]
 
@@ -20,11 +20,10 @@ def _inspect(args) -> int:
     import json
 
     from ..base.memory import format_bytes
-    from ..io.uvdata import inspect_uvdata
-    from .inspect_checks import check_lines, inspect_check_kwargs
+    from ..ingest.inspect import inspect_uvdata
+    from .inspect_checks import check_lines
 
-    info = inspect_uvdata(args.file, lmax=args.lmax, nside=args.nside, **data_kwargs(args),
-                          **inspect_check_kwargs(args))
+    info = inspect_uvdata(args.file, ingest_spec(args, run=False), redundancy_tol_m=args.redundancy_tol)
     if args.json:
         print(json.dumps(info, indent=1))
         return 0

@@ -2,13 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["check_lines", "inspect_check_kwargs"]
-
-
-def inspect_check_kwargs(args) -> dict:
-    """inspect_uvdata's data-check keywords from ``inspect``'s options."""
-    return {"cal": args.cal, "flag_outliers": args.flag_outliers, "flux_scale": args.flux_scale, "beam": args.beam,
-            "dish_diameter_m": args.dish_diameter, "redundancy_tol_m": args.redundancy_tol}
+__all__ = ["check_lines"]
 
 
 def _fmt(x) -> str:

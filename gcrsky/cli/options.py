@@ -24,11 +24,10 @@ __all__ = [
     "gain_sampling",
     "add_beam_prior_options",
     "add_run_flags",
-    "beam_prior_kwargs",
     "channel_mode",
     "check_channel_options",
-    "check_kwargs",
-    "data_kwargs",
+    "CLI_SELECTION",
+    "ingest_spec",
     "finite_float",
     "int_at_least",
     "nside_arg",
@@ -229,11 +228,6 @@ def add_check_options(g, *, with_data: bool) -> None:
                        "arrays' position scatter (0.16 m in HERA H1C), below their spacing (14.6 m)")
 
 
-def check_kwargs(args) -> dict:
-    """from_uvdata / inspect_uvdata data-check keywords from the parsed options."""
-    return dict(cal=args.cal, flag_outliers=args.flag_outliers, flux_scale=args.flux_scale)
-
-
 def add_beam_prior_options(g) -> None:
     """How a beam file is used and the prior's mean (:func:`gcrsky.instrument.beamprep.prepare_beam`)."""
     g.add_argument("--beam-normalization", choices=("peak", "physical"), default="peak",
@@ -247,12 +241,6 @@ def add_beam_prior_options(g) -> None:
     g.add_argument("--prior-mean", choices=("zero", "gsm"), default="zero",
                    help="the prior's mean: zero (default) or gsm (the GSM's coefficients at the data's frequencies, "
                    "l <= 16), so the sky the data do not see is the GSM rather than zero")
-
-
-def beam_prior_kwargs(args) -> dict:
-    """from_uvdata's beam and prior-mean keywords from the parsed options."""
-    return dict(beam_normalization=args.beam_normalization, beam_freq_scaling=args.beam_freq_scaling,
-                accept_x_orientation_mismatch=args.accept_x_orientation_mismatch, prior_mean=args.prior_mean)
 
 
 def _gain_modes(s: str) -> tuple:
@@ -356,8 +344,8 @@ def gain_sampling(args, applied: float = 1.0):
                         thin=args.gain_thin, gauge_moves=args.gauge_moves, applied=applied)
 
 
-def data_kwargs(args) -> dict:
-    """from_uvdata / inspect_uvdata selection keywords from the parsed options."""
+def _selection_keywords(args) -> dict:
+    """The selection options as :class:`gcrsky.ingest.Selection`'s keywords (MHz -> Hz)."""
     return dict(
         freq_chans=args.chans,
         freq_range_hz=None if args.freq_range is None else tuple(1e6 * x for x in args.freq_range),
@@ -365,3 +353,23 @@ def data_kwargs(args) -> dict:
         antennas=args.antennas,
         pol=tuple(args.pol.split(",")) if "," in args.pol else args.pol,
     )
+
+
+#: The selection settings the command line sets (recorded in a run's settings, ``selection``).
+CLI_SELECTION = ("freq_chans", "freq_range_hz", "lst_range_hours", "antennas", "pol")
+
+
+def ingest_spec(args, *, run: bool):
+    """The :class:`gcrsky.ingest.IngestSpec` of the parsed options: the one builder of ``run --data`` (``run``)
+    and ``inspect`` (which has no prior, noise, compression, band-limit or beam-preparation options: the
+    spec's defaults; its ``--flux-scale`` defaults to check, as a run's)."""
+    from ..ingest.spec import IngestSpec
+
+    kw = dict(lmax=args.lmax, nside=args.nside, beam=args.beam, dish_diameter_m=args.dish_diameter, cal=args.cal,
+              flag_outliers=args.flag_outliers, flux_scale=args.flux_scale, **_selection_keywords(args))
+    if run:
+        kw.update(prior=args.prior, prior_scale=args.prior_scale, noise=args.noise, compress=not args.no_compress,
+                  band_limit=args.band_limit, beam_normalization=args.beam_normalization,
+                  beam_freq_scaling=args.beam_freq_scaling,
+                  accept_x_orientation_mismatch=args.accept_x_orientation_mismatch, prior_mean=args.prior_mean)
+    return IngestSpec.from_keywords(**kw)

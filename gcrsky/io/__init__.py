@@ -1,4 +1,4 @@
-"""Reading and writing: run products (``results.h5``, JSON, HEALPix FITS, pyradiosky skyh5).
+"""Reading and writing files: visibility files in, run products (``results.h5``, JSON, HEALPix FITS, pyradiosky skyh5).
 
 - ``results``: ``results.h5`` written batch by batch so that a killed run can be
   continued (:func:`create_results_h5`, :func:`append_batch`,
@@ -12,20 +12,23 @@
 - ``atomic``: every file is written to a temporary name beside the target and
   renamed over it (:func:`atomic_path`), so a kill never leaves a half-written file.
 
+- ``visdata``: :class:`Observation`, what a visibility file says (NumPy arrays on gcrsky's
+  grids; product names :data:`POLS`, :func:`parse_products`);
 - ``observation``: a visibility file in: :func:`read_observation` (any file pyuvdata
-  reads, selected and read partially, as an :class:`~gcrsky.model.Observation` in
-  gcrsky's conventions: what the file says, no physics);
-- ``uvdata``: real observations in: :func:`from_uvdata` (a
-  :class:`~gcrsky.model.Problem` from any file pyuvdata reads: :func:`read_observation`
-  then :func:`gcrsky.model.problem_from_observation`, with beam and prior files) and
-  :func:`inspect_uvdata` (what it would use, without solving).
+  reads, selected and read partially, as an :class:`Observation` in gcrsky's conventions:
+  what the file says, no physics); ``calibration``: a gain solutions file applied by pyuvdata
+  (:func:`read_calibrated_observation`); ``gaincal``: gains written as calfits / calh5.
+
+This is the bottom layer of files: it imports :mod:`gcrsky.base` (and :mod:`gcrsky.sphere`'s mode
+layout for the alm FITS files), no physics.  A file turned into a
+:class:`~gcrsky.model.Problem` (beams, priors, checks, band limit) is :mod:`gcrsky.ingest`.
 """
 
 from .atomic import atomic_path, atomic_write_text, is_temporary
 from .calibration import read_calibrated_observation
 from .fits import FRAMES, freq_column_names, write_alm_fits, write_healpix_fits
-from .gaincal import posterior_mean_gains, write_gain_calibration
-from .observation import read_observation
+from .gaincal import write_gain_calibration
+from .observation import read_observation, read_uvdata
 from .results import (
     ResultsState,
     StoredDraws,
@@ -42,14 +45,12 @@ from .results import (
     write_results_h5,
 )
 from .skymodel import healpix_skymodel, write_skyh5
-from .uvdata import POLS, DataConfig, from_uvdata, inspect_uvdata, read_uvdata
+from .visdata import POLS, Observation, parse_products
 
 __all__ = [
-    "posterior_mean_gains",
-    "write_gain_calibration",
     "FRAMES",
+    "Observation",
     "POLS",
-    "DataConfig",
     "ResultsState",
     "StoredDraws",
     "append_batch",
@@ -59,12 +60,11 @@ __all__ = [
     "create_results_h5",
     "finalize_results_h5",
     "freq_column_names",
-    "from_uvdata",
     "healpix_skymodel",
     "inputs_fingerprint",
-    "inspect_uvdata",
     "is_temporary",
     "json_default",
+    "parse_products",
     "read_draws",
     "read_calibrated_observation",
     "read_observation",
@@ -72,6 +72,7 @@ __all__ = [
     "read_uvdata",
     "settings_json",
     "write_alm_fits",
+    "write_gain_calibration",
     "write_healpix_fits",
     "write_json",
     "write_results_h5",

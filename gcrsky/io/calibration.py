@@ -31,8 +31,8 @@ import warnings
 
 import numpy as np
 
-from ..model.observation import Observation
 from .observation import observation_of, read_uvdata, unproject
+from .visdata import Observation
 
 __all__ = ["apply_calibration", "match_antennas", "read_calibrated_observation", "read_calibration"]
 
@@ -178,7 +178,7 @@ def read_calibrated_observation(data, cal, *, pol=None, **selection) -> tuple[Ob
         pol, **selection: as :func:`gcrsky.io.read_observation`.
 
     Returns:
-        (the :class:`~gcrsky.model.Observation`, the calibration record of :func:`apply_calibration`).
+        (the :class:`~gcrsky.io.Observation`, the calibration record of :func:`apply_calibration`).
     """
     uvd, source, sel = read_uvdata(data, pol=pol, **selection)
     if uvd is data:

@@ -1,6 +1,7 @@
 """Sampled gains as a calibration file pyuvdata reads: the posterior-mean gains as calfits or calh5.
 
-The gains are :func:`gcrsky.model.unit_gains` (``g_u = gbar_u sqrt(q(nu)) (1 + x_u)``), with the
+The gains are given (:func:`gcrsky.ingest.posterior_mean_gains` averages :func:`gcrsky.model.unit_gains`);
+they are (``g_u = gbar_u sqrt(q(nu)) (1 + x_u)``), with the
 model ``V_ij = g_i conj(g_j) V^sky`` of row ``(ant_1, ant_2)``: pyuvdata's ``gain_convention``
 ``"divide"`` (its ``uvcalibrate`` divides row ``(1, 2)`` by ``g_1 conj(g_2)``), ``cal_style``
 ``"sky"``.  A unit that is one gain per antenna (``pI`` rows) is written to both linear feeds
@@ -18,25 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["posterior_mean_gains", "write_gain_calibration"]
+__all__ = ["write_gain_calibration"]
 
 log = logging.getLogger(__name__)
-
-
-def posterior_mean_gains(model, thetas, scales, gbar=None) -> np.ndarray:
-    """The posterior mean of the units' gains over draws: (Nf, Nt, U) complex.
-
-    Args:
-        model: :func:`gcrsky.model.gain_model`'s layout.
-        thetas: (D, P) draws of the coefficients; scales: (D, Kf) draws of the scale.
-        gbar: the applied gains the draws were made about ((Nf, Nt, U) or None).
-    """
-    import jax
-
-    from ..model.gains import unit_gains
-
-    g = jax.vmap(lambda t, s: unit_gains(model, t, s, gbar))(np.asarray(thetas), np.asarray(scales))
-    return np.asarray(g).mean(axis=0)
 
 
 def write_gain_calibration(path, gains, model, *, antenna_numbers, antenna_names, antpos_enu_m, freqs_hz,
@@ -46,7 +31,7 @@ def write_gain_calibration(path, gains, model, *, antenna_numbers, antenna_names
 
     Args:
         path: the file to write.
-        gains: (Nf, Nt, U) complex (e.g. :func:`posterior_mean_gains`).
+        gains: (Nf, Nt, U) complex (e.g. :func:`gcrsky.ingest.posterior_mean_gains`).
         model: the layout whose ``units`` ((antenna index, feed)) the last axis follows.
         antenna_numbers, antenna_names: (Nant,) of the file the gains calibrate, in the order of the
             antenna indices of ``Problem.antpairs``.

@@ -1,4 +1,4 @@
-"""Reading a visibility file into an :class:`~gcrsky.model.Observation` (what the file says).
+"""Reading a visibility file into an :class:`~gcrsky.io.Observation` (what the file says).
 
 :func:`read_observation` reads any file ``UVData.from_file`` reads (UVH5; UVFITS,
 Measurement Sets, MIRIAD where pyuvdata's optional readers are installed), or selects
@@ -32,8 +32,8 @@ from typing import NamedTuple
 import numpy as np
 
 from ..base.memory import check_memory, format_bytes
-from ..model.observation import HISTORY_CHARS, Observation, parse_products
 from .files import check_input_file, reading
+from .visdata import HISTORY_CHARS, Observation, parse_products
 
 __all__ = ["read_observation", "read_uvdata"]
 
@@ -356,7 +356,7 @@ def read_observation(
     autos: bool = True,
     memory_budget: float | None = None,
 ) -> Observation:
-    """Read a visibility file (or select from a ``UVData``) into an :class:`~gcrsky.model.Observation`.
+    """Read a visibility file (or select from a ``UVData``) into an :class:`~gcrsky.io.Observation`.
 
     Args:
         data: a path to any file ``UVData.from_file`` reads, or a ``UVData`` object (not
@@ -373,7 +373,7 @@ def read_observation(
         memory_budget: bytes the read may use (default: the free memory).
 
     Returns:
-        the :class:`~gcrsky.model.Observation` (module docstring for the conventions).
+        the :class:`~gcrsky.io.Observation` (module docstring for the conventions).
     """
     uvd, source, selection = read_uvdata(
         data, pol=pol, freq_chans=freq_chans, freq_range_hz=freq_range_hz, times_jd=times_jd,

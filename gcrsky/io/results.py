@@ -59,7 +59,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from ..base.memory import format_bytes
-from ..solvers.info import SolveInfo
+from ..base.solveinfo import SolveInfo
 from .atomic import atomic_path, temporary_name
 
 __all__ = [

@@ -10,9 +10,8 @@
   traceable value checks)
 - ``problem``: :class:`Problem` and :func:`build_problem` (geometry, responses, simulation, assembly)
 - ``compress``: exact redundant-baseline compression of data, systems, problems
-- ``observation``: :class:`Observation`, what a visibility file says (NumPy arrays on
-  gcrsky's grids, no physics; :func:`gcrsky.io.read_observation` reads one)
-- ``observed``: :func:`problem_from_observation`: an Observation plus beams as a
+- ``observed``: :func:`problem_from_observation`: an :class:`~gcrsky.io.Observation` (what a
+  visibility file says, :func:`gcrsky.io.read_observation`) plus beams as a
   :class:`Problem` (modelled products, units, radiometer noise, weights, responses)
 - ``bandlimit``: the reach of a baseline, the lmax that models every baseline, and what to
   do with those beyond it (cut, marginalise the sky above lmax, truncate)
@@ -57,7 +56,6 @@ from .noise import (
     time_difference_variance,
     weights_from_flags,
 )
-from .observation import Observation
 from .observed import DataConfig, check_observation, problem_from_observation, raw_variance
 from .operator import (
     VisOperator,
@@ -125,7 +123,6 @@ __all__ = [
     "GSM_CL_FIT_RANGE",
     "Geometry",
     "LinearSystem",
-    "Observation",
     "Prior",
     "Problem",
     "VisOperator",

@@ -1,4 +1,4 @@
-"""Pre-fit data checks on an :class:`~gcrsky.model.Observation`: noise excess, outlier flags, empty data.
+"""Pre-fit data checks on an :class:`~gcrsky.io.Observation`: noise excess, outlier flags, empty data.
 
 Nothing here builds a response or fits a sky: these are checks of the file against the
 radiometer equation (:mod:`gcrsky.model.noise`) that can run before anything costly.
@@ -44,8 +44,8 @@ import logging
 import numpy as np
 from scipy.special import polygamma
 
+from ..io.visdata import Observation
 from .noise import radiometer_variance
-from .observation import Observation
 
 __all__ = [
     "DEFAULT_K",

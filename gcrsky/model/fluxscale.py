@@ -26,7 +26,7 @@ import logging
 
 import numpy as np
 
-from .observation import POLS, Observation
+from ..io.visdata import POLS, Observation
 
 __all__ = ["FLUX_BOUNDS", "NSIDE_QUAD", "flux_scale_check", "model_autos"]
 

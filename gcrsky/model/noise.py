@@ -39,7 +39,7 @@ def radiometer_variance(auto_i, auto_j, dt_s, dnu_hz, nsamples=1.0) -> np.ndarra
 
     The one implementation of the equation in gcrsky (simulated problems through
     :func:`radiometer_sigma`, real files through :func:`gcrsky.model.problem_from_observation`
-    and :func:`gcrsky.io.inspect_uvdata`).  Elementwise and NaN-propagating, with no checks,
+    and :func:`gcrsky.ingest.inspect_uvdata`).  Elementwise and NaN-propagating, with no checks,
     so that a missing or flagged autocorrelation (NaN) or a zero ``nsamples`` (Inf) marks
     the samples whose noise is unknown.
 

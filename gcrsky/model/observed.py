@@ -1,4 +1,4 @@
-"""The inference problem of an :class:`~gcrsky.model.Observation`: products, units, noise, rows.
+"""The inference problem of an :class:`~gcrsky.io.Observation`: products, units, noise, rows.
 
 :func:`problem_from_observation` turns what a file says (an Observation, read by
 :func:`gcrsky.io.read_observation`) plus the antennas' beams into the
@@ -19,7 +19,7 @@ the file's real observing times at the file's site (DESIGN section 2, mode (b)).
 * Noise (per component, :func:`raw_variance`): by default the radiometer equation on the
   file's own autocorrelations, ``sigma^2_pq = |V_ii,pp V_jj,qq| / (2 dt dnu N)``
   (:func:`gcrsky.model.radiometer_variance`, the one implementation, also behind
-  :func:`gcrsky.io.inspect_uvdata`'s estimate); ``"diff"``: one level per channel,
+  :func:`gcrsky.ingest.inspect_uvdata`'s estimate); ``"diff"``: one level per channel,
   baseline and product from time-adjacent differences
   (:func:`gcrsky.model.time_difference_variance`); or a given per-component sigma in the
   file's units.  Variances add as products are combined and scale with the factor squared.
@@ -42,10 +42,10 @@ from ..base.units import kelvin_sr_to_jy
 from ..instrument.antennas import make_array
 from ..instrument.beams import unique_beams
 from ..instrument.response import response_matrix
+from ..io.visdata import POLS, Observation, parse_products
 from .compress import COMPRESS_TOL_M
 from .datachecks import refuse_empty
 from .noise import radiometer_variance, time_difference_variance
-from .observation import POLS, Observation, parse_products
 from .prior import Prior
 from .problem import Problem, assemble_problem, observation_geometry
 from .skyprior import gsm_cl_source, gsm_prior
@@ -438,7 +438,7 @@ def problem_from_observation(
     """The inference problem of an Observation: ICRS coefficients at ``lmax`` (module docstring).
 
     Args:
-        obs: the :class:`~gcrsky.model.Observation` (:func:`gcrsky.io.read_observation`).
+        obs: the :class:`~gcrsky.io.Observation` (:func:`gcrsky.io.read_observation`).
         beams: one pyuvdata beam object for every antenna, or a sequence of them, one per
             antenna of ``obs`` in its ``antenna_numbers`` order.
         lmax: maximum degree of the sky's ICRS coefficients.

@@ -68,7 +68,7 @@ class Problem(eqx.Module):
         id share one beam object), or None when not recorded; pols: None (every row the
         unpolarised ``A_i A_j`` model of a simulation) or a tuple with the feed product
         each row of ``antpairs`` models (``"xx"``, ``"yy"``, ``"pI"``; I-equivalent
-        visibilities: :mod:`gcrsky.io.uvdata`); sigma_sky: None, or (Nf, Nt, Nbl) the part of
+        visibilities: :mod:`gcrsky.ingest.uvdata`); sigma_sky: None, or (Nf, Nt, Nbl) the part of
         ``sigma`` that is sky signal rather than radiometer noise (the sky above lmax marginalised as
         noise, :func:`gcrsky.model.bandlimit.marginalise_rows`), which passes through the antenna
         gains (:mod:`gcrsky.run.gains` scales it with them).

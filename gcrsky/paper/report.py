@@ -14,7 +14,7 @@ frequency (:mod:`gcrsky.paper.metrics`):
 and its figures: the paper's Figs. 3-7 for a run with a truth (:func:`run_figures`), or the
 posterior mean and std maps and the correlation (:func:`data_figures`) for one without.
 
-The FWHM is the one a file's configuration records (:class:`gcrsky.io.DataConfig`), or the
+The FWHM is the one a file's configuration records (:class:`gcrsky.ingest.DataConfig`), or the
 one given to :class:`PaperReport` (a simulated configuration's beam:
 :func:`gcrsky.paper.pipeline.paper_hooks`).  Nothing here imports :mod:`gcrsky.sim`.
 """

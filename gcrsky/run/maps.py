@@ -4,7 +4,7 @@ Maps are HEALPix RING ``(Nf, Npix)`` at the problem's ``nside``, in kelvin, in t
 of the coefficients (:func:`parameter_frame`).  The observed strip (:func:`observed_region`)
 is read from the problem's configuration when it records one (``latitude_deg`` and
 ``lst_range_hours``: a simulated :class:`~gcrsky.sim.Config` or a file's
-:class:`~gcrsky.io.DataConfig`).
+:class:`~gcrsky.ingest.DataConfig`).
 """
 
 from __future__ import annotations

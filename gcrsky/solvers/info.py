@@ -27,6 +27,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..base.solveinfo import SolveInfo
+
 __all__ = ["DrawInfo", "Result", "SolveInfo", "direct_info", "exact_info", "fold_bad_input", "result_code",
            "result_names"]
 
@@ -42,29 +44,6 @@ class Result:
     BAD_INPUT = 5
 
     NAMES = ("success", "max_iterations", "breakdown", "nonfinite", "inaccurate", "bad_input")
-
-
-class SolveInfo(NamedTuple):
-    """How a solve went (arrays have the batch shape of the solve, e.g. (Nf,) or (Nf, ndraws)).
-
-    Attributes:
-        iterations: CG iterations taken (0 for the direct paths; -1 where the engine
-            does not report them, ``CGOptions(engine="jax")``).
-        err_sigma: ``sqrt(r^T M^-1 r)`` from the *true* final residual ``b - P x``, in
-            posterior-sigma units: an upper bound on the error's P-norm with the
-            Nystrom preconditioner, an estimate with m-blocks; with the window
-            preconditioner ``sqrt(r^T S r)`` instead (a bound: ``P >= S^-1``); for the direct paths
-            the same quantity with their exact factor (rounding only).
-        rel_residual: ``||b - P x|| / ||b||``.
-        converged: ``result == Result.SUCCESS``.
-        result: the :class:`Result` code (int).
-    """
-
-    iterations: jax.Array
-    err_sigma: jax.Array
-    rel_residual: jax.Array
-    converged: jax.Array
-    result: jax.Array
 
 
 class DrawInfo(NamedTuple):

@@ -1,4 +1,4 @@
-"""Beams as they come and a prior for the whole band, where a file is read (:func:`gcrsky.io.from_uvdata`).
+"""Beams as they come and a prior for the whole band, where a file is read (:func:`gcrsky.ingest.from_uvdata`).
 
 * :func:`feed_pol_of`: ``--pol ee`` / ``nn`` (``en``, ``ne``) as the file's feed products, through
   the file's ``x_orientation`` (``Telescope.get_x_orientation_from_feeds``).
@@ -18,7 +18,7 @@ import os
 
 import numpy as np
 
-from ..model.observation import COMPASS_POLS, feed_pol, parse_products
+from ..io.visdata import COMPASS_POLS, feed_pol, parse_products
 from ..model.prior import Prior
 
 __all__ = ["PRIOR_MEANS", "apply_prior_mean", "feed_pol_of", "prepare_beams", "with_checks"]
@@ -46,8 +46,8 @@ def feed_pol_of(data, pol) -> tuple[object, dict | None]:
     if isinstance(data, UVData):
         tel = data.telescope
     else:
-        from .files import check_input_file, reading
-        from .observation import VIS_FORMATS
+        from ..io.files import check_input_file, reading
+        from ..io.observation import VIS_FORMATS
 
         path = check_input_file(data, "visibility file", measurement_set=True)
         with reading(path, "a visibility file", VIS_FORMATS):
@@ -69,7 +69,7 @@ def prepare_beams(beams, beam_arg, obs, *, normalization="peak", freq_scaling=No
     Args:
         beams: one pyuvdata beam object per antenna (identical antennas share one object).
         beam_arg: what the user gave (a path is recorded as the beam's file).
-        obs: the :class:`~gcrsky.model.Observation` (frequencies, ``x_orientation``).
+        obs: the :class:`~gcrsky.io.Observation` (frequencies, ``x_orientation``).
         normalization, freq_scaling, accept_x_orientation_mismatch: as
             :func:`gcrsky.instrument.beamprep.prepare_beam`.
 

@@ -13,38 +13,55 @@ All sections are JSON-friendly.  Nothing here builds a response.
 from __future__ import annotations
 
 import logging
+from typing import NamedTuple
 
 import numpy as np
 
+from ..io.observation import read_observation
+from ..io.visdata import Observation, parse_products
 from ..model.datachecks import DEFAULT_K, find_outliers, flag_outliers, flagged_antennas, noise_excess
 from ..model.fluxscale import FLUX_BOUNDS, flux_scale_check
-from ..model.observation import Observation, parse_products
-from .observation import read_observation
 
-__all__ = ["FLUX_SCALE_MODES", "flag_checks", "flux_checks", "inspect_checks", "read_checked"]
+__all__ = ["FLUX_SCALE_MODES", "CheckedObservation", "InspectedChecks", "flag_checks", "flux_checks", "inspect_checks",
+           "read_checked"]
 
 log = logging.getLogger(__name__)
+
+class CheckedObservation(NamedTuple):
+    """An Observation and the record of its checks so far (``DataConfig.checks`` sections)."""
+
+    obs: Observation
+    checks: dict
+
+
+class InspectedChecks(NamedTuple):
+    """``inspect``'s checks: the Observation a run would fit, the checks' record, what a run would refuse."""
+
+    obs: Observation
+    checks: dict
+    problems: list
+
 
 #: ``flux_scale``: refuse a ratio outside the bounds, accept it (recorded, a warning), or skip the check.
 FLUX_SCALE_MODES = ("check", "accept", "off")
 
 
-def read_checked(data, *, cal=None, pol="pI", **selection) -> tuple[Observation, dict]:
+def read_checked(data, *, cal=None, pol="pI", **selection) -> CheckedObservation:
     """The Observation of the selection (calibrated with ``cal`` if given) and ``{"calibration": ...}``."""
     if cal is None:
         obs = read_observation(data, pol=pol, **selection)
         state = {"applied": None, "vis_units": obs.vis_units}
-        return obs, {"calibration": state}
-    from .calibration import read_calibrated_observation
+        return CheckedObservation(obs, {"calibration": state})
+    from ..io.calibration import read_calibrated_observation
 
     obs, info = read_calibrated_observation(data, cal, pol=pol, **selection)
     used = {str(int(a)) for a in obs.antenna_numbers}
     info["renamed_antennas"] = {k: v for k, v in info["renamed_antennas"].items() if k in used}
-    return obs, {"calibration": {"applied": info, "vis_units": obs.vis_units}}
+    return CheckedObservation(obs, {"calibration": {"applied": info, "vis_units": obs.vis_units}})
 
 
 def flag_checks(obs: Observation, *, flag: bool = True, k: float = DEFAULT_K,
-                refuse: bool = True) -> tuple[Observation, dict]:
+                refuse: bool = True) -> CheckedObservation:
     """Noise excess, outliers (flagged if ``flag``), fully flagged antennas: (Observation, ``{"flags": ...}``).
 
     The excess needs the autos and two integrations; without them it is skipped with the reason.
@@ -57,7 +74,7 @@ def flag_checks(obs: Observation, *, flag: bool = True, k: float = DEFAULT_K,
     except ValueError as err:
         rec["noise_excess"] = {"skipped": str(err)}
         rec["fully_flagged_antennas"] = flagged_antennas(obs)
-        return obs, {"flags": rec}
+        return CheckedObservation(obs, {"flags": rec})
     pc = ex.per_channel()
     rec["noise_excess"] = {
         "per_channel_median": [None if not np.isfinite(x) else float(x) for x in pc],
@@ -82,7 +99,7 @@ def flag_checks(obs: Observation, *, flag: bool = True, k: float = DEFAULT_K,
         raise ValueError(rec["emptied"])
     if rec["fully_flagged_antennas"]:
         log.warning("antennas flagged entirely (every cross-correlation): %s", rec["fully_flagged_antennas"])
-    return obs, {"flags": rec}
+    return CheckedObservation(obs, {"flags": rec})
 
 
 def flux_checks(obs: Observation, beam, *, pol="pI", mode: str = "check", bounds=FLUX_BOUNDS) -> dict:
@@ -124,7 +141,7 @@ def flux_checks(obs: Observation, beam, *, pol="pI", mode: str = "check", bounds
 
 
 def inspect_checks(obs: Observation, checks: dict, *, pol="pI", flag: bool = True, flux_scale: str = "check",
-                   beam=None) -> tuple[Observation, dict, list[str]]:
+                   beam=None) -> InspectedChecks:
     """``inspect``'s checks: everything is reported, and what a run would refuse becomes a PROBLEM line.
 
     Args:
@@ -166,4 +183,4 @@ def inspect_checks(obs: Observation, checks: dict, *, pol="pI", flag: bool = Tru
     cal = checks["calibration"]
     if cal["applied"] is not None:
         problems += [f"calibration: {w}" for w in cal["applied"]["warnings"] if "redundant" in w]
-    return obs, checks, problems
+    return InspectedChecks(obs, checks, problems)
