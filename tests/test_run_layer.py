@@ -25,6 +25,12 @@ from gcrsky.io import read_draws, write_json
 from gcrsky.run import (
     Draws,
     FigureReport,
+    FrequencyModel,
+    Gains,
+    GainSampling,
+    Independent,
+    Joint,
+    JointFrequency,
     Output,
     ReportHook,
     RunSpec,
@@ -37,6 +43,7 @@ from gcrsky.run import (
     run_settings,
 )
 from gcrsky.run.report import collect_figures, collect_metrics
+from gcrsky.run.spec import sampling_of
 
 NSAMPLES, BATCH = 6, 4
 PRODUCTS = ("posterior_mean.fits", "posterior_std.fits", "posterior_mean_alm.fits", "posterior_mean.skyh5")
@@ -59,7 +66,11 @@ PRODUCTS = ("posterior_mean.fits", "posterior_std.fits", "posterior_mean_alm.fit
         (lambda: Output("runs/x", existing="append"), "output.existing"),
         (lambda: Output("runs/x", plots="yes"), "output.plots"),
         (lambda: Output(""), "output.out"),
-        (lambda: RunSpec(Draws(5), Output("x"), channels="threads"), "channels"),
+        (lambda: RunSpec(Draws(5), Output("x"), Solver(), Independent("threads")), "sampling.channels"),
+        (lambda: RunSpec(Draws(5), Output("x"), sampling="loop"), "sampling must be a DrawStage"),
+        (lambda: sampling_of("loop", GainSampling()), "channels and gains were both given.*drop channels"),
+        (lambda: sampling_of("loop", None, FrequencyModel()), "channels and frequency.*sampled together"),
+        (lambda: sampling_of(None, GainSampling(), FrequencyModel()), "gains and frequency.*--gains sample"),
         (lambda: RunSpec(Draws(5), Output("x"), argv="run --seed 1"), "argv"),
         (lambda: RunSpec(Draws(5), Output("x"), extra={"seed": 3}), "extra setting 'seed'"),
         (lambda: RunSpec(Draws(5), "x"), "output must be a Output"),
@@ -73,7 +84,7 @@ def test_spec_refuses_bad_values_naming_them(make, field):
 
 def test_spec_settings_and_types():
     spec = RunSpec(Draws(np.int64(20), 1, 8), Output("runs/x", "resume", False), Solver("cg", 1e-8),
-                   channels="loop", scenario="B1", argv=["run", "--seed", "1"], extra={"data_file": "f.uvh5"})
+                   Independent("loop"), scenario="B1", argv=["run", "--seed", "1"], extra={"data_file": "f.uvh5"})
     assert type(spec.draws.nsamples) is int and spec.draws.n_batches == 3
     assert spec.output.out == Path("runs/x") and spec.argv == ("run", "--seed", "1")
     from gcrsky.parallel import CHANNEL_KEY_SCHEME
@@ -84,6 +95,41 @@ def test_spec_settings_and_types():
     assert list(want)[-3:] == ["data_file", "channels", "channel_key_scheme"]
     with pytest.raises(AttributeError):  # frozen
         spec.draws.nsamples = 3
+
+# The settings each kind of run recorded before RunSpec held one draw stage (gcrsky 87d15d9, computed with
+# RunSpec(channels=..., gains=..., frequency=...)): a run recorded then must still resume, so its settings
+# must be equal, key for key and in the same order.
+SETTINGS_BEFORE_COMMON = {'config': {'lmax': 6, 'nside': 32}, 'nsamples': 20, 'seed': 3, 'batch': 8, 'method': 'cg', 'tol': 1e-08, 'scenario': 'B1', 'key_scheme': 'batch b: jax.random.fold_in(jax.random.PRNGKey(seed), b); full batches, last truncated', 'data': 'f.uvh5'}
+SETTINGS_BEFORE = {'joint': {}, 'loop': {'channels': 'loop', 'channel_key_scheme': 'channel f (index in the full channel list): key_f = jax.random.fold_in(key, f) on the one-channel system freq_slice(system, f); batch b of channel f: jax.random.fold_in(key_f, b); full batches, last truncated'}, 'devices': {'channels': 'devices', 'channel_key_scheme': 'channel f (index in the full channel list): key_f = jax.random.fold_in(key, f) on the one-channel system freq_slice(system, f); batch b of channel f: jax.random.fold_in(key_f, b); full batches, last truncated'}, 'processes': {'channels': 'processes', 'channel_key_scheme': 'channel f (index in the full channel list): key_f = jax.random.fold_in(key, f) on the one-channel system freq_slice(system, f); batch b of channel f: jax.random.fold_in(key_f, b); full batches, last truncated'}, 'gains': {'gains': {'modes': [2, 3], 'basis': 'fourier', 'sigma': 0.1, 'burn': 10, 'thin': 2, 'gauge_moves': 1, 'applied': 1.5}}, 'kernel': {'frequency': {'prior': 'kernel', 'beta': None, 'xi': 0.1, 'nbasis': 3, 'basis_sigma': 0.1, 'nugget': 1e-06, 'fit': False}}, 'basis': {'frequency': {'prior': 'basis', 'beta': -2.5, 'xi': 0.1, 'nbasis': 2, 'basis_sigma': 0.2, 'nugget': 0.001, 'fit': False}}}
+
+
+@pytest.mark.parametrize("kind", list(SETTINGS_BEFORE))
+def test_settings_of_each_draw_stage_equal_those_recorded_before(kind):
+    stages = {
+        "joint": Joint(), "loop": Independent("loop"), "devices": Independent("devices"),
+        "processes": Independent("processes"),
+        "gains": Gains(GainSampling(modes=(2, 3), basis="fourier", sigma=0.1, burn=10, thin=2, gauge_moves=1,
+                                    applied=1.5)),
+        "kernel": JointFrequency(FrequencyModel()),
+        "basis": JointFrequency(FrequencyModel(prior="basis", beta=-2.5, nbasis=2, basis_sigma=0.2)),
+    }
+    spec = RunSpec(Draws(20, 3, 8), Output("x"), Solver("cg", 1e-8), stages[kind], scenario="B1", argv=("run",),
+                   extra={"data": "f.uvh5"})
+    got = spec.settings({"lmax": 6, "nside": 32})
+    want = {**SETTINGS_BEFORE_COMMON, **SETTINGS_BEFORE[kind]}
+    assert got == want and list(got) == list(want)
+    assert json.dumps(got) == json.dumps(want)  # the recorded text too
+    # the convenience views of the one sampling choice
+    assert spec.channels == (kind if kind in ("loop", "devices", "processes") else None)
+    assert (spec.gains is None) == (kind != "gains") and (spec.frequency is None) == (kind not in ("kernel", "basis"))
+
+
+def test_every_draw_stage_file_is_a_run_file():
+    from gcrsky.run.output import RUN_FILES
+    from gcrsky.run.sampling import STAGES
+
+    assert all(f in RUN_FILES for stage in STAGES for f in stage.files)
+    assert Gains.files == ("gains.calh5",) and Joint.files == ()
 
 
 # ---------------------------------------------------------------- runs with and without hooks

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..instrument.beams import beam_fwhm_rad
-from ..run import Draws, Output, RunSpec, Solver, Watch, execute
+from ..run import Draws, Independent, Joint, Output, RunSpec, Solver, Watch, execute
 from ..sim.standard import beam_for_config
 from ..solvers.options import DEFAULT_TOL
 from .report import PaperReport
@@ -44,7 +44,7 @@ def run_problem(prob, out, *, nsamples: int, seed: int, batch: int, method: str,
     """Compatibility form of :func:`gcrsky.run.execute` with :func:`paper_hooks`.
 
     The keywords are the fields of :class:`~gcrsky.run.RunSpec` (``Draws(nsamples, seed,
-    batch)``, ``Solver(method, tol)``, ``Output(out, existing, plots)``, ``channels``,
+    batch)``, ``Solver(method, tol)``, ``Output(out, existing, plots)``, ``Independent(channels)`` unless None,
     ``scenario=scenario_name``, ``argv``, ``extra=extra_settings``) and of
     :class:`~gcrsky.run.Watch` (``on_stage``, ``progress``, ``channel_progress``).
 
@@ -53,7 +53,8 @@ def run_problem(prob, out, *, nsamples: int, seed: int, batch: int, method: str,
         process other than 0.
     """
     spec = RunSpec(Draws(nsamples, seed, batch), Output(out, existing, plots), Solver(method, tol),
-                   channels=channels, scenario=scenario_name, argv=argv, extra=extra_settings)
+                   Joint() if channels is None else Independent(channels), scenario=scenario_name, argv=argv,
+                   extra=extra_settings)
     done = execute(prob, spec, hooks=paper_hooks(prob), watch=Watch(on_stage, progress, channel_progress),
                    build_s=build_s, compile_since=compile_since)
     if done is None:

@@ -22,10 +22,10 @@ from ..base.memory import format_bytes
 from ..io.atomic import is_temporary
 from ..io.results import file_size_limit, read_results_state
 from .resume import ResumeError, check_resumable, settings_differences
-from .spec import EXISTING
 from .summary import versions
 
 __all__ = [
+    "EXISTING",
     "FIGURE_FILES",
     "GAIN_FILE",
     "PRODUCT_FILES",
@@ -45,6 +45,9 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+#: What a run may do with a directory that already holds a run's files.
+EXISTING = ("refuse", "overwrite", "resume")
 
 #: The appendable HDF5 file of a run (:mod:`gcrsky.io.results`).
 RESULTS_FILE = "results.h5"
