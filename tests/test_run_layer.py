@@ -248,3 +248,29 @@ def test_hooks_are_merged_in_order(tmp_path):
         {"a": "a.png", "b": "b.png"}, ["NOTE: a", "NOTE: b"])
     with pytest.raises(ValueError, match="metrics of 1 channels, the problem has 2"):
         collect_metrics(view, [_Counter("c", nchan=1)])
+
+
+def test_the_core_holds_no_figure_names_and_a_hooks_files_are_run_files(tmp_path):
+    """The paper's figures are the paper hook's files: run/output.py names none of them, yet a directory with
+    one is refused, overwritten and cleared with the run when the hook's files are given."""
+    import inspect
+
+    import gcrsky.run.output as output
+    from gcrsky.paper.report import FIGURE_FILES, PaperReport
+    from gcrsky.run import RunExistsError, check_output, existing_run_files, remove_run_files
+    from gcrsky.run.report import hook_files
+
+    src = inspect.getsource(output)
+    assert not any(name in src for name in FIGURE_FILES.values()) and "FIGURE_FILES" not in src
+    figures = hook_files([PaperReport(), _Nothing(), PaperReport()])
+    assert figures == tuple(FIGURE_FILES.values())  # each once, in the hook's order
+    (tmp_path / "fig4_sky_maps.png").write_bytes(b"png")
+    (tmp_path / "notes.txt").write_text("mine")
+    assert existing_run_files(tmp_path) == [] and check_output(tmp_path, {}, "refuse") is None  # not a run file alone
+    assert existing_run_files(tmp_path, figures) == ["fig4_sky_maps.png"]
+    with pytest.raises(RunExistsError, match="fig4_sky_maps.png"):
+        check_output(tmp_path, {}, "refuse", figures)
+    (tmp_path / "gains.calh5").write_bytes(b"h5")  # a draw stage's file, after the hook's (the order of old)
+    assert existing_run_files(tmp_path, figures) == ["fig4_sky_maps.png", "gains.calh5"]
+    assert remove_run_files(tmp_path, figures) == ["fig4_sky_maps.png", "gains.calh5"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]

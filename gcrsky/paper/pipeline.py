@@ -64,11 +64,12 @@ def run_problem(prob, out, *, nsamples: int, seed: int, batch: int, method: str,
 
 #: Names this module held before the run moved to :mod:`gcrsky.run` (still importable from here, with a warning).
 _MOVED = {name: "gcrsky.run" for name in (
-    "EXISTING", "FIGURE_FILES", "PRODUCT_FILES", "RESULTS_FILE", "RUN_FILES", "SUMMARY_FILE", "ResumeError",
+    "EXISTING", "PRODUCT_FILES", "RESULTS_FILE", "RUN_FILES", "SUMMARY_FILE", "ResumeError",
     "RunExistsError", "RunProducts", "StageTimer", "check_output", "existing_run_files", "info_stats",
     "parameter_frame", "remove_run_files", "run_settings", "settings_differences", "solver_summary", "versions",
     "write_products")}
 _MOVED["draw_batch"] = "gcrsky.run.draws"
+_MOVED["FIGURE_FILES"] = "gcrsky.paper.report"
 
 
 def __getattr__(name: str):

@@ -29,7 +29,6 @@ from .fit import goodness_of_fit
 from .lock import LOCK_FILE, RunLockedError, check_unlocked, lock_owner, run_lock
 from .maps import RunMaps, mode_z_scores, parameter_frame, run_maps
 from .output import (
-    FIGURE_FILES,
     PRODUCT_FILES,
     RESULTS_FILE,
     RUN_FILES,
@@ -54,7 +53,6 @@ from .summary import RunProducts, RunSummary, info_stats, read_summary, solver_s
 __all__ = [
     "CHANNEL_MODES",
     "EXISTING",
-    "FIGURE_FILES",
     "LOCK_FILE",
     "METHODS",
     "PRODUCT_FILES",

@@ -45,7 +45,7 @@ from .output import (
     open_run,
 )
 from .products import write_products
-from .report import ReportHook, RunView, collect_figures, collect_metrics
+from .report import ReportHook, RunView, collect_figures, collect_metrics, hook_files
 from .spec import RunSpec
 from .stages import StageTimer, Watch
 from .summary import (
@@ -103,7 +103,7 @@ def execute(prob, spec: RunSpec, *, hooks: Sequence[ReportHook] = (), watch: Wat
 def _execute_locked(prob, spec: RunSpec, hooks, watch: Watch, build_s: float, compile0: CompileStats
                     ) -> tuple[RunSummary, RunProducts]:
     """:func:`execute` in process 0, holding the output directory's lock."""
-    run = open_run(prob, spec)
+    run = open_run(prob, spec, hook_files(hooks))
     st = StageTimer(watch.on_stage)
     st.times["build"] = build_s
     method = spec.sampling.run_draws(prob, spec, run, st, watch)  # leaves the "draws" stage running
@@ -134,7 +134,7 @@ def _after_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, stored, meth
     timings, compiled = _timings(st, stored, compile0)
     summary = _summary(prob, spec, run, view, solver, warnings, (timings, compiled), figures, method, gof, gains,
                        channels)
-    written = [f for f in existing_run_files(run.out)
+    written = [f for f in existing_run_files(run.out, run.files)
                if f not in run.before or (f == RESULTS_FILE and finalized)]
     return summary, _products(prob, run, view, stored.draws, written)
 
