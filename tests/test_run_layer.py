@@ -274,3 +274,24 @@ def test_the_core_holds_no_figure_names_and_a_hooks_files_are_run_files(tmp_path
     assert existing_run_files(tmp_path, figures) == ["fig4_sky_maps.png", "gains.calh5"]
     assert remove_run_files(tmp_path, figures) == ["fig4_sky_maps.png", "gains.calh5"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
+
+
+def test_stored_maps_are_typed_and_used_as_they_were(tmp_path, problem):
+    """``stored_maps`` gives a StoredMaps (each map None where absent); ``run_maps`` uses the maps given."""
+    from gcrsky.run.maps import StoredMaps, stored_maps
+
+    rng = np.random.default_rng(3)
+    draws = rng.normal(size=(problem.data.shape[0], 4, problem.n))
+    fresh = run_maps(problem, draws, draws.mean(axis=1))
+    path = tmp_path / "r.h5"
+    with h5py.File(path, "w") as h:
+        h["maps/mean"], h["maps/std"] = fresh.mean_maps + 1.0, fresh.std_maps
+    got = stored_maps(path)
+    assert isinstance(got, StoredMaps) and got.truth is None and got.wiener is None
+    np.testing.assert_array_equal(got.mean, fresh.mean_maps + 1.0)
+    again = run_maps(problem, draws, draws.mean(axis=1), maps=got)
+    np.testing.assert_array_equal(again.mean_maps, fresh.mean_maps + 1.0)  # taken, not recomputed
+    np.testing.assert_array_equal(again.wiener_maps, fresh.wiener_maps)  # absent: computed
+    with h5py.File(tmp_path / "none.h5", "w"):
+        pass
+    assert stored_maps(tmp_path / "none.h5") == StoredMaps()
