@@ -295,3 +295,12 @@ def test_stored_maps_are_typed_and_used_as_they_were(tmp_path, problem):
     with h5py.File(tmp_path / "none.h5", "w"):
         pass
     assert stored_maps(tmp_path / "none.h5") == StoredMaps()
+
+
+def test_sampling_of_gives_one_draw_stage_and_only_a_workers_share_runs_elsewhere():
+    assert sampling_of() == Joint() and RunSpec(Draws(5), Output("x")).sampling == Joint()
+    assert sampling_of("devices") == Independent("devices") and sampling_of(None, GainSampling()) == Gains()
+    assert sampling_of(frequency=FrequencyModel("template")) == JointFrequency(FrequencyModel("template"))
+    assert not any(s.elsewhere() for s in (Joint(), Independent("processes"), Gains()))  # this is process 0
+    assert [type(s).name for s in (Joint(), Independent(), JointFrequency(), Gains())] == [
+        "joint", "independent", "frequency", "gains"]
