@@ -26,14 +26,14 @@ import pytest
 from gcrsky import cli
 from gcrsky.model import build_problem, isotropic_prior
 from gcrsky.model.spectral import log_frequency_kernel, mode_variance
-from gcrsky.run import Draws, Output, RunSpec, execute
+from gcrsky.run import Draws, JointFrequency, Output, RunSpec, execute
 from gcrsky.run.frequency import (
     FREQ_KEY_SCHEME,
     channel_flags,
     frequency_prior_of,
     joint_system_of,
 )
-from gcrsky.run.spec import FrequencyModel
+from gcrsky.run.spec import FrequencyModel, sampling_of
 from gcrsky.solvers.joint import (
     draw_joint_dense,
     joint_precision_matrix,
@@ -74,7 +74,7 @@ def partial(small_array):
 
 
 def _spec(out, model=MODEL, nsamples=8, batch=4):
-    return RunSpec(Draws(nsamples, seed=3, batch=batch), Output(out, plots=False), frequency=model)
+    return RunSpec(Draws(nsamples, seed=3, batch=batch), Output(out, plots=False), sampling=JointFrequency(model))
 
 
 @pytest.fixture(scope="module")
@@ -185,7 +185,7 @@ def test_bad_frequency_settings_are_refused(partial, tmp_path, capsys):
     with pytest.raises(ValueError, match="needs prior 'kernel'"):
         FrequencyModel("basis", fit=True)
     with pytest.raises(ValueError, match="sampled together"):
-        RunSpec(Draws(4), Output(tmp_path), channels="loop", frequency=MODEL)
+        sampling_of("loop", None, MODEL)
     joint, _ = joint_system_of(partial, MODEL)
     with pytest.raises(ValueError, match="not --method eigh"):
         choose_joint_path(joint, "eigh")
@@ -234,7 +234,7 @@ def test_the_data_space_paths_run_the_same_posterior(small_array, partial, tmp_p
     joint, _ = joint_system_of(prob, MODEL)
     want = "mmode" if full_day else "dense"
     assert choose_joint_path(joint, "dataspace")[:2] == ("dataspace", want)
-    spec = RunSpec(Draws(4, seed=3, batch=4), Output(tmp_path, plots=False), Solver("dataspace"), frequency=MODEL)
+    spec = RunSpec(Draws(4, seed=3, batch=4), Output(tmp_path, plots=False), Solver("dataspace"), JointFrequency(MODEL))
     summary, _ = execute(prob, spec)
     assert summary.run["method"] == "dataspace" and summary.solver["all_converged"]
     with h5py.File(tmp_path / "results.h5", "r") as h:
@@ -259,7 +259,7 @@ def test_the_cg_path_runs_the_same_posterior(partial, tmp_path):
     from gcrsky.run import Solver
 
     joint, _ = joint_system_of(partial, MODEL)
-    spec = RunSpec(Draws(4, seed=3, batch=4), Output(tmp_path, plots=False), Solver("cg"), frequency=MODEL)
+    spec = RunSpec(Draws(4, seed=3, batch=4), Output(tmp_path, plots=False), Solver("cg"), JointFrequency(MODEL))
     summary, _ = execute(partial, spec)
     assert summary.run["method"] == "cg" and summary.solver["all_converged"]
     assert summary.solver["wiener"]["err_sigma_max"] <= 1e-6

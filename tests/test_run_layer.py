@@ -25,6 +25,12 @@ from gcrsky.io import read_draws, write_json
 from gcrsky.run import (
     Draws,
     FigureReport,
+    FrequencyModel,
+    Gains,
+    GainSampling,
+    Independent,
+    Joint,
+    JointFrequency,
     Output,
     ReportHook,
     RunSpec,
@@ -37,6 +43,7 @@ from gcrsky.run import (
     run_settings,
 )
 from gcrsky.run.report import collect_figures, collect_metrics
+from gcrsky.run.spec import sampling_of
 
 NSAMPLES, BATCH = 6, 4
 PRODUCTS = ("posterior_mean.fits", "posterior_std.fits", "posterior_mean_alm.fits", "posterior_mean.skyh5")
@@ -59,7 +66,11 @@ PRODUCTS = ("posterior_mean.fits", "posterior_std.fits", "posterior_mean_alm.fit
         (lambda: Output("runs/x", existing="append"), "output.existing"),
         (lambda: Output("runs/x", plots="yes"), "output.plots"),
         (lambda: Output(""), "output.out"),
-        (lambda: RunSpec(Draws(5), Output("x"), channels="threads"), "channels"),
+        (lambda: RunSpec(Draws(5), Output("x"), Solver(), Independent("threads")), "sampling.channels"),
+        (lambda: RunSpec(Draws(5), Output("x"), sampling="loop"), "sampling must be a DrawStage"),
+        (lambda: sampling_of("loop", GainSampling()), "channels and gains were both given.*drop channels"),
+        (lambda: sampling_of("loop", None, FrequencyModel()), "channels and frequency.*sampled together"),
+        (lambda: sampling_of(None, GainSampling(), FrequencyModel()), "gains and frequency.*--gains sample"),
         (lambda: RunSpec(Draws(5), Output("x"), argv="run --seed 1"), "argv"),
         (lambda: RunSpec(Draws(5), Output("x"), extra={"seed": 3}), "extra setting 'seed'"),
         (lambda: RunSpec(Draws(5), "x"), "output must be a Output"),
@@ -73,7 +84,7 @@ def test_spec_refuses_bad_values_naming_them(make, field):
 
 def test_spec_settings_and_types():
     spec = RunSpec(Draws(np.int64(20), 1, 8), Output("runs/x", "resume", False), Solver("cg", 1e-8),
-                   channels="loop", scenario="B1", argv=["run", "--seed", "1"], extra={"data_file": "f.uvh5"})
+                   Independent("loop"), scenario="B1", argv=["run", "--seed", "1"], extra={"data_file": "f.uvh5"})
     assert type(spec.draws.nsamples) is int and spec.draws.n_batches == 3
     assert spec.output.out == Path("runs/x") and spec.argv == ("run", "--seed", "1")
     from gcrsky.parallel import CHANNEL_KEY_SCHEME
@@ -84,6 +95,41 @@ def test_spec_settings_and_types():
     assert list(want)[-3:] == ["data_file", "channels", "channel_key_scheme"]
     with pytest.raises(AttributeError):  # frozen
         spec.draws.nsamples = 3
+
+# The settings each kind of run recorded before RunSpec held one draw stage (gcrsky 87d15d9, computed with
+# RunSpec(channels=..., gains=..., frequency=...)): a run recorded then must still resume, so its settings
+# must be equal, key for key and in the same order.
+SETTINGS_BEFORE_COMMON = {'config': {'lmax': 6, 'nside': 32}, 'nsamples': 20, 'seed': 3, 'batch': 8, 'method': 'cg', 'tol': 1e-08, 'scenario': 'B1', 'key_scheme': 'batch b: jax.random.fold_in(jax.random.PRNGKey(seed), b); full batches, last truncated', 'data': 'f.uvh5'}
+SETTINGS_BEFORE = {'joint': {}, 'loop': {'channels': 'loop', 'channel_key_scheme': 'channel f (index in the full channel list): key_f = jax.random.fold_in(key, f) on the one-channel system freq_slice(system, f); batch b of channel f: jax.random.fold_in(key_f, b); full batches, last truncated'}, 'devices': {'channels': 'devices', 'channel_key_scheme': 'channel f (index in the full channel list): key_f = jax.random.fold_in(key, f) on the one-channel system freq_slice(system, f); batch b of channel f: jax.random.fold_in(key_f, b); full batches, last truncated'}, 'processes': {'channels': 'processes', 'channel_key_scheme': 'channel f (index in the full channel list): key_f = jax.random.fold_in(key, f) on the one-channel system freq_slice(system, f); batch b of channel f: jax.random.fold_in(key_f, b); full batches, last truncated'}, 'gains': {'gains': {'modes': [2, 3], 'basis': 'fourier', 'sigma': 0.1, 'burn': 10, 'thin': 2, 'gauge_moves': 1, 'applied': 1.5}}, 'kernel': {'frequency': {'prior': 'kernel', 'beta': None, 'xi': 0.1, 'nbasis': 3, 'basis_sigma': 0.1, 'nugget': 1e-06, 'fit': False}}, 'basis': {'frequency': {'prior': 'basis', 'beta': -2.5, 'xi': 0.1, 'nbasis': 2, 'basis_sigma': 0.2, 'nugget': 0.001, 'fit': False}}}
+
+
+@pytest.mark.parametrize("kind", list(SETTINGS_BEFORE))
+def test_settings_of_each_draw_stage_equal_those_recorded_before(kind):
+    stages = {
+        "joint": Joint(), "loop": Independent("loop"), "devices": Independent("devices"),
+        "processes": Independent("processes"),
+        "gains": Gains(GainSampling(modes=(2, 3), basis="fourier", sigma=0.1, burn=10, thin=2, gauge_moves=1,
+                                    applied=1.5)),
+        "kernel": JointFrequency(FrequencyModel()),
+        "basis": JointFrequency(FrequencyModel(prior="basis", beta=-2.5, nbasis=2, basis_sigma=0.2)),
+    }
+    spec = RunSpec(Draws(20, 3, 8), Output("x"), Solver("cg", 1e-8), stages[kind], scenario="B1", argv=("run",),
+                   extra={"data": "f.uvh5"})
+    got = spec.settings({"lmax": 6, "nside": 32})
+    want = {**SETTINGS_BEFORE_COMMON, **SETTINGS_BEFORE[kind]}
+    assert got == want and list(got) == list(want)
+    assert json.dumps(got) == json.dumps(want)  # the recorded text too
+    # the convenience views of the one sampling choice
+    assert spec.channels == (kind if kind in ("loop", "devices", "processes") else None)
+    assert (spec.gains is None) == (kind != "gains") and (spec.frequency is None) == (kind not in ("kernel", "basis"))
+
+
+def test_every_draw_stage_file_is_a_run_file():
+    from gcrsky.run.output import RUN_FILES
+    from gcrsky.run.sampling import STAGES
+
+    assert all(f in RUN_FILES for stage in STAGES for f in stage.files)
+    assert Gains.files == ("gains.calh5",) and Joint.files == ()
 
 
 # ---------------------------------------------------------------- runs with and without hooks
@@ -202,3 +248,59 @@ def test_hooks_are_merged_in_order(tmp_path):
         {"a": "a.png", "b": "b.png"}, ["NOTE: a", "NOTE: b"])
     with pytest.raises(ValueError, match="metrics of 1 channels, the problem has 2"):
         collect_metrics(view, [_Counter("c", nchan=1)])
+
+
+def test_the_core_holds_no_figure_names_and_a_hooks_files_are_run_files(tmp_path):
+    """The paper's figures are the paper hook's files: run/output.py names none of them, yet a directory with
+    one is refused, overwritten and cleared with the run when the hook's files are given."""
+    import inspect
+
+    import gcrsky.run.output as output
+    from gcrsky.paper.report import FIGURE_FILES, PaperReport
+    from gcrsky.run import RunExistsError, check_output, existing_run_files, remove_run_files
+    from gcrsky.run.report import hook_files
+
+    src = inspect.getsource(output)
+    assert not any(name in src for name in FIGURE_FILES.values()) and "FIGURE_FILES" not in src
+    figures = hook_files([PaperReport(), _Nothing(), PaperReport()])
+    assert figures == tuple(FIGURE_FILES.values())  # each once, in the hook's order
+    (tmp_path / "fig4_sky_maps.png").write_bytes(b"png")
+    (tmp_path / "notes.txt").write_text("mine")
+    assert existing_run_files(tmp_path) == [] and check_output(tmp_path, {}, "refuse") is None  # not a run file alone
+    assert existing_run_files(tmp_path, figures) == ["fig4_sky_maps.png"]
+    with pytest.raises(RunExistsError, match="fig4_sky_maps.png"):
+        check_output(tmp_path, {}, "refuse", figures)
+    (tmp_path / "gains.calh5").write_bytes(b"h5")  # a draw stage's file, after the hook's (the order of old)
+    assert existing_run_files(tmp_path, figures) == ["fig4_sky_maps.png", "gains.calh5"]
+    assert remove_run_files(tmp_path, figures) == ["fig4_sky_maps.png", "gains.calh5"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
+
+
+def test_stored_maps_are_typed_and_used_as_they_were(tmp_path, problem):
+    """``stored_maps`` gives a StoredMaps (each map None where absent); ``run_maps`` uses the maps given."""
+    from gcrsky.run.maps import StoredMaps, stored_maps
+
+    rng = np.random.default_rng(3)
+    draws = rng.normal(size=(problem.data.shape[0], 4, problem.n))
+    fresh = run_maps(problem, draws, draws.mean(axis=1))
+    path = tmp_path / "r.h5"
+    with h5py.File(path, "w") as h:
+        h["maps/mean"], h["maps/std"] = fresh.mean_maps + 1.0, fresh.std_maps
+    got = stored_maps(path)
+    assert isinstance(got, StoredMaps) and got.truth is None and got.wiener is None
+    np.testing.assert_array_equal(got.mean, fresh.mean_maps + 1.0)
+    again = run_maps(problem, draws, draws.mean(axis=1), maps=got)
+    np.testing.assert_array_equal(again.mean_maps, fresh.mean_maps + 1.0)  # taken, not recomputed
+    np.testing.assert_array_equal(again.wiener_maps, fresh.wiener_maps)  # absent: computed
+    with h5py.File(tmp_path / "none.h5", "w"):
+        pass
+    assert stored_maps(tmp_path / "none.h5") == StoredMaps()
+
+
+def test_sampling_of_gives_one_draw_stage_and_only_a_workers_share_runs_elsewhere():
+    assert sampling_of() == Joint() and RunSpec(Draws(5), Output("x")).sampling == Joint()
+    assert sampling_of("devices") == Independent("devices") and sampling_of(None, GainSampling()) == Gains()
+    assert sampling_of(frequency=FrequencyModel("template")) == JointFrequency(FrequencyModel("template"))
+    assert not any(s.elsewhere() for s in (Joint(), Independent("processes"), Gains()))  # this is process 0
+    assert [type(s).name for s in (Joint(), Independent(), JointFrequency(), Gains())] == [
+        "joint", "independent", "frequency", "gains"]

@@ -105,6 +105,7 @@ def _run(args) -> int:
 
     compile0 = setup_jax(args)
     from ..paper.pipeline import paper_hooks
+    from ..paper.report import FIGURE_FILES
     from ..run import ResumeError, RunExistsError, check_out_dir, check_output, check_unlocked
     from ..sim.config import Config
     from ..sim.standard import problem_from_config
@@ -117,7 +118,8 @@ def _run(args) -> int:
         if not worker:
             check_out_dir(spec.output.out)  # a writable directory (the message says what is wrong)
             check_unlocked(spec.output.out)  # another run writes there (execute's lock is what excludes)
-        state = None if worker else check_output(spec.output.out, spec.settings(config), spec.output.existing)
+        state = None if worker else check_output(spec.output.out, spec.settings(config), spec.output.existing,
+                                                 tuple(FIGURE_FILES.values()))
     except (RunExistsError, ResumeError) as e:
         print(refusal_message(e, resume=args.resume), file=sys.stderr)
         return EXIT_REFUSED

@@ -35,9 +35,12 @@ def _list() -> int:
 
 def _refused(args, names) -> bool:
     """Scenario directories that hold a run's files: refused (message, True) unless ``--overwrite`` (cleared)."""
+    from ..paper.report import FIGURE_FILES
     from ..run import existing_run_files, remove_run_files
 
-    taken = {n: existing_run_files(Path(args.out) / n) for n in names}
+    figures = tuple(FIGURE_FILES.values())
+
+    taken = {n: existing_run_files(Path(args.out) / n, figures) for n in names}
     taken = {n: f for n, f in taken.items() if f}
     if taken and not args.overwrite:
         what = "; ".join(f"{Path(args.out) / n}: {', '.join(f)}" for n, f in taken.items())
@@ -47,7 +50,7 @@ def _refused(args, names) -> bool:
               file=sys.stderr)
         return True
     for n in taken:
-        remove_run_files(Path(args.out) / n)
+        remove_run_files(Path(args.out) / n, figures)
     return False
 
 

@@ -25,10 +25,11 @@ def run_spec(args, *, nsamples: int, method: str, tol: float, scenario: str | No
     """The :class:`~gcrsky.run.RunSpec` of ``gcrsky run``'s options (draws, output, channels, argv, gains,
     frequency prior)."""
     from ..run import Draws, Output, RunSpec, Solver
+    from ..run.spec import sampling_of
 
     return RunSpec(Draws(nsamples, args.seed, args.batch), Output(args.out, existing_mode(args), not args.no_plots),
-                   Solver(method, tol), channels=channel_mode(args), scenario=scenario,
-                   argv=getattr(args, "_argv", None), extra=extra, gains=gains, frequency=frequency_model(args))
+                   Solver(method, tol), sampling_of(channel_mode(args), gains, frequency_model(args)),
+                   scenario=scenario, argv=getattr(args, "_argv", None), extra=extra)
 
 
 def execute_with_bars(args, prob, spec, hooks, *, build_s: float, compile_since):

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..instrument.beams import beam_fwhm_rad
-from ..run import Draws, Output, RunSpec, Solver, Watch, execute
+from ..run import Draws, Independent, Joint, Output, RunSpec, Solver, Watch, execute
 from ..sim.standard import beam_for_config
 from ..solvers.options import DEFAULT_TOL
 from .report import PaperReport
@@ -44,7 +44,7 @@ def run_problem(prob, out, *, nsamples: int, seed: int, batch: int, method: str,
     """Compatibility form of :func:`gcrsky.run.execute` with :func:`paper_hooks`.
 
     The keywords are the fields of :class:`~gcrsky.run.RunSpec` (``Draws(nsamples, seed,
-    batch)``, ``Solver(method, tol)``, ``Output(out, existing, plots)``, ``channels``,
+    batch)``, ``Solver(method, tol)``, ``Output(out, existing, plots)``, ``Independent(channels)`` unless None,
     ``scenario=scenario_name``, ``argv``, ``extra=extra_settings``) and of
     :class:`~gcrsky.run.Watch` (``on_stage``, ``progress``, ``channel_progress``).
 
@@ -53,7 +53,8 @@ def run_problem(prob, out, *, nsamples: int, seed: int, batch: int, method: str,
         process other than 0.
     """
     spec = RunSpec(Draws(nsamples, seed, batch), Output(out, existing, plots), Solver(method, tol),
-                   channels=channels, scenario=scenario_name, argv=argv, extra=extra_settings)
+                   Joint() if channels is None else Independent(channels), scenario=scenario_name, argv=argv,
+                   extra=extra_settings)
     done = execute(prob, spec, hooks=paper_hooks(prob), watch=Watch(on_stage, progress, channel_progress),
                    build_s=build_s, compile_since=compile_since)
     if done is None:
@@ -63,11 +64,12 @@ def run_problem(prob, out, *, nsamples: int, seed: int, batch: int, method: str,
 
 #: Names this module held before the run moved to :mod:`gcrsky.run` (still importable from here, with a warning).
 _MOVED = {name: "gcrsky.run" for name in (
-    "EXISTING", "FIGURE_FILES", "PRODUCT_FILES", "RESULTS_FILE", "RUN_FILES", "SUMMARY_FILE", "ResumeError",
+    "EXISTING", "PRODUCT_FILES", "RESULTS_FILE", "RUN_FILES", "SUMMARY_FILE", "ResumeError",
     "RunExistsError", "RunProducts", "StageTimer", "check_output", "existing_run_files", "info_stats",
     "parameter_frame", "remove_run_files", "run_settings", "settings_differences", "solver_summary", "versions",
     "write_products")}
 _MOVED["draw_batch"] = "gcrsky.run.draws"
+_MOVED["FIGURE_FILES"] = "gcrsky.paper.report"
 
 
 def __getattr__(name: str):

@@ -28,11 +28,21 @@ from typing import Callable
 import numpy as np
 
 from ..io.atomic import atomic_path
-from ..run.output import FIGURE_FILES
 from ..run.report import FigureReport, ReportHook, RunView
 from . import metrics as M
 
-__all__ = ["PaperReport", "data_figures", "run_figures"]
+__all__ = ["FIGURE_FILES", "PaperReport", "data_figures", "run_figures"]
+
+#: The per-run figures of the paper's report: ``{key: file name}`` (Figs. 3-7); :meth:`PaperReport.files`
+#: declares them to the run, so they are refused, overwritten and resumed with its other files.
+FIGURE_FILES = {
+    "fig3": "fig3_alm_residuals.png",
+    "fig4": "fig4_sky_maps.png",
+    "fig5": "fig5_beam_region.png",
+    "fig6": "fig6_slice.png",
+    "fig7_correlation": "fig7_correlation.png",
+    "fig7_corner": "fig7_corner.png",
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,6 +65,10 @@ class PaperReport(ReportHook):
             raise ValueError("PaperReport needs the beam FWHM of a configuration that records none (a simulation): "
                              "pass fwhm_deg, as gcrsky.paper.pipeline.paper_hooks does")
         return float(self.fwhm_deg[f])
+
+    def files(self) -> dict:
+        """The figures this hook may write: :data:`FIGURE_FILES`."""
+        return dict(FIGURE_FILES)
 
     def metrics(self, view: RunView) -> list[dict]:
         """Per frequency: ``fwhm_deg``, ``std_*``, the truth metrics and ``mode_z`` where they apply."""
@@ -120,7 +134,7 @@ def run_figures(out: Path, view: RunView, *, only_missing: bool = False) -> dict
         only_missing: keep figures already in ``out`` (a resumed run).
 
     Returns:
-        ``{figure key: file name}`` (:data:`gcrsky.run.FIGURE_FILES`).
+        ``{figure key: file name}`` (:data:`FIGURE_FILES`).
     """
     from . import figures as P
 

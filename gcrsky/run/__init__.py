@@ -7,6 +7,8 @@ and figures through report hooks (:class:`ReportHook`; the paper's are in
 
 - ``spec``: :class:`RunSpec` (:class:`Draws`, :class:`Solver`, :class:`Output`), validated
   on construction; :func:`run_settings`, what identifies a run's draws;
+- ``sampling``: what a run samples, one draw stage (:class:`Joint`, :class:`Independent`,
+  :class:`JointFrequency`, :class:`Gains`): its settings block, files, draws and summary block;
 - ``output``: the run's files, :func:`check_output` (refuse / overwrite / resume),
   :func:`remove_run_files`, :func:`open_run`;
 - ``resume``: :class:`ResumeError`, :func:`settings_differences`, the recorded solver options;
@@ -27,7 +29,6 @@ from .fit import goodness_of_fit
 from .lock import LOCK_FILE, RunLockedError, check_unlocked, lock_owner, run_lock
 from .maps import RunMaps, mode_z_scores, parameter_frame, run_maps
 from .output import (
-    FIGURE_FILES,
     PRODUCT_FILES,
     RESULTS_FILE,
     RUN_FILES,
@@ -44,23 +45,29 @@ from .products import write_products
 from .report import FigureReport, ReportHook, RunView
 from .resume import ResumeError, settings_differences
 from .runner import execute
-from .spec import CHANNEL_MODES, EXISTING, METHODS, Draws, GainSampling, Output, RunSpec, Solver, run_settings
+from .sampling import DrawStage, FrequencyModel, Gains, GainSampling, Independent, Joint, JointFrequency
+from .spec import CHANNEL_MODES, EXISTING, METHODS, Draws, Output, RunSpec, Solver, run_settings
 from .stages import StageTimer, Watch
 from .summary import RunProducts, RunSummary, info_stats, read_summary, solver_summary, versions
 
 __all__ = [
     "CHANNEL_MODES",
     "EXISTING",
-    "FIGURE_FILES",
     "LOCK_FILE",
     "METHODS",
     "PRODUCT_FILES",
     "RESULTS_FILE",
     "RUN_FILES",
     "SUMMARY_FILE",
+    "DrawStage",
     "Draws",
     "FigureReport",
+    "FrequencyModel",
     "GainSampling",
+    "Gains",
+    "Independent",
+    "Joint",
+    "JointFrequency",
     "Output",
     "ReportHook",
     "ResumeError",

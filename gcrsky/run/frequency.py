@@ -5,7 +5,7 @@ the reference channel (the middle one, ``nu0``) and, through the ratio of every 
 variance to the reference one's, the spectral index ``beta`` of the prior's standard deviation
 (least squares in log-log, unless given).  :func:`frequency_prior_of` builds the separable
 :class:`~gcrsky.model.spectral.FrequencyPrior` ``S = R (x) diag(c)`` of
-:class:`~gcrsky.run.spec.FrequencyModel` from them (template, basis or kernel ``R``), and
+:class:`~gcrsky.run.sampling.FrequencyModel` from them (template, basis or kernel ``R``), and
 records how far its per-channel variances ``c_k R_ff`` are from the independent prior's.
 
 The draws (:func:`frequency_draws`) are those of the joint posterior over all channels, by an
@@ -42,7 +42,6 @@ from ..solvers.plan import choose_joint_path
 from ..solvers.registry import LEGACY_JOINT_NAMES, path_of
 from .draws import append_batches, record_setup
 from .output import OpenRun
-from .spec import FrequencyModel, RunSpec
 from .stages import StageTimer, Watch
 
 __all__ = ["FREQ_KEY_SCHEME", "channel_flags", "frequency_draws", "frequency_prior_of", "joint_system_of"]
@@ -78,14 +77,14 @@ def _fit_beta(freqs: np.ndarray, var: np.ndarray, f0: int) -> float:
     return float(np.sum(x * y) / np.sum(x * x))
 
 
-def frequency_prior_of(system, freqs_hz, model: FrequencyModel) -> tuple[FrequencyPrior, dict]:
+def frequency_prior_of(system, freqs_hz, model) -> tuple[FrequencyPrior, dict]:
     """The frequency-coupled prior of ``model`` built on a problem's own per-channel prior.
 
     Args:
         system: the problem's :class:`~gcrsky.model.LinearSystem` (its prior: mean (Nf, n), a
             proper ``inv_var`` (Nf, n)).
         freqs_hz: (Nf,) channel frequencies, Hz, increasing or not, distinct.
-        model: the :class:`~gcrsky.run.spec.FrequencyModel`.
+        model: the :class:`~gcrsky.run.sampling.FrequencyModel`.
 
     Returns:
         ``(FrequencyPrior, info)``; ``info`` (JSON-able): the prior's name, ``nu0_mhz``, ``beta``
@@ -125,7 +124,7 @@ def frequency_prior_of(system, freqs_hz, model: FrequencyModel) -> tuple[Frequen
     return fp, info
 
 
-def joint_system_of(prob, model: FrequencyModel) -> tuple[JointSystem, dict]:
+def joint_system_of(prob, model) -> tuple[JointSystem, dict]:
     """The :class:`~gcrsky.solvers.joint.JointSystem` of a problem under ``model`` (and the prior's info).
 
     With ``model.fit`` the kernel's amplitude, index and correlation length are first fitted by the
@@ -142,7 +141,7 @@ def joint_system_of(prob, model: FrequencyModel) -> tuple[JointSystem, dict]:
     return joint, info
 
 
-def fit_kernel(joint: JointSystem, freqs_hz, model: FrequencyModel, info: dict) -> tuple[JointSystem, dict]:
+def fit_kernel(joint: JointSystem, freqs_hz, model, info: dict) -> tuple[JointSystem, dict]:
     """The kernel prior at the maximum of the joint evidence (:func:`gcrsky.inference.spectral_hyper.
     fit_spectral_hyperparameters`, BFGS under its weak hyperprior), starting from ``info``'s ``beta`` and
     ``model.xi``.
@@ -202,7 +201,7 @@ def _recorded_path(state) -> tuple[str, str]:
     return method, str(json.loads(state.attrs["solver_options_json"])["variant"])
 
 
-def frequency_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, watch: Watch) -> str:
+def frequency_draws(prob, spec, run: OpenRun, st: StageTimer, watch: Watch) -> str:
     """The ``wiener`` stage and the draws of a frequency-coupled run, from batch ``run.start``.
 
     Returns the path that ran; leaves the ``draws`` stage running (the caller stops it).
@@ -248,7 +247,7 @@ def _recorded_prior(h5) -> dict | None:
         return None
 
 
-def channels_block(prob, spec: RunSpec, h5, warnings: list) -> dict:
+def channels_block(prob, model, h5, warnings: list) -> dict:
     """The summary's ``channels`` block (also ``results.h5``'s attribute ``channels_json``), and its note.
 
     Every run says which channels are fully or partly flagged and what their draws are: the
@@ -256,7 +255,8 @@ def channels_block(prob, spec: RunSpec, h5, warnings: list) -> dict:
     frequency prior for a frequency-coupled run.
 
     Args:
-        prob: the run's :class:`~gcrsky.model.Problem`; spec: its :class:`~gcrsky.run.RunSpec`;
+        prob: the run's :class:`~gcrsky.model.Problem`; model: its frequency prior
+        (:class:`~gcrsky.run.sampling.FrequencyModel`), or None for independent channels;
         h5: its ``results.h5``; warnings: the run's warnings (a note is appended).
 
     Returns:
@@ -265,8 +265,8 @@ def channels_block(prob, spec: RunSpec, h5, warnings: list) -> dict:
     """
     flags = channel_flags(prob.system().inv_noise)
     freqs = np.asarray(prob.freqs_hz, np.float64)
-    coupled = spec.frequency is not None
-    block = {"model": spec.frequency.prior if coupled else "independent",
+    coupled = model is not None
+    block = {"model": model.prior if coupled else "independent",
              "freqs_mhz": [float(f / 1e6) for f in freqs], **flags,
              "flagged_posterior": ("inpainted: the joint posterior through the frequency prior's coupling to the "
                                    "other channels" if coupled else "the prior alone (independent channels)"),
@@ -275,7 +275,7 @@ def channels_block(prob, spec: RunSpec, h5, warnings: list) -> dict:
         mhz = ", ".join(f"{freqs[i] / 1e6:.3f}" for i in flags["flagged"])
         if coupled:
             warnings.append(f"NOTE: {len(flags['flagged'])} channel(s) fully flagged ({mhz} MHz): their draws and maps "
-                            f"are inpainted through the {spec.frequency.prior} frequency prior (marked in "
+                            f"are inpainted through the {model.prior} frequency prior (marked in "
                             "summary.json's channels block and results.h5's channels_json).")
         else:
             warnings.append(f"NOTE: {len(flags['flagged'])} channel(s) fully flagged ({mhz} MHz): their draws and maps "

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..sphere.maps import alm_to_map, posterior_maps
 
-__all__ = ["RunMaps", "mode_z_scores", "observed_region", "parameter_frame", "run_maps", "stored_maps"]
+__all__ = ["RunMaps", "StoredMaps", "mode_z_scores", "observed_region", "parameter_frame", "run_maps", "stored_maps"]
 
 
 class RunMaps(NamedTuple):
@@ -74,25 +74,34 @@ def mode_z_scores(draws, truth):
     return np.where(std > 0, z, np.nan)
 
 
-def run_maps(prob, draws: np.ndarray, a_wf: np.ndarray, *, maps: dict | None = None) -> RunMaps:
+class StoredMaps(NamedTuple):
+    """The maps a finished ``results.h5`` holds (:func:`stored_maps`), each ``(Nf, Npix)`` K or None if absent."""
+
+    truth: np.ndarray | None = None
+    mean: np.ndarray | None = None
+    std: np.ndarray | None = None
+    wiener: np.ndarray | None = None
+
+
+def run_maps(prob, draws: np.ndarray, a_wf: np.ndarray, *, maps: StoredMaps | None = None) -> RunMaps:
     """Truth, posterior mean, std and Wiener maps of a run, its z-scores and observed strip.
 
     Args:
         prob: the :class:`~gcrsky.model.Problem` (``lmax``, ``nside``, ``a_true``, ``config``).
         draws: ``(Nf, ndraws, n)`` realified draws, K; non-finite draws give NaN mean and std maps.
         a_wf: ``(Nf, n)`` the Wiener filter, K.
-        maps: the ``{"truth", "mean", "std", "wiener"}`` maps of these draws when already at
-            hand (a finished ``results.h5``'s ``maps`` group, :func:`stored_maps`), not recomputed.
+        maps: the maps of these draws when already at hand (:class:`StoredMaps`, a finished
+            ``results.h5``'s ``maps`` group, :func:`stored_maps`), not recomputed; None: none.
     """
     lmax, nside = prob.lmax, prob.nside
     truth = None if prob.a_true is None else np.asarray(prob.a_true)
-    maps = maps or {}
-    truth_maps = None if truth is None else maps.get("truth")
+    maps = maps or StoredMaps()
+    truth_maps = None if truth is None else maps.truth
     if truth is not None and truth_maps is None:
         truth_maps = alm_to_map(truth, lmax, nside)
-    wf_maps = maps["wiener"] if "wiener" in maps else alm_to_map(a_wf, lmax, nside)
-    if "mean" in maps and "std" in maps:
-        mean_maps, std_maps = maps["mean"], maps["std"]
+    wf_maps = maps.wiener if maps.wiener is not None else alm_to_map(a_wf, lmax, nside)
+    if maps.mean is not None and maps.std is not None:
+        mean_maps, std_maps = maps.mean, maps.std
     elif bool(np.isfinite(draws).all()):
         mean_maps, std_maps = posterior_maps(draws, lmax, nside)
     else:
@@ -102,9 +111,10 @@ def run_maps(prob, draws: np.ndarray, a_wf: np.ndarray, *, maps: dict | None = N
     return RunMaps(truth_maps, mean_maps, std_maps, wf_maps, z, centre_dec, ra_range)
 
 
-def stored_maps(h5: Path) -> dict:
-    """The ``maps`` group of a finished ``results.h5`` (empty if it has none)."""
+def stored_maps(h5: Path) -> StoredMaps:
+    """The ``maps`` group of a finished ``results.h5`` (:class:`StoredMaps`; each map None where absent)."""
     import h5py
 
     with h5py.File(h5, "r") as h:
-        return {k: h["maps"][k][()] for k in h["maps"]} if "maps" in h else {}
+        group = h["maps"] if "maps" in h else {}
+        return StoredMaps(**{k: group[k][()] for k in StoredMaps._fields if k in group})

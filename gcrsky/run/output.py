@@ -14,7 +14,7 @@ import logging
 import os
 import shutil
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
@@ -22,11 +22,10 @@ from ..base.memory import format_bytes
 from ..io.atomic import is_temporary
 from ..io.results import file_size_limit, read_results_state
 from .resume import ResumeError, check_resumable, settings_differences
-from .spec import EXISTING
 from .summary import versions
 
 __all__ = [
-    "FIGURE_FILES",
+    "EXISTING",
     "GAIN_FILE",
     "PRODUCT_FILES",
     "RESULTS_FILE",
@@ -41,10 +40,14 @@ __all__ = [
     "existing_run_files",
     "open_run",
     "remove_run_files",
+    "run_files",
     "temporaries",
 ]
 
 log = logging.getLogger(__name__)
+
+#: What a run may do with a directory that already holds a run's files.
+EXISTING = ("refuse", "overwrite", "resume")
 
 #: The appendable HDF5 file of a run (:mod:`gcrsky.io.results`).
 RESULTS_FILE = "results.h5"
@@ -57,20 +60,20 @@ PRODUCT_FILES = {
     "posterior_mean_alm": "posterior_mean_alm.fits",
     "posterior_mean_skyh5": "posterior_mean.skyh5",
 }
-#: The per-run figures report hooks may write: ``{key: file name}`` (the paper's Figs. 3-7,
-#: :mod:`gcrsky.paper.report`); part of a run's files, so refused, overwritten and resumed with it.
-FIGURE_FILES = {
-    "fig3": "fig3_alm_residuals.png",
-    "fig4": "fig4_sky_maps.png",
-    "fig5": "fig5_beam_region.png",
-    "fig6": "fig6_slice.png",
-    "fig7_correlation": "fig7_correlation.png",
-    "fig7_corner": "fig7_corner.png",
-}
-#: The posterior-mean gains of a run that samples them (:func:`gcrsky.run.gains.write_gain_products`).
+#: The posterior-mean gains of a run that samples them (:func:`gcrsky.run.gains.write_gain_products`; the file
+#: :class:`gcrsky.run.sampling.Gains` declares).
 GAIN_FILE = "gains.calh5"
-#: Every file a run writes into its directory (what :func:`existing_run_files` looks for).
-RUN_FILES = (RESULTS_FILE, SUMMARY_FILE, *PRODUCT_FILES.values(), *FIGURE_FILES.values(), GAIN_FILE)
+#: Every file the core writes into a run's directory, whatever it samples (the draw stages' files included).  A
+#: report hook's files (:meth:`gcrsky.run.ReportHook.files`, e.g. the paper's figures) are passed as ``files`` to
+#: the functions here: they are then part of the run's files, refused, overwritten and resumed with it.
+RUN_FILES = (RESULTS_FILE, SUMMARY_FILE, *PRODUCT_FILES.values(), GAIN_FILE)
+_STAGE_FILES = (GAIN_FILE,)
+
+
+def run_files(files: Sequence[str] = ()) -> tuple[str, ...]:
+    """The core's run files (:data:`RUN_FILES`) with ``files`` (a report hook's) after the products."""
+    core = tuple(f for f in RUN_FILES if f not in _STAGE_FILES)
+    return (*core, *(f for f in files if f not in RUN_FILES), *_STAGE_FILES)
 
 
 class RunExistsError(FileExistsError):
@@ -147,37 +150,39 @@ class PostDrawError(RuntimeError):
             "the maps, products, figures and summary from them (or --overwrite to start again)")
 
 
-def existing_run_files(out) -> list[str]:
-    """The run files (:data:`RUN_FILES`) present in ``out``, in that order."""
+def existing_run_files(out, files: Sequence[str] = ()) -> list[str]:
+    """The run files (:func:`run_files` of ``files``, a report hook's) present in ``out``, in that order."""
     out = Path(out)
-    return [f for f in RUN_FILES if (out / f).exists()]
+    return [f for f in run_files(files) if (out / f).exists()]
 
 
-def temporaries(out) -> list[Path]:
-    """Temporary files a killed writer of a run file left in ``out``."""
+def temporaries(out, files: Sequence[str] = ()) -> list[Path]:
+    """Temporary files a killed writer of a run file (:func:`run_files` of ``files``) left in ``out``."""
     out = Path(out)
     if not out.is_dir():
         return []
-    return [p for p in out.iterdir() if any(is_temporary(p, f) for f in RUN_FILES)]
+    names = run_files(files)
+    return [p for p in out.iterdir() if any(is_temporary(p, f) for f in names)]
 
 
-def remove_run_files(out) -> list[str]:
-    """Delete the run files (:data:`RUN_FILES`) in ``out`` and any temporary files a killed writer left.
+def remove_run_files(out, files: Sequence[str] = ()) -> list[str]:
+    """Delete the run files (:func:`run_files` of ``files``, a report hook's) in ``out`` and any temporary
+    files a killed writer left.
 
     Nothing else in ``out`` is touched.  Returns the names removed.
     """
     out = Path(out)
     gone = []
-    for f in existing_run_files(out):
+    for f in existing_run_files(out, files):
         (out / f).unlink()
         gone.append(f)
-    for p in temporaries(out):
+    for p in temporaries(out, files):
         p.unlink(missing_ok=True)
         gone.append(p.name)
     return gone
 
 
-def check_output(out, settings: dict, existing: str = "refuse"):
+def check_output(out, settings: dict, existing: str = "refuse", files: Sequence[str] = ()):
     """Decide what a run with ``settings`` may do in ``out``; raises if it may not.
 
     Args:
@@ -185,6 +190,7 @@ def check_output(out, settings: dict, existing: str = "refuse"):
         settings: this run's settings (:meth:`gcrsky.run.RunSpec.settings`).
         existing: ``"refuse"`` (a directory holding run files is an error),
             ``"overwrite"`` (it will be cleared) or ``"resume"`` (its run is continued).
+        files: the report hooks' files (:meth:`gcrsky.run.ReportHook.files`), run files too.
 
     Returns:
         the :class:`gcrsky.io.ResultsState` to continue (``"resume"`` with a
@@ -200,7 +206,7 @@ def check_output(out, settings: dict, existing: str = "refuse"):
     if existing not in EXISTING:
         raise ValueError(f"existing must be one of {EXISTING}, got {existing!r}")
     out = Path(out)
-    files = existing_run_files(out)
+    files = existing_run_files(out, files)
     if existing == "overwrite" or not files:
         return None
     if existing == "refuse":
@@ -222,15 +228,15 @@ def check_output(out, settings: dict, existing: str = "refuse"):
     return state
 
 
-def clear_output(out, existing: str) -> None:
-    """Make ``out`` ready for a run that :func:`check_output` allowed: cleared of run files
-    (``existing="overwrite"``) and of the temporaries a killed writer left."""
+def clear_output(out, existing: str, files: Sequence[str] = ()) -> None:
+    """Make ``out`` ready for a run that :func:`check_output` allowed: cleared of run files (``files``: the
+    report hooks') (``existing="overwrite"``) and of the temporaries a killed writer left."""
     out = Path(out)
     if existing == "overwrite":
-        removed = remove_run_files(out)
+        removed = remove_run_files(out, files)
         if removed:
             log.info("overwrite: removed %s from %s", ", ".join(removed), out)
-    for p in temporaries(out):  # left by a killed writer
+    for p in temporaries(out, files):  # left by a killed writer
         p.unlink(missing_ok=True)
 
 
@@ -267,6 +273,7 @@ class OpenRun(NamedTuple):
         start: the first batch to draw (0 for a new run).
         already_complete: a resumed run with every batch drawn and ``results.h5`` finished.
         before: the run files present before this run wrote anything.
+        files: the report hooks' files (:meth:`gcrsky.run.ReportHook.files`), run files too.
     """
 
     out: Path
@@ -276,14 +283,15 @@ class OpenRun(NamedTuple):
     start: int
     already_complete: bool
     before: frozenset
+    files: tuple = ()
 
 
-def open_run(prob, spec) -> OpenRun:
+def open_run(prob, spec, files: Sequence[str] = ()) -> OpenRun:
     """Check, prepare and describe ``spec.output.out`` for a run of ``prob``.
 
     The directory is created; a run in it is refused, cleared or continued as
-    ``spec.output.existing`` says (:func:`check_output`); a resumed run must have the same
-    inputs (:func:`~gcrsky.run.resume.check_resumable`).
+    ``spec.output.existing`` says (:func:`check_output`; ``files``: the report hooks' files); a
+    resumed run must have the same inputs (:func:`~gcrsky.run.resume.check_resumable`).
 
     Raises:
         RunExistsError, ResumeError: as :func:`check_output` and ``check_resumable``.
@@ -291,12 +299,12 @@ def open_run(prob, spec) -> OpenRun:
     out = spec.output.out
     out.mkdir(parents=True, exist_ok=True)
     settings = spec.settings(prob.config)
-    state = check_output(out, settings, spec.output.existing)
+    state = check_output(out, settings, spec.output.existing, files)
     check_disk_space(out, draws_bytes(prob, spec.draws.nsamples))
-    clear_output(out, spec.output.existing)
+    clear_output(out, spec.output.existing, files)
     if state is not None:
         check_resumable(out, state, prob, versions()["gcrsky"])
     start = 0 if state is None else state.batches_complete
     already_complete = state is not None and state.draws_done and state.complete
     return OpenRun(out, out / RESULTS_FILE, settings, state, start, already_complete,
-                   frozenset(existing_run_files(out)))
+                   frozenset(existing_run_files(out, files)), tuple(files))

@@ -9,6 +9,10 @@ seeing the metrics of those before it (:attr:`RunView.per_freq`):
 2. :meth:`ReportHook.figures` (stage ``plots``, only when the run draws figures): figure
    files written into the output directory and warnings for the terminal.
 
+A hook declares the files it may write (:meth:`ReportHook.files`): they are run files
+(:func:`gcrsky.run.output.run_files`), refused, overwritten and resumed with the run's own;
+the core itself holds no figure names.
+
 :mod:`gcrsky.paper.report` implements the paper's (beam-region metrics, truth metrics,
 Figs. 3-7); a run without hooks writes the draws, the products and a summary without them.
 """
@@ -22,7 +26,7 @@ import numpy as np
 
 from .maps import RunMaps
 
-__all__ = ["FigureReport", "ReportHook", "RunView", "collect_figures", "collect_metrics"]
+__all__ = ["FigureReport", "ReportHook", "RunView", "collect_figures", "collect_metrics", "hook_files"]
 
 
 class RunView(NamedTuple):
@@ -63,6 +67,15 @@ class ReportHook(Protocol):
     def figures(self, view: RunView, out: Path, *, only_missing: bool) -> FigureReport:
         """Write figures into ``out`` (atomically; keep those present when ``only_missing``)."""
         return FigureReport({}, [])
+
+    def files(self) -> Mapping[str, str]:
+        """Every file :meth:`figures` may write: ``{key: file name}`` (the run's files with them)."""
+        return {}
+
+
+def hook_files(hooks: Sequence[ReportHook]) -> tuple[str, ...]:
+    """The file names every hook may write (:meth:`ReportHook.files`), in order, each once."""
+    return tuple(dict.fromkeys(f for hook in hooks for f in hook.files().values()))
 
 
 def collect_metrics(view: RunView, hooks: Sequence[ReportHook]) -> list[dict]:

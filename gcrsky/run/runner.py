@@ -2,8 +2,8 @@
 
 1. :func:`~gcrsky.run.output.open_run`: the output directory is checked (refuse,
    overwrite or resume, :class:`~gcrsky.run.RunSpec`'s ``output.existing``);
-2. the draws: :func:`~gcrsky.run.draws.joint_draws` (set-up once, then batch by batch into
-   ``results.h5``) or :func:`~gcrsky.run.channels.channel_draws` (independent channels);
+2. the draws: the run's draw stage (``spec.sampling``, :mod:`gcrsky.run.sampling`), e.g.
+   :func:`~gcrsky.run.draws.joint_draws` (set-up once, then batch by batch into ``results.h5``);
 3. the maps (:func:`~gcrsky.run.maps.run_maps`) and the per-frequency metrics of the report
    hooks (:mod:`gcrsky.run.report`), then their figures;
 4. the products (:func:`~gcrsky.run.products.write_products`), ``results.h5`` finished
@@ -27,16 +27,11 @@ from __future__ import annotations
 import json
 from typing import Sequence
 
-import jax
 import numpy as np
 
 from ..io.results import finalize_results_h5, read_draws, read_results_state, write_json
 from ..parallel.runtime import CompileStats, compile_cache_dir, compile_stats
-from .channels import channel_draws, worker_channels
-from .draws import joint_draws
 from .fit import run_fit
-from .frequency import channels_block, frequency_draws
-from .gains import gain_draws, gain_summary, gained_problem, stored_gain_factor, write_gain_products
 from .lock import run_lock
 from .maps import RunMaps, parameter_frame, run_maps, stored_maps
 from .output import (
@@ -50,7 +45,7 @@ from .output import (
     open_run,
 )
 from .products import write_products
-from .report import ReportHook, RunView, collect_figures, collect_metrics
+from .report import ReportHook, RunView, collect_figures, collect_metrics, hook_files
 from .spec import RunSpec
 from .stages import StageTimer, Watch
 from .summary import (
@@ -86,7 +81,7 @@ def execute(prob, spec: RunSpec, *, hooks: Sequence[ReportHook] = (), watch: Wat
 
     Returns:
         ``(RunSummary, RunProducts)``; None in a ``jax.distributed`` process other than 0
-        (``spec.channels == "processes"``), which computes its channels and writes nothing.
+        (``spec.sampling`` ``Independent("processes")``), which computes its channels and writes nothing.
 
     Raises:
         RunExistsError, ResumeError: the output directory holds a run that this one may not
@@ -97,8 +92,8 @@ def execute(prob, spec: RunSpec, *, hooks: Sequence[ReportHook] = (), watch: Wat
     """
     compile0 = compile_stats() if compile_since is None else compile_since
     watch = watch or Watch()
-    if spec.channels == "processes" and jax.process_index() != 0:
-        worker_channels(prob, spec, watch)
+    if spec.sampling.elsewhere():
+        spec.sampling.run_share(prob, spec, watch)
         return None
     check_out_dir(spec.output.out)  # a writable directory, before any work
     with run_lock(spec.output.out, spec.argv):  # one run per directory, from its first look to its last file
@@ -108,12 +103,10 @@ def execute(prob, spec: RunSpec, *, hooks: Sequence[ReportHook] = (), watch: Wat
 def _execute_locked(prob, spec: RunSpec, hooks, watch: Watch, build_s: float, compile0: CompileStats
                     ) -> tuple[RunSummary, RunProducts]:
     """:func:`execute` in process 0, holding the output directory's lock."""
-    run = open_run(prob, spec)
+    run = open_run(prob, spec, hook_files(hooks))
     st = StageTimer(watch.on_stage)
     st.times["build"] = build_s
-    draw_stage = (gain_draws if spec.gains is not None else frequency_draws if spec.frequency is not None
-                  else joint_draws if spec.channels is None else channel_draws)
-    method = draw_stage(prob, spec, run, st, watch)  # leaves the "draws" stage running
+    method = spec.sampling.run_draws(prob, spec, run, st, watch)  # leaves the "draws" stage running
     stored = read_draws(run.h5)
     st.stop()
     try:
@@ -129,22 +122,19 @@ def _after_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, stored, meth
                                       rank=stored.rank)
     if not np.isfinite(stored.draws).all():
         warnings.append(f"ERROR: {int((~np.isfinite(stored.draws)).sum())} non-finite values in the draws.")
-    channels = channels_block(prob, spec, run.h5, warnings)
+    channels = spec.sampling.channels_block(prob, run.h5, warnings)
     view, figures = _report(prob, spec, run, stored, hooks, st, warnings)
-    fit_prob = prob if spec.gains is None else gained_problem(prob, stored_gain_factor(run.h5))
+    fit_prob = spec.sampling.fit_problem(prob, run.h5)
     gof = None if (run.out / SUMMARY_FILE).exists() else run_fit(fit_prob, stored.wiener_filter, warnings,
                                                                      rank=stored.rank)
     st.start("write")
     finalized = _write(prob, spec, run, stored, view.maps, method, channels)
-    gains = None
-    if spec.gains is not None and not (run.out / SUMMARY_FILE).exists():
-        gains = gain_summary(prob, spec.gains, run.h5)
-        gains["calibration_file"] = write_gain_products(prob, spec.gains, run.out, run.h5)
+    gains = None if (run.out / SUMMARY_FILE).exists() else spec.sampling.finish(prob, run.out, run.h5)
     st.stop()
     timings, compiled = _timings(st, stored, compile0)
     summary = _summary(prob, spec, run, view, solver, warnings, (timings, compiled), figures, method, gof, gains,
                        channels)
-    written = [f for f in existing_run_files(run.out)
+    written = [f for f in existing_run_files(run.out, run.files)
                if f not in run.before or (f == RESULTS_FILE and finalized)]
     return summary, _products(prob, run, view, stored.draws, written)
 

@@ -21,36 +21,29 @@ from typing import Any, Mapping
 
 from ..inference.batches import KEY_SCHEME
 from ..io.results import clean_json, json_default
-from ..model.gains import BASES
-from ..parallel.channels import CHANNEL_KEY_SCHEME
 from ..solvers import registry
 from ..solvers.options import DEFAULT_TOL
+from .output import EXISTING
+from .sampling import (
+    CHANNEL_MODES,
+    FREQ_PRIORS,
+    DrawStage,
+    FrequencyModel,
+    Gains,
+    GainSampling,
+    Independent,
+    Joint,
+    JointFrequency,
+    check_choice,
+    check_integer,
+)
 
-__all__ = ["CHANNEL_MODES", "EXISTING", "FREQ_PRIORS", "METHODS", "Draws", "FrequencyModel", "GainSampling",
-           "Output", "RunSpec", "Solver", "run_settings"]
+__all__ = ["CHANNEL_MODES", "EXISTING", "FREQ_PRIORS", "METHODS", "DrawStage", "Draws", "FrequencyModel", "GainSampling",
+           "Gains", "Independent", "Joint", "JointFrequency", "Output", "RunSpec", "Solver", "run_settings", "sampling_of"]
 
 #: The paths a run may ask for (``"auto"``: chosen by size, :func:`gcrsky.solvers.plan.choose_path`): the
 #: registry's (:data:`gcrsky.solvers.registry.PATHS`, read again when a :class:`Solver` is checked).
 METHODS = ("auto", *registry.METHODS)
-#: What a run may do with a directory that already holds a run's files.
-EXISTING = ("refuse", "overwrite", "resume")
-#: The frequency models of a run: independent channels (each its own prior), or one prior over all of them
-#: (:class:`FrequencyModel`, :mod:`gcrsky.run.frequency`).
-FREQ_PRIORS = ("independent", "template", "basis", "kernel")
-#: Independent-channel modes (:mod:`gcrsky.parallel.channels`); None is the joint run.
-CHANNEL_MODES = ("loop", "devices", "processes")
-
-
-def _integer(obj, name: str, where: str, lo: int, hi: int = 2**63 - 1) -> None:
-    value = getattr(obj, name)
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not lo <= value <= hi:
-        raise ValueError(f"{where} must be an integer >= {lo} and <= {hi} (a signed 64-bit integer), got {value!r}")
-    object.__setattr__(obj, name, int(value))
-
-
-def _choice(where: str, value, allowed: tuple) -> None:
-    if value not in allowed:
-        raise ValueError(f"{where} must be one of {', '.join(map(repr, allowed))}, got {value!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,9 +59,9 @@ class Draws:
     batch: int = 50
 
     def __post_init__(self):
-        _integer(self, "nsamples", "draws.nsamples", 1)
-        _integer(self, "seed", "draws.seed", 0)
-        _integer(self, "batch", "draws.batch", 1)
+        check_integer(self, "nsamples", "draws.nsamples", 1)
+        check_integer(self, "seed", "draws.seed", 0)
+        check_integer(self, "batch", "draws.batch", 1)
 
     @property
     def n_batches(self) -> int:
@@ -84,7 +77,7 @@ class Solver:
     tol: float = DEFAULT_TOL
 
     def __post_init__(self):
-        _choice("solver.method", self.method, ("auto", *registry.PATHS))
+        check_choice("solver.method", self.method, ("auto", *registry.PATHS))
         if isinstance(self.tol, bool) or not isinstance(self.tol, numbers.Real) or not (
                 self.tol > 0 and math.isfinite(self.tol)):
             raise ValueError(f"solver.tol must be a positive finite number, got {self.tol!r}")
@@ -104,169 +97,43 @@ class Output:
         if not isinstance(self.out, (str, os.PathLike)) or not os.fspath(self.out):
             raise ValueError(f"output.out must be a directory path, got {self.out!r}")
         object.__setattr__(self, "out", Path(self.out))
-        _choice("output.existing", self.existing, EXISTING)
+        check_choice("output.existing", self.existing, EXISTING)
         if not isinstance(self.plots, bool):
             raise ValueError(f"output.plots must be True or False, got {self.plots!r}")
 
 
 @dataclasses.dataclass(frozen=True)
-class GainSampling:
-    """Per-antenna gains sampled with the sky (:mod:`gcrsky.run.gains`; the model of :mod:`gcrsky.model.gains`).
-
-    The run's draws are then the states of a Markov chain over (sky, gains, overall amplitude)
-    (:func:`gcrsky.inference.joint_gain_step`), not independent draws: ``burn`` sweeps of burn-in
-    (re-centred on the current gains after each half), then one kept state every ``thin`` sweeps.
-
-    Attributes:
-        modes: ``(Kf, Kt)`` smooth modes per gain in frequency (delay) and time (fringe rate);
-            ``(1, 1)``: one complex gain per antenna (or feed) over the selection.
-        basis: ``"dpss"``, ``"fourier"`` or ``"legendre"`` (:func:`gcrsky.model.mode_basis`).
-        sigma: prior standard deviation of each mode's coefficient (rms fractional gain error).
-        burn: burn-in sweeps (>= 2: the linearisation point moves after each half).
-        thin: sweeps per kept draw.
-        gauge_moves: Metropolis moves along the amplitude-sky gauge orbit per sweep
-            (:func:`gcrsky.inference.gauge_step`; 0 is plain Gibbs, which barely moves along it).
-        applied: the overall amplitude ``gbar`` the gains start from (e.g. the square root of
-            the autocorrelations' flux-scale ratio); the sampled amplitude is relative to it.
-    """
-
-    modes: tuple = (1, 1)
-    basis: str = "dpss"
-    sigma: float = 0.05
-    burn: int = 200
-    thin: int = 1
-    gauge_moves: int = 4
-    applied: float = 1.0
-
-    def __post_init__(self):
-        modes = tuple(self.modes)
-        if len(modes) != 2 or any(isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 1 for k in modes):
-            raise ValueError(f"gains.modes must be two integers >= 1 (Kf, Kt), got {self.modes!r}")
-        object.__setattr__(self, "modes", tuple(int(k) for k in modes))
-        _choice("gains.basis", self.basis, BASES)
-        for name in ("sigma", "applied"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not (v > 0 and math.isfinite(v)):
-                raise ValueError(f"gains.{name} must be a positive finite number, got {v!r}")
-            object.__setattr__(self, name, float(v))
-        _integer(self, "burn", "gains.burn", 2)
-        _integer(self, "thin", "gains.thin", 1)
-        _integer(self, "gauge_moves", "gains.gauge_moves", 0)
-
-    def to_dict(self) -> dict:
-        """The settings as a JSON-able dict (recorded with the run's settings)."""
-        return {**dataclasses.asdict(self), "modes": list(self.modes)}
-
-
-def _positive(obj, name: str, where: str, *, zero: bool = False) -> None:
-    v = getattr(obj, name)
-    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or v < 0 or (v == 0 and not zero):
-        raise ValueError(f"{where} must be a {'non-negative' if zero else 'positive'} finite number, got {v!r}")
-    object.__setattr__(obj, name, float(v))
-
-
-#: Default relative nugget per frequency prior (:mod:`gcrsky.model.spectral`): the template and the kernel only
-#: need ``R`` numerically positive definite; a rank-K basis needs a proper prior beyond its K functions.
-DEFAULT_NUGGET = {"template": 1e-6, "basis": 1e-3, "kernel": 1e-6}
-
-
-@dataclasses.dataclass(frozen=True)
-class FrequencyModel:
-    """One prior over all channels, coupling them (:mod:`gcrsky.run.frequency`; DESIGN section 13).
-
-    The prior is separable, ``Cov(a_k(nu), a_k(nu')) = c_k R(nu, nu')``, with ``c_k`` the problem's
-    own (independent) prior variance at the reference channel (the middle one) and ``R`` from
-    :mod:`gcrsky.model.spectral`:
-
-    * ``"template"``: the paper's power law ``(nu/nu0)^beta`` shared by all channels (a one-function
-      spectral basis), plus the nugget;
-    * ``"basis"``: ``nbasis`` log-polynomial functions ``(nu/nu0)^beta log(nu/nu0)^k``, the k-th with
-      prior variance ``basis_sigma^(2k)`` (relative to the power law's), plus the nugget;
-    * ``"kernel"``: ``(nu nu'/nu0^2)^beta exp(-(log nu - log nu')^2 / (2 xi^2))``, plus the nugget.
-
-    Attributes:
-        prior: ``"template"``, ``"basis"`` or ``"kernel"``.
-        beta: spectral index of the prior's standard deviation, or None: fitted (least squares
-            in log-log) to the ratio of each channel's prior variance to the reference channel's.
-        xi: the kernel's correlation length in ``log nu`` (natural log).
-        nbasis: the basis' number of functions K (>= 1).
-        basis_sigma: the basis' relative prior standard deviation per order.
-        nugget: relative jitter (:mod:`gcrsky.model.spectral`); None: :data:`DEFAULT_NUGGET`.
-        fit: fit the kernel's hyperparameters (amplitude, beta, xi) by maximum joint evidence
-            before sampling (``"kernel"`` only).
-    """
-
-    prior: str = "kernel"
-    beta: float | None = None
-    xi: float = 0.1
-    nbasis: int = 3
-    basis_sigma: float = 0.1
-    nugget: float | None = None
-    fit: bool = False
-
-    def __post_init__(self):
-        _choice("frequency.prior", self.prior, FREQ_PRIORS[1:])
-        if self.beta is not None:
-            if isinstance(self.beta, bool) or not isinstance(self.beta, numbers.Real) or not math.isfinite(self.beta):
-                raise ValueError(f"frequency.beta must be a finite number or None, got {self.beta!r}")
-            object.__setattr__(self, "beta", float(self.beta))
-        _positive(self, "xi", "frequency.xi")
-        _integer(self, "nbasis", "frequency.nbasis", 1, 8)
-        _positive(self, "basis_sigma", "frequency.basis_sigma")
-        if self.nugget is None:
-            object.__setattr__(self, "nugget", DEFAULT_NUGGET[self.prior])
-        _positive(self, "nugget", "frequency.nugget", zero=True)
-        if not isinstance(self.fit, bool):
-            raise ValueError(f"frequency.fit must be True or False, got {self.fit!r}")
-        if self.fit and self.prior != "kernel":
-            raise ValueError(f"frequency.fit fits the kernel's hyperparameters: it needs prior 'kernel', not "
-                             f"{self.prior!r}")
-
-    def to_dict(self) -> dict:
-        """The settings as a JSON-able dict (recorded with the run's settings as ``frequency``)."""
-        return dataclasses.asdict(self)
-
-
-@dataclasses.dataclass(frozen=True)
 class RunSpec:
-    """One run: draws, solver, output, and what else identifies it.
+    """One run: draws, solver, output, what it samples, and what else identifies it.
 
     Attributes:
         draws: :class:`Draws`.
         output: :class:`Output`.
         solver: :class:`Solver` (default: ``auto``, tol 1e-6).
-        channels: None (one joint system) or a mode of :data:`CHANNEL_MODES`: the channels
-            solved independently (key scheme
-            :data:`~gcrsky.parallel.channels.CHANNEL_KEY_SCHEME`, other, equally exact draws):
-            ``"loop"`` one at a time, ``"devices"`` over this process's devices,
-            ``"processes"`` over ``jax.distributed`` processes (only process 0 writes).
+        sampling: what the run samples, one draw stage (:mod:`gcrsky.run.sampling`):
+            :class:`Joint` (default: one joint system over the channels),
+            :class:`Independent` (the channels solved independently, ``Independent("loop")``,
+            ``"devices"`` or ``"processes"``), :class:`JointFrequency` (one frequency-coupled
+            prior, :class:`FrequencyModel`) or :class:`Gains` (gains sampled with the sky,
+            :class:`GainSampling`).  Its settings block is recorded with the run's settings.
         scenario: the paper scenario of the run, if any (recorded).
         argv: the command line (recorded in ``summary.json``), or None.
         extra: further settings that identify the run (e.g. the input file of a run on a
             file); JSON-able, no key of the standard settings.
-        gains: None (the data taken as calibrated) or :class:`GainSampling`: gains sampled
-            with the sky (a joint run only; recorded in the settings as ``gains``).
-        frequency: None (independent channels, each its own prior) or :class:`FrequencyModel`:
-            one prior over all channels, sampled jointly (:mod:`gcrsky.run.frequency`; recorded
-            in the settings as ``frequency``).
     """
 
     draws: Draws
     output: Output
     solver: Solver = Solver()
-    channels: str | None = None
+    sampling: DrawStage = Joint()
     scenario: str | None = None
     argv: tuple[str, ...] | None = None
     extra: Mapping[str, Any] | None = None
-    gains: GainSampling | None = None
-    frequency: FrequencyModel | None = None
 
     def __post_init__(self):
-        for name, kind in (("draws", Draws), ("output", Output), ("solver", Solver)):
+        for name, kind in (("draws", Draws), ("output", Output), ("solver", Solver), ("sampling", DrawStage)):
             if not isinstance(getattr(self, name), kind):
                 raise ValueError(f"{name} must be a {kind.__name__}, got {getattr(self, name)!r}")
-        if self.channels is not None:
-            _choice("channels", self.channels, CHANNEL_MODES)
         if self.scenario is not None and not isinstance(self.scenario, str):
             raise ValueError(f"scenario must be a name or None, got {self.scenario!r}")
         if self.argv is not None:
@@ -275,30 +142,27 @@ class RunSpec:
             object.__setattr__(self, "argv", tuple(self.argv))
         if self.extra is not None:
             object.__setattr__(self, "extra", dict(self.extra))
-        if self.gains is not None:
-            if not isinstance(self.gains, GainSampling):
-                raise ValueError(f"gains must be a GainSampling or None, got {self.gains!r}")
-            if self.channels is not None:
-                raise ValueError("gains are sampled jointly over the channels (the amplitude's modes span them): "
-                                 "drop channels (--by-channel, --devices, --num-processes)")
-        if self.frequency is not None:
-            if not isinstance(self.frequency, FrequencyModel):
-                raise ValueError(f"frequency must be a FrequencyModel or None, got {self.frequency!r}")
-            if self.channels is not None or self.gains is not None:
-                raise ValueError("a frequency prior couples the channels, so they are sampled together: drop "
-                                 + ("channels (--by-channel, --devices, --num-processes)" if self.channels is not None
-                                    else "--gains sample (not combined with a frequency prior yet)"))
         self.settings(None)  # the extra settings must not clash and must be JSON-able
 
+    @property
+    def channels(self) -> str | None:
+        """The independent-channel mode (:class:`Independent`), or None for any other run."""
+        return self.sampling.channels if isinstance(self.sampling, Independent) else None
+
+    @property
+    def gains(self) -> GainSampling | None:
+        """The gain sampling (:class:`Gains`), or None for any other run."""
+        return self.sampling.gains if isinstance(self.sampling, Gains) else None
+
+    @property
+    def frequency(self) -> FrequencyModel | None:
+        """The frequency prior (:class:`JointFrequency`), or None for any other run."""
+        return self.sampling.model if isinstance(self.sampling, JointFrequency) else None
+
     def all_extra(self) -> dict:
-        """``extra`` and, for an independent-channel run, its mode and key scheme; the gain sampling, if any."""
+        """``extra`` and the sampling's settings block (:meth:`DrawStage.settings_block`)."""
         extra = dict(self.extra or {})
-        if self.gains is not None:
-            extra["gains"] = self.gains.to_dict()
-        if self.frequency is not None:
-            extra["frequency"] = self.frequency.to_dict()
-        if self.channels is not None:
-            extra.update(channels=self.channels, channel_key_scheme=CHANNEL_KEY_SCHEME)
+        extra.update(self.sampling.settings_block())
         return extra
 
     def settings(self, config) -> dict:
@@ -306,6 +170,30 @@ class RunSpec:
         d, s = self.draws, self.solver
         return run_settings(config, nsamples=d.nsamples, seed=d.seed, batch=d.batch, method=s.method, tol=s.tol,
                             scenario=self.scenario, extra=self.all_extra())
+
+
+def sampling_of(channels: str | None = None, gains: GainSampling | None = None,
+                frequency: FrequencyModel | None = None) -> DrawStage:
+    """The draw stage of at most one of an independent-channel mode, a gain sampling and a frequency prior.
+
+    Raises:
+        ValueError: more than one is given (the message names them and what to drop).
+    """
+    given = [name for name, v in (("channels", channels), ("gains", gains), ("frequency", frequency)) if v is not None]
+    if len(given) > 1:
+        raise ValueError(f"a run samples one way: {' and '.join(given)} were both given. "
+                         + ("gains are sampled jointly over the channels (the amplitude's modes span them): drop "
+                            "channels (--by-channel, --devices, --num-processes)" if given == ["channels", "gains"]
+                            else "a frequency prior couples the channels, so they are sampled together: drop "
+                            + ("channels (--by-channel, --devices, --num-processes)" if "channels" in given
+                               else "--gains sample (not combined with a frequency prior yet)")))
+    if channels is not None:
+        return Independent(channels)
+    if gains is not None:
+        return Gains(gains)
+    if frequency is not None:
+        return JointFrequency(frequency)
+    return Joint()
 
 
 def run_settings(config, *, nsamples: int, seed: int, batch: int, method: str, tol: float,
