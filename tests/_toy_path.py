@@ -3,7 +3,7 @@ state types, wrapping the dense Cholesky math (:mod:`gcrsky.solvers.dense`) and,
 run, the dense joint Cholesky math (:mod:`gcrsky.solvers.joint`).  Added to
 :data:`gcrsky.solvers.registry.PATHS` by one ``monkeypatch.setitem``: nothing else names it.
 
-(Gibbs: the gibbs helper of issue 37 adds the Gibbs part of this check.)
+(Its Gibbs step: tests/test_registry.py::test_a_toy_path_in_the_registry_is_a_gibbs_step.)
 """
 
 from __future__ import annotations

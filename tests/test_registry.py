@@ -163,3 +163,31 @@ def test_a_toy_path_in_the_registry_is_planned_and_run(system, monkeypatch, tmp_
         ref_name, ref, ref_wf = _cli_draws(tmp_path / ("cholesky" + "".join(argv)), "--method", "cholesky", *argv)
         assert (name, ref_name) == ("toy", "cholesky"), argv
         assert toy.shape == ref.shape and np.array_equal(toy, ref) and np.array_equal(wf, ref_wf), argv
+
+
+def test_a_toy_path_in_the_registry_is_a_gibbs_step(system, monkeypatch):
+    """The Gibbs part of the toy-path check: with its one registry entry, ``gcr_step`` and the Gibbs kernel's sky
+    block (``gibbs_setup`` / ``sky_step``) take the toy path's options; its step is the cholesky path's step for
+    the same key (it wraps the same factor and draw: equal bit for bit).  Negative control: refused before the
+    entry is added."""
+    from _toy_path import ToyOptions, ToyPath
+
+    from gcrsky.solvers import registry
+
+    key = jax.random.PRNGKey(7)
+    state = gcrsky.gcr_init(system.prior.mean)
+    with pytest.raises((TypeError, ValueError)):
+        gcrsky.gcr_step(key, state, system, options=ToyOptions())
+    monkeypatch.setitem(registry.PATHS, "toy", ToyPath())
+    toy, _ = gcrsky.gcr_step(key, state, system, options=ToyOptions())
+    ref, _ = gcrsky.gcr_step(key, state, system, options=CholeskyOptions())
+    assert np.array_equal(np.asarray(toy.position), np.asarray(ref.position))
+    assert not np.array_equal(np.asarray(toy.position), np.asarray(system.prior.mean))
+    fixed = gcrsky.inference.gibbs_setup(system, options=ToyOptions())
+    a, info = gcrsky.inference.sky_step(key, fixed)
+    assert a.shape == system.prior.mean.shape and bool(np.all(np.isfinite(np.asarray(a))))
+    assert bool(np.all(np.asarray(info.converged)))
+    # the sky block on the toy path is the toy path's own draw (prepare, then draw one, same key)
+    path = registry.path_of(ToyOptions())
+    one, _ = path.draw(key, path.prepare(system, ToyOptions()), 1)
+    np.testing.assert_allclose(np.asarray(a), np.asarray(one)[:, 0], rtol=0, atol=1e-12 * float(np.abs(one).max()))
