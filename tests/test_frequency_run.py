@@ -317,7 +317,8 @@ def test_a_run_recorded_under_an_old_joint_name_resumes_bit_for_bit(partial, cou
         assert opts.pop("variant") == "dense"
         h.attrs["method"] = "joint-cholesky"
         h.attrs["solver_options_json"] = json.dumps({**opts, "method": "joint-cholesky"})
-    spec = RunSpec(Draws(8, seed=3, batch=4), Output(tmp_path, "resume", plots=False), JointFrequency(MODEL))
+    spec = RunSpec(Draws(8, seed=3, batch=4), Output(tmp_path, "resume", plots=False),
+                   sampling=JointFrequency(MODEL))
     summary, prods = execute(partial, spec)
     assert prods.resumed_at_batch == 1 and summary.run["method"] == "cholesky"
     with h5py.File(ref / "results.h5", "r") as ha, h5py.File(tmp_path / "results.h5", "r") as hb:
