@@ -212,7 +212,7 @@ iterations here (30 LSTs), and the same for the dense P build.  Not done in this
 (C') The same row after building P by m-blocks (MEASURED 2026-12-02 07:05-07:09 UTC, load
 ~2, ``SCALE_PATHS=chol python benchmarks/scale.py --only l150-a331-t30-8h-f1-red``).  A
 rotation about the pole is a phase per m, so ``X^T W X`` is one real product over
-``4 Nbl`` per order m (``gcrsky.model.precision_data_matrix``): ~8 Nbl n^2 = 2.6e12 flop
+``4 Nbl`` per order m (``gcrsky.model.system.precision_data_matrix``): ~8 Nbl n^2 = 2.6e12 flop
 whatever Nt (1.25x that with the loops' fixed windows), against 4 Nt Nbl n^2 = 3.9e13
 summed over times.  Exact dense Cholesky (``method="auto"`` picks it)::
 
@@ -691,7 +691,7 @@ def run_one(c) -> dict:
             if pname == "cgD-mb":
                 rel_mb = float(np.asarray(prep.wiener.rel_residual)[0])
                 P0 = prep.precision[0]
-                b0 = gcrsky.model.wiener_rhs(system)[0]
+                b0 = gcrsky.model.system.wiener_rhs(system)[0]
                 tol = rel_mb * float(jnp.linalg.norm(b0))
                 f = jax.jit(lambda P, b, tol: pcg(lambda x: P @ x, lambda r: r, b, jnp.zeros_like(b), tol=tol,
                                                   maxiter=NOPC_CAP)[1])

@@ -40,7 +40,7 @@ import numpy as np
 import gcrsky
 from gcrsky.inference import draw, prepare_system, sample_system, wiener_filter_system
 from gcrsky.instrument import antpairs, gaussian_beam, hex_array, make_array, response_matrix
-from gcrsky.model import precision_matrix
+from gcrsky.model.system import precision_matrix
 from gcrsky.sim.sky import sky_truth
 from gcrsky.solvers import CGOptions, m_block_preconditioner, nystrom_preconditioner
 

@@ -100,7 +100,8 @@ from gcrsky.instrument import (  # noqa: E402
     make_array,
     unique_response,
 )
-from gcrsky.model import LinearSystem, VisOperator, fluctuation_rhs, isotropic_prior, precision_matrix  # noqa: E402
+from gcrsky.model import LinearSystem, VisOperator, isotropic_prior
+from gcrsky.model.system import fluctuation_rhs, precision_matrix  # noqa: E402
 from gcrsky.solvers import auto_bandwidth, make_preconditioner, pcg  # noqa: E402
 from gcrsky.solvers.preconditioners import precondition_one  # noqa: E402
 from gcrsky.solvers.window import window_memory_bytes  # noqa: E402

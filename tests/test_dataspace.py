@@ -31,7 +31,8 @@ from scipy import stats
 import gcrsky
 from gcrsky.inference import log_evidence_system
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
-from gcrsky.model import build_problem, compress_problem, isotropic_prior, precision_matrix, wiener_rhs
+from gcrsky.model import build_problem, compress_problem, isotropic_prior
+from gcrsky.model.system import precision_matrix, wiener_rhs
 from gcrsky.solvers import (
     CholeskyOptions,
     DataSpaceOptions,

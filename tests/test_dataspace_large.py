@@ -25,7 +25,8 @@ import numpy as np
 import pytest
 
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
-from gcrsky.model import build_problem, compress_problem, isotropic_prior, precision_matrix, wiener_rhs
+from gcrsky.model import build_problem, compress_problem, isotropic_prior
+from gcrsky.model.system import precision_matrix, wiener_rhs
 from gcrsky.solvers import DataSpaceOptions, draw_dataspace, prepare_dataspace
 from gcrsky.solvers.blocked import blocked_cholesky, triangular_solves
 from gcrsky.solvers.dataspace import dataspace_memory_bytes, lag_structure

@@ -27,7 +27,8 @@ from gcrsky.instrument import (
     hex_array,
     make_array,
 )
-from gcrsky.model import build_problem, isotropic_prior, precision_matrix, wiener_rhs
+from gcrsky.model import build_problem, isotropic_prior
+from gcrsky.model.system import precision_matrix, wiener_rhs
 from gcrsky.solvers import CGOptions, CholeskyOptions, MModeOptions, Result, SLQOptions
 
 

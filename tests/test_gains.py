@@ -53,12 +53,12 @@ from gcrsky.model import (
     gain_factor,
     gain_model,
     isotropic_prior,
-    mode_basis,
     n_gain_params,
     perturbation_coefficients,
     perturbations,
     phase_gradient_directions,
 )
+from gcrsky.model.gains import mode_basis
 from gcrsky.model.operator import apply, dense_matrix
 from gcrsky.solvers import CGOptions
 
@@ -516,7 +516,7 @@ def test_unit_gains_recentre_and_a_calfits_pyuvdata_reads_back(tmp_path):
 
     from gcrsky.ingest.gaincal import posterior_mean_gains
     from gcrsky.io.gaincal import write_gain_calibration
-    from gcrsky.model import unit_gains
+    from gcrsky.model.gains import unit_gains
 
     rng = np.random.default_rng(9)
     model = gain_model(antpairs(4), 3, 2, (2, 1))

@@ -26,15 +26,9 @@ from gcrsky.inference import (
     wiener_filter_system,
 )
 from gcrsky.instrument import antpairs
-from gcrsky.model import (
-    assemble_problem,
-    build_problem,
-    isotropic_prior,
-    observation_geometry,
-    problem_responses,
-    simulate_data,
-    wiener_rhs,
-)
+from gcrsky.model import build_problem, isotropic_prior, simulate_data
+from gcrsky.model.problem import assemble_problem, observation_geometry, problem_responses
+from gcrsky.model.system import wiener_rhs
 from gcrsky.solvers import (
     CGOptions,
     CGState,

@@ -48,7 +48,7 @@ def partial(small_response):
 
 def _dense_wf_and_sigma(problem):
     P = np.asarray(problem.precision_matrix())
-    b = np.asarray(gcrsky.model.wiener_rhs(problem.system()))
+    b = np.asarray(gcrsky.model.system.wiener_rhs(problem.system()))
     a = np.stack([np.linalg.solve(P[f], b[f]) for f in range(P.shape[0])])
     sig = np.stack([np.sqrt(np.diag(np.linalg.inv(P[f]))) for f in range(P.shape[0])])
     return a, sig

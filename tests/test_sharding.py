@@ -243,7 +243,8 @@ def test_non_1d_mesh_rejected():
 def test_pad_baselines_exact_in_process(small_response):
     import jax.numpy as jnp
 
-    from gcrsky.model import LinearSystem, VisOperator, flat_prior, precision_apply
+    from gcrsky.model import LinearSystem, VisOperator, flat_prior
+    from gcrsky.model.system import precision_apply
 
     resp = small_response.response
     nf, nbl, n = resp.shape

@@ -9,7 +9,7 @@ angles, frame map) is enough: ``jax.jit``'s automatic partitioning (GSPMD /
 Shardy) then runs each device's baselines locally and combines the adjoint's
 partial sums with one all-reduce per product.  No gcrsky function needs to change:
 :func:`gcrsky.model.apply`, :func:`~gcrsky.model.adjoint`,
-:func:`gcrsky.model.precision_apply`, :func:`~gcrsky.model.wiener_rhs` and
+:func:`gcrsky.model.system.precision_apply`, :func:`~gcrsky.model.system.wiener_rhs` and
 :func:`gcrsky.inference.sample_system` (CG, ``dense=False``) accept the sharded system
 as is and return the same numbers as on one device, up to the order of the
 floating-point sum over baselines (~1e-16 relative per product).

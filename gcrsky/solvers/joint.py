@@ -26,7 +26,7 @@ smooth kernel over close channels, costs no accuracy), and ``log det M = log det
 Two exact paths:
 
 * dense (:func:`prepare_joint_dense`): ``M`` as one ``(Nf n, Nf n)`` Cholesky; the data part
-  ``H_nu`` from :func:`gcrsky.model.precision_data_matrix`; any coverage and noise; cost
+  ``H_nu`` from :func:`gcrsky.model.system.precision_data_matrix`; any coverage and noise; cost
   ``O(Nf^3 n^3)`` flop, ``O(Nf^2 n^2)`` memory;
 * m-mode (:func:`prepare_joint_mmode`, uniform full-day coverage, :func:`gcrsky.solvers.mmode_check`):
   ``H_nu`` is block-diagonal in m (:func:`gcrsky.solvers.mmode_blocks`), and so is the prior
