@@ -32,21 +32,17 @@ from scipy import stats
 
 from gcrsky.inference import (
     effective_sample_size,
-    gain_conditional,
     gain_init,
-    gain_posterior,
     gain_setup,
-    gained_fixed,
     gains_step,
     gauge_step,
     gibbs_setup,
     joint_gain_step,
     recentre,
-    scale_conditional,
-    scale_sky_step,
     scale_step,
     sky_step,
 )
+from gcrsky.inference.gains import gain_conditional, gain_posterior, gained_fixed, scale_conditional, scale_sky_step
 from gcrsky.instrument import HERA_LATITUDE_DEG, antpairs, gaussian_beam, hex_array, make_array
 from gcrsky.model import (
     build_problem,

@@ -16,15 +16,8 @@ import numpy as np
 import pytest
 
 import gcrsky
-from gcrsky.inference import (
-    KEY_SCHEME,
-    batch_key,
-    draw,
-    draw_batches,
-    draw_exactly,
-    prepare_system,
-    wiener_filter_system,
-)
+from gcrsky.inference import draw, draw_batches, draw_exactly, prepare_system, wiener_filter_system
+from gcrsky.inference.batches import KEY_SCHEME, batch_key
 from gcrsky.instrument import antpairs
 from gcrsky.model import build_problem, isotropic_prior, simulate_data
 from gcrsky.model.problem import assemble_problem, observation_geometry, problem_responses

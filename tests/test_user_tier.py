@@ -17,7 +17,8 @@ from conftest import isotropic_problem
 from scipy import stats
 
 import gcrsky
-from gcrsky.inference import condition, draw_bucket
+from gcrsky.inference import condition
+from gcrsky.inference.posterior import draw_bucket
 from gcrsky.solvers import (
     PATHS,
     CGOptions,

@@ -85,8 +85,8 @@ class GainChain(NamedTuple):
     """The chain's fixed parts and its state (:func:`gain_chain_setup`, :func:`read_gain_chain`).
 
     Attributes:
-        fixed: the sky's data term (:class:`gcrsky.inference.GibbsFixed`).
-        block: the gain block (:class:`gcrsky.inference.GainBlock`), about the linearisation point.
+        fixed: the sky's data term (:class:`gcrsky.inference.gibbs.GibbsFixed`).
+        block: the gain block (:class:`gcrsky.inference.gains.GainBlock`), about the linearisation point.
         lin: (Nf, Nt, U) complex, the units' gains at the linearisation point.
         state: the chain's :class:`gcrsky.inference.GainState`.
     """
