@@ -38,14 +38,10 @@ from gcrsky.solvers import (
     DataSpaceOptions,
     DataSpaceState,
     choose_path,
-    data_size,
-    dataspace_matrix,
-    draw_dataspace,
     path_memory_bytes,
     plan_sampler,
-    prepare_dataspace,
 )
-from gcrsky.solvers.dataspace import from_rows, to_rows
+from gcrsky.solvers.dataspace import data_size, dataspace_matrix, draw_dataspace, from_rows, prepare_dataspace, to_rows
 from gcrsky.solvers.plan import DENSE_MEMORY_FRACTION
 
 ALPHA = 1e-3

@@ -20,13 +20,16 @@ from scipy import stats
 from gcrsky.instrument import antpairs, response_matrix
 from gcrsky.model import LinearSystem, VisOperator, isotropic_prior
 from gcrsky.model.system import precision_matrix, wiener_rhs
-from gcrsky.solvers import MModeOptions, draw_mmode, mmode_blocks, mmode_check, prepare_mmode
+from gcrsky.solvers import MModeOptions, mmode_check
 from gcrsky.solvers.mmode import (
     block_solve,
     blocks_to_dense,
+    draw_mmode,
     is_mmode_diagonal,
+    mmode_blocks,
     mmode_buckets,
     mmode_wiener_and_draws,
+    prepare_mmode,
 )
 from gcrsky.sphere import lmax_from_nparams, mode_table
 

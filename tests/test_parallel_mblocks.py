@@ -5,7 +5,7 @@ The device count is fixed when JAX's backend starts, so the check runs in a subp
 forced host devices (:func:`gcrsky.parallel.host_devices_env`, as tests/test_sharding.py does).
 A full day (30 equally spaced LSTs > 2 lmax) of the 10-antenna hexagon at lmax 12 with buckets
 of 4 orders (several buckets, alternating between the two devices); references: the
-single-device :func:`gcrsky.solvers.prepare_mmode` / :func:`~gcrsky.solvers.draw_mmode` in the
+single-device :func:`gcrsky.solvers.mmode.prepare_mmode` / :func:`~gcrsky.solvers.mmode.draw_mmode` in the
 same process (the same operations on the same inputs: equal to 1e-13 relative) and a dense
 solve of P for the Wiener filter (1e-8 posterior sigma).
 """

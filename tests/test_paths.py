@@ -32,9 +32,8 @@ from gcrsky.solvers import (
     MModeOptions,
     MModeState,
     choose_path,
-    method_of,
-    options_for,
 )
+from gcrsky.solvers.registry import method_of, options_for
 
 SOLVE = 1e-8  # posterior sigma
 
@@ -126,7 +125,7 @@ def test_choose_path_resolves_method_options_and_tol(full_day):
 def test_auto_preconditioner_is_resolved_host_side_and_under_jit(full_day):
     system = full_day.system()
     flat = system._replace(prior=system.prior._replace(inv_var=jnp.zeros_like(system.prior.inv_var)))
-    from gcrsky.solvers import resolve_cg_options
+    from gcrsky.solvers.cg import resolve_cg_options
 
     assert resolve_cg_options(system).preconditioner == "nystrom"
     assert resolve_cg_options(flat).preconditioner == "mblock"

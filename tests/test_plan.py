@@ -130,7 +130,7 @@ def test_float32_preconditioner_keeps_the_answer_exact(partial, pc):
     """A float32 preconditioner changes only the iteration count: products, iterates and
     the stopping test stay float64, so the Wiener filter meets the same 1e-8 sigma bar."""
     from gcrsky.inference import wiener_filter_system
-    from gcrsky.solvers import make_preconditioner
+    from gcrsky.solvers.preconditioners import make_preconditioner
 
     sysm = partial.system()
     pc32 = make_preconditioner(sysm, pc, None, 32, "float32")

@@ -21,7 +21,9 @@ from gcrsky.inference import sample_system, wiener_filter_system
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
 from gcrsky.model import Prior, build_problem, isotropic_prior
 from gcrsky.model.system import fluctuation_rhs, wiener_rhs
-from gcrsky.solvers import CGOptions, EighOptions, Result, pcg
+from gcrsky.solvers import CGOptions, EighOptions
+from gcrsky.solvers.cg import pcg
+from gcrsky.solvers.info import Result
 from gcrsky.sphere import hours_to_rad
 
 jax.config.update("jax_enable_x64", True)

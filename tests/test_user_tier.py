@@ -27,10 +27,10 @@ from gcrsky.solvers import (
     DrawInfo,
     EighOptions,
     MModeOptions,
-    Result,
-    draw_cg,
     path_of,
 )
+from gcrsky.solvers.cg import draw_cg
+from gcrsky.solvers.info import Result
 
 WF_REL = 1e-10  # Wiener filter of draw(..., data=d2) against a fresh prepare: rounding only
 

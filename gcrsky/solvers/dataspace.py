@@ -56,8 +56,8 @@ preconditioned by ``D0^-1`` (:mod:`gcrsky.solvers.dataspace_proxy`: rigorous sto
 iterations reported; no ``log det D``, so no evidence from such a state).
 
 Differentiation is implicit as on the primal Cholesky path: solves with D go through
-:func:`gcrsky.solvers.cholesky_solve` (``dx = D^-1 (db - dD x)``, the factor held
-fixed) and ``log det D`` through :func:`gcrsky.solvers.cholesky_logdet`
+:func:`gcrsky.solvers.dense.cholesky_solve` (``dx = D^-1 (db - dD x)``, the factor held
+fixed) and ``log det D`` through :func:`gcrsky.solvers.dense.cholesky_logdet`
 (``tr(D^-1 dD)``); D itself differentiates natively in the response, the angles, the
 noise and the prior.
 
