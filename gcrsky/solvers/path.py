@@ -129,7 +129,7 @@ class SolverPath(abc.ABC):
         return options
 
     def resolve_channels(self, system: LinearSystem, options, requested):
-        """Options chosen on one channel (:func:`gcrsky.parallel.resolve_channel_path`) made right for
+        """Options chosen on one channel (:func:`gcrsky.parallel.channels.resolve_channel_path`) made right for
         every channel of ``system``; ``requested``: what the user passed (or None)."""
         return self.resolve(system, options)
 
