@@ -35,7 +35,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import gcrsky  # noqa: E402
-from gcrsky.inference import as_system, fit_hyperparameters, log_evidence_system  # noqa: E402
+from gcrsky.inference import fit_hyperparameters, log_evidence_system
+from gcrsky.inference.api import as_system  # noqa: E402
 from gcrsky.inference.collapsed import _programs, effective_sample_size  # noqa: E402
 from gcrsky.model import Prior, power_law_cl, prior_from_cl, with_prior  # noqa: E402
 from gcrsky.solvers import CholeskyOptions  # noqa: E402

@@ -79,13 +79,8 @@ from gcrsky.instrument import (  # noqa: E402
     make_array,
     response_matrix,  # noqa: E402
 )
-from gcrsky.model import (  # noqa: E402
-    apply,  # noqa: E402
-    build_problem,  # noqa: E402
-    isotropic_prior,  # noqa: E402
-    precision_matrix,
-    wiener_rhs,
-)
+from gcrsky.model import apply, build_problem, isotropic_prior
+from gcrsky.model.system import precision_matrix, wiener_rhs
 from gcrsky.solvers import CGOptions  # noqa: E402
 
 

@@ -38,22 +38,20 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from gcrsky.inference import (  # noqa: E402
+from gcrsky.inference import (
     effective_sample_size,
     gain_init,
-    gain_posterior,
     gain_setup,
     gain_sky_step,
     gains_step,
     gauge_step,
-    gauge_step_size,
     gibbs_setup,
     joint_gain_step,
     recentre,
-    scale_sky_step,
     scale_step,
     sky_step,
 )
+from gcrsky.inference.gains import gain_posterior, gauge_step_size, scale_sky_step
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array  # noqa: E402
 from gcrsky.model import (  # noqa: E402
     build_problem,

@@ -99,7 +99,8 @@ def main() -> None:
         response_matrix_sht,
         unique_response,
     )
-    from gcrsky.model import LinearSystem, Prior, VisOperator, compress_system, precision_apply
+    from gcrsky.model import LinearSystem, Prior, VisOperator, compress_system
+    from gcrsky.model.system import precision_apply
 
     freqs = np.asarray(FREQS_HZ)
     grid = [(37, 20)] if args.quick else [(37, 20), (37, 50), (91, 20), (91, 50)]

@@ -30,7 +30,7 @@ Sampler paths (``gcrsky.prepare`` + ``gcrsky.draw`` unless noted):
 * ``chol``:  dense P + Cholesky;
 * ``cgD-ny`` / ``cgD-mb``: CG on the dense P, Nystrom / m-block preconditioner;
 * ``cgMF-ny``: matrix-free CG, Nystrom preconditioner;
-* ``mmode``: ``gcrsky.solvers.prepare_mmode`` / ``draw_mmode`` (exact; needs uniform
+* ``mmode``: ``gcrsky.solvers.mmode.prepare_mmode`` / ``draw_mmode`` (exact; needs uniform
   full-day coverage with Nt > 2 lmax and time-stationary noise, else 'n/a' with the
   reason ``mmode_check`` gives).
 
@@ -38,7 +38,7 @@ For each: compile time (``jit(...).lower(...).compile()``, AOT, so it never runs
 computation twice), set-up run time, time per draw (``ndraws`` draws in one call /
 ``ndraws``), and for CG the iterations of the Wiener solve (mean over channels) and the
 mean iterations per draw.  ``it_noPC`` is plain CG (identity preconditioner,
-``gcrsky.solvers.pcg`` on the dense P of channel 0, started at 0 like the Wiener solve)
+``gcrsky.solvers.cg.pcg`` on the dense P of channel 0, started at 0 like the Wiener solve)
 run until its residual ``||b - P x||`` reaches the relative residual the m-block CG
 Wiener solve achieved (the same tolerance in residual terms), capped at 20000
 ('capped').  ``P_MB`` is the size of one dense P (all channels) where formed.
@@ -57,7 +57,7 @@ explained in the run output (dense P or matrix-free CG over budget; mmode n/a wh
 coverage is not a uniform full day with Nt > 2 lmax).  it_noPC on the 24 h rows targets
 the m-block solve's ~1e-16 relative residual (m-blocks are exact there), i.e. machine
 precision: not meaningful ('nc': not reached).  ``ds`` (the exact data-space path,
-``gcrsky.solvers.prepare_dataspace`` / ``draw_dataspace``, added 2026-12-02) runs only
+``gcrsky.solvers.dataspace.prepare_dataspace`` / ``draw_dataspace``, added 2026-12-02) runs only
 where ``N_d = 2 Nt Nbl < n``: in this grid only l50-a10-t10-8h-f1 (N_d = 900, n = 2601);
 (a) measured 2026-12-02 in a separate run of that row (load ~5; the same run gave chol
 2.5+3.3/2.92ms, cgMF-ny 4.8+0.5/61.3ms [35,33]); the other cells are 2026-11-22's.
@@ -212,7 +212,7 @@ iterations here (30 LSTs), and the same for the dense P build.  Not done in this
 (C') The same row after building P by m-blocks (MEASURED 2026-12-02 07:05-07:09 UTC, load
 ~2, ``SCALE_PATHS=chol python benchmarks/scale.py --only l150-a331-t30-8h-f1-red``).  A
 rotation about the pole is a phase per m, so ``X^T W X`` is one real product over
-``4 Nbl`` per order m (``gcrsky.model.precision_data_matrix``): ~8 Nbl n^2 = 2.6e12 flop
+``4 Nbl`` per order m (``gcrsky.model.system.precision_data_matrix``): ~8 Nbl n^2 = 2.6e12 flop
 whatever Nt (1.25x that with the loops' fixed windows), against 4 Nt Nbl n^2 = 3.9e13
 summed over times.  Exact dense Cholesky (``method="auto"`` picks it)::
 
@@ -434,25 +434,19 @@ def run_one(c) -> dict:
         response_matrix,
     )
     from gcrsky.model import LinearSystem, VisOperator, apply, build_problem, compress_system, isotropic_prior
-    from gcrsky.solvers import (
-        CGOptions,
-        DataSpaceOptions,
-        draw_dataspace,
-        draw_mmode,
-        mmode_check,
-        pcg,
-        plan_sampler,
-        prepare_dataspace,
-        prepare_mmode,
-    )
+    from gcrsky.solvers import CGOptions, DataSpaceOptions, mmode_check, plan_sampler
+    from gcrsky.solvers.cg import pcg
     from gcrsky.solvers.dataspace import (
         _prepare_dataspace,
         dataspace_memory_bytes,
+        draw_dataspace,
         lag_structure,
         materialize_rows,
+        prepare_dataspace,
         use_in_place,
     )
     from gcrsky.solvers.dense import CHOLESKY_INVERSE_MAX_N
+    from gcrsky.solvers.mmode import draw_mmode, prepare_mmode
     from gcrsky.sphere import n_params
 
     lmax, nants, nt, hours, nf, ndraws = c[:6]
@@ -691,7 +685,7 @@ def run_one(c) -> dict:
             if pname == "cgD-mb":
                 rel_mb = float(np.asarray(prep.wiener.rel_residual)[0])
                 P0 = prep.precision[0]
-                b0 = gcrsky.model.wiener_rhs(system)[0]
+                b0 = gcrsky.model.system.wiener_rhs(system)[0]
                 tol = rel_mb * float(jnp.linalg.norm(b0))
                 f = jax.jit(lambda P, b, tol: pcg(lambda x: P @ x, lambda r: r, b, jnp.zeros_like(b), tol=tol,
                                                   maxiter=NOPC_CAP)[1])

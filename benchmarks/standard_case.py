@@ -40,9 +40,10 @@ import numpy as np
 import gcrsky
 from gcrsky.inference import draw, prepare_system, sample_system, wiener_filter_system
 from gcrsky.instrument import antpairs, gaussian_beam, hex_array, make_array, response_matrix
-from gcrsky.model import precision_matrix
+from gcrsky.model.system import precision_matrix
 from gcrsky.sim.sky import sky_truth
-from gcrsky.solvers import CGOptions, m_block_preconditioner, nystrom_preconditioner
+from gcrsky.solvers import CGOptions
+from gcrsky.solvers.preconditioners import m_block_preconditioner, nystrom_preconditioner
 
 
 def maxrss_mib() -> float:
@@ -219,7 +220,7 @@ def main(argv=None) -> int:
         print(
             f"CG ({name}) vs Cholesky Wiener filter: max |diff| / posterior sigma = {np.max(diff / sd):.2e} "
             f"(max |diff| {diff.max():.2e} K); draws err_sigma median {np.median(err):.1e}, max {err.max():.1e} "
-            f"(tol {gcrsky.solvers.DEFAULT_TOL:g})"
+            f"(tol {gcrsky.solvers.options.DEFAULT_TOL:g})"
         )
     print(f"peak memory (ru_maxrss): {maxrss_mib():.0f} MiB")
     return 0

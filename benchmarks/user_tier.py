@@ -72,7 +72,7 @@ def main() -> None:
     cg = gcrsky.prepare(system, options=CGOptions(dense=False))
     rows.append(("CG matrix-free: draw(300), first", timed(lambda: gcrsky.draw(key, cg, 300)[0])[0]))
     rows.append(("CG matrix-free: draw(301), same bucket", timed(lambda: gcrsky.draw(key, cg, 301)[0])[0]))
-    print(f"path chosen: {gcrsky.solvers.method_of(opts)}; lmax {prob.lmax}, n = {prob.n}")
+    print(f"path chosen: {gcrsky.solvers.registry.method_of(opts)}; lmax {prob.lmax}, n = {prob.n}")
     print(f"{'call':48s} {'seconds':>9s}")
     for name, sec in rows:
         print(f"{name:48s} {sec:9.3f}")

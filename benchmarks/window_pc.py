@@ -100,10 +100,17 @@ from gcrsky.instrument import (  # noqa: E402
     make_array,
     unique_response,
 )
-from gcrsky.model import LinearSystem, VisOperator, fluctuation_rhs, isotropic_prior, precision_matrix  # noqa: E402
-from gcrsky.solvers import auto_bandwidth, make_preconditioner, pcg  # noqa: E402
-from gcrsky.solvers.preconditioners import precondition_one  # noqa: E402
-from gcrsky.solvers.window import window_memory_bytes  # noqa: E402
+from gcrsky.model import LinearSystem, VisOperator, isotropic_prior
+from gcrsky.model.system import fluctuation_rhs, precision_matrix  # noqa: E402
+from gcrsky.solvers.cg import pcg  # noqa: E402
+from gcrsky.solvers.preconditioners import (
+    make_preconditioner,
+    precondition_one,  # noqa: E402
+)
+from gcrsky.solvers.window import (
+    auto_bandwidth,
+    window_memory_bytes,  # noqa: E402
+)
 from gcrsky.sphere import n_params  # noqa: E402
 
 TOL = 1e-6

@@ -8,7 +8,8 @@ import numpy as np
 from scipy import stats
 
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
-from gcrsky.model import build_problem, dense_matrix, isotropic_prior, precision_matrix, wiener_rhs
+from gcrsky.model import build_problem, dense_matrix, isotropic_prior
+from gcrsky.model.system import precision_matrix, wiener_rhs
 from gcrsky.solvers import CGOptions, CholeskyOptions, EighOptions, MModeOptions
 
 LMAX, NSIDE = 4, 16

@@ -4,7 +4,7 @@ Set-up: the 10-antenna hexagon at lmax 4 (n = 25), nside 16, one channel, 6 LSTs
 over 0-6 h, heterogeneous per-component noise sigma in [1.5, 3] x 1e-4, an
 isotropic prior C_l = 200 / (1 + l)^2, and flags: 20% of samples at random plus
 the whole time index 2 and the whole baseline index 7 (33% flagged in all), with
-NaN in the flagged data (cleaned by :func:`gcrsky.model.clean_data` like real data).
+NaN in the flagged data (cleaned by :func:`gcrsky.model.noise.clean_data` like real data).
 Each SBC run: M = 1000 replicates, truth ~ prior, data ~ likelihood, L = 15
 posterior draws per replicate, ranks of 9 functionals fixed in advance
 (:func:`gcrsky.checks.sbc.default_functionals`): the 3 most data-dominated

@@ -34,15 +34,14 @@ import pytest
 from gcrsky.inference import draw_batches, draw_exactly, prepare_system, wiener_filter_system
 from gcrsky.parallel import (
     CHANNEL_KEY_SCHEME,
-    channel_blocks,
     channel_key,
     channel_mesh,
     distributed_channels,
-    host_devices_env,
-    resolve_channel_path,
     sample_channels,
     sample_channels_sharded,
 )
+from gcrsky.parallel.channels import channel_blocks, resolve_channel_path
+from gcrsky.parallel.runtime import host_devices_env
 from gcrsky.solvers import CGOptions
 from gcrsky.solvers.cg import freq_slice
 

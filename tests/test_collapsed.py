@@ -38,8 +38,9 @@ import pytest
 from _hyper_fixtures import scaled, small_problem
 from scipy import stats
 
-from gcrsky.inference import objective, sample_system
+from gcrsky.inference import sample_system
 from gcrsky.inference.collapsed import draw_given_hyperparameters, effective_sample_size, sample_hyperparameters
+from gcrsky.inference.hyper import objective
 from gcrsky.solvers import CholeskyOptions
 
 PRIOR_MU, PRIOR_SD = 0.0, 0.1

@@ -78,9 +78,9 @@ import gcrsky
 from gcrsky.checks.sbc import rank_pvalues
 from gcrsky.inference import cl_hat
 from gcrsky.inference.collapsed import draw_given_hyperparameters, flat_log_density, nuts_chain
-from gcrsky.model import precision_matrix
 from gcrsky.model.noise import draw_noise
 from gcrsky.model.operator import apply
+from gcrsky.model.system import precision_matrix
 
 LMAX, R, R_CTRL, L, THIN, WARMUP, MAX_DOUBLINGS = 4, 256, 128, 19, 2, 200, 3
 MU = np.array([np.log(200.0), 2.0])  # hyperprior mean of theta = (log A, alpha)

@@ -17,7 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from gcrsky.parallel import COMPILE_CACHE_ENV, CompileStats, default_compile_cache_dir
+from gcrsky.parallel import CompileStats
+from gcrsky.parallel.runtime import COMPILE_CACHE_ENV, default_compile_cache_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ["--lmax", "8", "--nside", "32", "--nsamples", "8", "--batch", "8", "--no-plots", "--no-progress"]

@@ -31,20 +31,17 @@ from scipy import stats
 import gcrsky
 from gcrsky.inference import log_evidence_system
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
-from gcrsky.model import build_problem, compress_problem, isotropic_prior, precision_matrix, wiener_rhs
+from gcrsky.model import build_problem, compress_problem, isotropic_prior
+from gcrsky.model.system import precision_matrix, wiener_rhs
 from gcrsky.solvers import (
     CholeskyOptions,
     DataSpaceOptions,
     DataSpaceState,
     choose_path,
-    data_size,
-    dataspace_matrix,
-    draw_dataspace,
     path_memory_bytes,
     plan_sampler,
-    prepare_dataspace,
 )
-from gcrsky.solvers.dataspace import from_rows, to_rows
+from gcrsky.solvers.dataspace import data_size, dataspace_matrix, draw_dataspace, from_rows, prepare_dataspace, to_rows
 from gcrsky.solvers.plan import DENSE_MEMORY_FRACTION
 
 ALPHA = 1e-3

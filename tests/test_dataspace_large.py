@@ -25,10 +25,11 @@ import numpy as np
 import pytest
 
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
-from gcrsky.model import build_problem, compress_problem, isotropic_prior, precision_matrix, wiener_rhs
-from gcrsky.solvers import DataSpaceOptions, draw_dataspace, prepare_dataspace
+from gcrsky.model import build_problem, compress_problem, isotropic_prior
+from gcrsky.model.system import precision_matrix, wiener_rhs
+from gcrsky.solvers import DataSpaceOptions
 from gcrsky.solvers.blocked import blocked_cholesky, triangular_solves
-from gcrsky.solvers.dataspace import dataspace_memory_bytes, lag_structure
+from gcrsky.solvers.dataspace import dataspace_memory_bytes, draw_dataspace, lag_structure, prepare_dataspace
 from gcrsky.solvers.dataspace_large import dataspace_large_bytes, lag_blocks_by_m, logdet_no_grad
 from gcrsky.sphere import rotate
 

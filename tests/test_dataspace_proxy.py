@@ -26,15 +26,20 @@ import pytest
 
 from gcrsky.inference import log_evidence
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
-from gcrsky.model import build_problem, compress_problem, isotropic_prior, precision_matrix
-from gcrsky.solvers import DataSpaceOptions, data_size, dataspace_matrix, draw_dataspace, prepare_dataspace
+from gcrsky.model import build_problem, compress_problem, isotropic_prior
+from gcrsky.model.system import precision_matrix
+from gcrsky.solvers import DataSpaceOptions
 from gcrsky.solvers.dataspace import (
     _condition_dataspace,
     _proxy_precond,
     _sqrt_w,
     _whitened_residual,
     _y_adjoint,
+    data_size,
+    dataspace_matrix,
+    draw_dataspace,
     lag_structure,
+    prepare_dataspace,
 )
 from gcrsky.solvers.dataspace_proxy import anisotropy, stationary_proxy, truncation_index
 from gcrsky.solvers.registry import path_of

@@ -27,8 +27,10 @@ from gcrsky.instrument import (
     hex_array,
     make_array,
 )
-from gcrsky.model import build_problem, isotropic_prior, precision_matrix, wiener_rhs
-from gcrsky.solvers import CGOptions, CholeskyOptions, MModeOptions, Result, SLQOptions
+from gcrsky.model import build_problem, isotropic_prior
+from gcrsky.model.system import precision_matrix, wiener_rhs
+from gcrsky.solvers import CGOptions, CholeskyOptions, MModeOptions, SLQOptions
+from gcrsky.solvers.info import Result
 
 
 @pytest.fixture(scope="module")
@@ -248,7 +250,7 @@ def test_result_codes_and_throw(base):
     assert set(np.asarray(info.result).tolist()) <= {Result.BREAKDOWN, Result.NONFINITE}
     _, info = gcrsky.wiener_filter_system(flat, method="cholesky")
     assert set(np.asarray(info.result).tolist()) == {Result.NONFINITE}
-    assert gcrsky.solvers.result_names(info) == {"nonfinite": 2}
+    assert gcrsky.solvers.info.result_names(info) == {"nonfinite": 2}
     with pytest.raises(Exception, match="did not converge"):
         jax.block_until_ready(jax.jit(lambda s: gcrsky.wiener_filter_system(
             s, options=CGOptions(tol=1e-14, maxiter=1, preconditioner="mblock", throw=True))[0])(base))

@@ -1,6 +1,6 @@
 """Flags and bad samples (DESIGN section 3): a flagged sample has no effect at all.
 
-* :func:`gcrsky.model.weights_from_flags` turns boolean flags into weights.
+* :func:`gcrsky.model.noise.weights_from_flags` turns boolean flags into weights.
 * Whatever a flagged sample holds (NaN, +Inf, -Inf, 1e300, finite garbage) the
   problem is *bitwise* the same: same cleaned data, precision matrix, Wiener
   filter and draws for the same key (``clean_data`` zeroes every flagged sample).
@@ -29,16 +29,9 @@ import pytest
 import gcrsky
 from gcrsky.inference import prepare_system, wiener_filter_system
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
-from gcrsky.model import (
-    LinearSystem,
-    build_problem,
-    clean_data,
-    dense_matrix,
-    isotropic_prior,
-    precision_matrix,
-    weights_from_flags,
-    wiener_rhs,
-)
+from gcrsky.model import LinearSystem, build_problem, dense_matrix, isotropic_prior
+from gcrsky.model.noise import clean_data, weights_from_flags
+from gcrsky.model.system import precision_matrix, wiener_rhs
 from gcrsky.solvers import CGOptions
 from gcrsky.sphere import hours_to_rad
 

@@ -61,7 +61,8 @@ from gcrsky.checks.uvsim import simulate_uvdata
 from gcrsky.inference import gain_init, gain_setup, gibbs_setup, joint_gain_step, recentre
 from gcrsky.ingest.uvdata import from_uvdata
 from gcrsky.instrument import gaussian_beam, hex_array
-from gcrsky.model import gain_model, isotropic_prior, n_gain_params, perturbations, unit_gains
+from gcrsky.model import gain_model, isotropic_prior, n_gain_params, perturbations
+from gcrsky.model.gains import unit_gains
 from gcrsky.model.operator import dense_matrix
 
 LMAX, NSIDE = 6, 64  # nside 64: the quadrature resolves the fringes (reach 111 > 3 x 32 - 1)

@@ -30,7 +30,8 @@ from gcrsky.inference import (
     scalar_log_evidence,
     scalar_quadratics,
 )
-from gcrsky.model import Prior, dense_matrix, precision_matrix, scale_noise, wiener_rhs, with_prior
+from gcrsky.model import Prior, dense_matrix, scale_noise, with_prior
+from gcrsky.model.system import precision_matrix, wiener_rhs
 from gcrsky.solvers import CGOptions
 from gcrsky.solvers.registry import PATHS
 

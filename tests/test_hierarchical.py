@@ -21,8 +21,7 @@ import gcrsky
 from gcrsky.inference import cl_hat, gibbs_init, gibbs_setup, gibbs_step, sample_cl, sample_power_law
 from gcrsky.inference.cl import power_law_log_marginal
 from gcrsky.inference.gibbs import _a_step, _fluctuation
-from gcrsky.model import precision_matrix, wiener_rhs
-from gcrsky.model.system import fluctuation_rhs
+from gcrsky.model.system import fluctuation_rhs, precision_matrix, wiener_rhs
 from gcrsky.solvers import CGOptions, CholeskyOptions
 
 P_FALSE_ALARM = 1e-3

@@ -17,8 +17,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gcrsky.model import LinearSystem, Prior, VisOperator, mfactor, precision_apply
+from gcrsky.model import LinearSystem, Prior, VisOperator, mfactor
 from gcrsky.model.operator import _adjoint_by_time, _apply_by_time, adjoint, apply, uses_mfactor
+from gcrsky.model.system import precision_apply
 
 ALG = 1e-12
 

@@ -1,6 +1,6 @@
 """Tests of the exact m-mode solver (gcrsky.solvers.mmode, DESIGN §4, issue 5).
 
-References: the dense precision matrix :func:`gcrsky.model.precision_matrix`, a dense
+References: the dense precision matrix :func:`gcrsky.model.system.precision_matrix`, a dense
 NumPy solve for the Wiener filter and the dense Cholesky factor for whitening draws.
 The problem is the shared small one (10-antenna hexagon, lmax 6, nside 32, two
 frequencies) observed with Nt = 2 lmax + 3 equally spaced LSTs over the whole day and
@@ -18,14 +18,18 @@ import pytest
 from scipy import stats
 
 from gcrsky.instrument import antpairs, response_matrix
-from gcrsky.model import LinearSystem, VisOperator, isotropic_prior, precision_matrix, wiener_rhs
-from gcrsky.solvers import MModeOptions, draw_mmode, mmode_blocks, mmode_check, prepare_mmode
+from gcrsky.model import LinearSystem, VisOperator, isotropic_prior
+from gcrsky.model.system import precision_matrix, wiener_rhs
+from gcrsky.solvers import MModeOptions, mmode_check
 from gcrsky.solvers.mmode import (
     block_solve,
     blocks_to_dense,
+    draw_mmode,
     is_mmode_diagonal,
+    mmode_blocks,
     mmode_buckets,
     mmode_wiener_and_draws,
+    prepare_mmode,
 )
 from gcrsky.sphere import lmax_from_nparams, mode_table
 

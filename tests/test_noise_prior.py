@@ -15,15 +15,8 @@ import pytest
 from scipy.stats import chi2
 
 from gcrsky.base import check_float64
-from gcrsky.model import (
-    clean_data,
-    draw_noise,
-    flat_prior,
-    inverse_variance,
-    isotropic_prior,
-    paper_prior,
-    radiometer_sigma,
-)
+from gcrsky.model import draw_noise, flat_prior, isotropic_prior, paper_prior
+from gcrsky.model.noise import clean_data, inverse_variance, radiometer_sigma
 from gcrsky.sphere import mode_table, n_params, realify, unrealify
 
 Z = 5.0  # two-sided false-alarm rate 2 * norm.sf(5) = 5.7e-7 per check

@@ -25,7 +25,8 @@ from conftest import H1C, H2C  # noqa: E402
 
 from gcrsky.ingest import from_uvdata
 from gcrsky.io import Observation, read_observation
-from gcrsky.model import problem_from_observation, radiometer_variance, raw_variance
+from gcrsky.model import problem_from_observation, radiometer_variance
+from gcrsky.model.observed import raw_variance
 
 
 def _uvdata(path):

@@ -21,20 +21,10 @@ import numpy as np
 import pytest
 
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array, response_matrix
-from gcrsky.model import (
-    LinearSystem,
-    Prior,
-    VisOperator,
-    adjoint,
-    apply,
-    dense_matrix,
-    n_in,
-    precision_apply,
-    precision_matrix,
-    precision_matrix_by_time,
-)
-from gcrsky.solvers import apply_preconditioner, m_block_preconditioner
-from gcrsky.solvers.preconditioners import m_blocks
+from gcrsky.model import LinearSystem, Prior, VisOperator, adjoint, apply, dense_matrix
+from gcrsky.model.operator import n_in
+from gcrsky.model.system import precision_apply, precision_matrix, precision_matrix_by_time
+from gcrsky.solvers.preconditioners import apply_preconditioner, m_block_preconditioner, m_blocks
 from gcrsky.sphere import mode_table, n_alm, n_params, real_basis, realify, rotate, rotate_complex_alm, unrealify
 
 ALG = 1e-12

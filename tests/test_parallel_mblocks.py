@@ -2,10 +2,10 @@
 single-device path.
 
 The device count is fixed when JAX's backend starts, so the check runs in a subprocess with two
-forced host devices (:func:`gcrsky.parallel.host_devices_env`, as tests/test_sharding.py does).
+forced host devices (:func:`gcrsky.parallel.runtime.host_devices_env`, as tests/test_sharding.py does).
 A full day (30 equally spaced LSTs > 2 lmax) of the 10-antenna hexagon at lmax 12 with buckets
 of 4 orders (several buckets, alternating between the two devices); references: the
-single-device :func:`gcrsky.solvers.prepare_mmode` / :func:`~gcrsky.solvers.draw_mmode` in the
+single-device :func:`gcrsky.solvers.mmode.prepare_mmode` / :func:`~gcrsky.solvers.mmode.draw_mmode` in the
 same process (the same operations on the same inputs: equal to 1e-13 relative) and a dense
 solve of P for the Wiener filter (1e-8 posterior sigma).
 """
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from gcrsky.parallel import host_devices_env
+from gcrsky.parallel.runtime import host_devices_env
 
 ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT_S = 300

@@ -16,25 +16,12 @@ import numpy as np
 import pytest
 
 import gcrsky
-from gcrsky.inference import (
-    KEY_SCHEME,
-    batch_key,
-    draw,
-    draw_batches,
-    draw_exactly,
-    prepare_system,
-    wiener_filter_system,
-)
+from gcrsky.inference import draw, draw_batches, draw_exactly, prepare_system, wiener_filter_system
+from gcrsky.inference.batches import KEY_SCHEME, batch_key
 from gcrsky.instrument import antpairs
-from gcrsky.model import (
-    assemble_problem,
-    build_problem,
-    isotropic_prior,
-    observation_geometry,
-    problem_responses,
-    simulate_data,
-    wiener_rhs,
-)
+from gcrsky.model import build_problem, isotropic_prior, simulate_data
+from gcrsky.model.problem import assemble_problem, observation_geometry, problem_responses
+from gcrsky.model.system import wiener_rhs
 from gcrsky.solvers import (
     CGOptions,
     CGState,
@@ -45,9 +32,8 @@ from gcrsky.solvers import (
     MModeOptions,
     MModeState,
     choose_path,
-    method_of,
-    options_for,
 )
+from gcrsky.solvers.registry import method_of, options_for
 
 SOLVE = 1e-8  # posterior sigma
 
@@ -139,7 +125,7 @@ def test_choose_path_resolves_method_options_and_tol(full_day):
 def test_auto_preconditioner_is_resolved_host_side_and_under_jit(full_day):
     system = full_day.system()
     flat = system._replace(prior=system.prior._replace(inv_var=jnp.zeros_like(system.prior.inv_var)))
-    from gcrsky.solvers import resolve_cg_options
+    from gcrsky.solvers.cg import resolve_cg_options
 
     assert resolve_cg_options(system).preconditioner == "nystrom"
     assert resolve_cg_options(flat).preconditioner == "mblock"

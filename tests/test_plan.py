@@ -48,7 +48,7 @@ def partial(small_response):
 
 def _dense_wf_and_sigma(problem):
     P = np.asarray(problem.precision_matrix())
-    b = np.asarray(gcrsky.model.wiener_rhs(problem.system()))
+    b = np.asarray(gcrsky.model.system.wiener_rhs(problem.system()))
     a = np.stack([np.linalg.solve(P[f], b[f]) for f in range(P.shape[0])])
     sig = np.stack([np.sqrt(np.diag(np.linalg.inv(P[f]))) for f in range(P.shape[0])])
     return a, sig
@@ -130,7 +130,7 @@ def test_float32_preconditioner_keeps_the_answer_exact(partial, pc):
     """A float32 preconditioner changes only the iteration count: products, iterates and
     the stopping test stay float64, so the Wiener filter meets the same 1e-8 sigma bar."""
     from gcrsky.inference import wiener_filter_system
-    from gcrsky.solvers import make_preconditioner
+    from gcrsky.solvers.preconditioners import make_preconditioner
 
     sysm = partial.system()
     pc32 = make_preconditioner(sysm, pc, None, 32, "float32")

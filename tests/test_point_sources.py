@@ -36,7 +36,6 @@ from _hyper_fixtures import small_problem
 from gcrsky.base import kelvin_sr_to_jy
 from gcrsky.inference import (
     effective_sample_size,
-    flux_posterior,
     flux_setup,
     flux_step,
     gibbs_setup,
@@ -46,6 +45,7 @@ from gcrsky.inference import (
     sky_step,
     source_visibilities,
 )
+from gcrsky.inference.sources import flux_posterior
 from gcrsky.instrument import (
     HERA_LATITUDE_DEG,
     antpairs,

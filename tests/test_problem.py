@@ -7,7 +7,7 @@ import pytest
 
 import gcrsky
 from gcrsky.instrument import HERA_LATITUDE_DEG, antpairs, gaussian_beam, hex_array, make_array, response_matrix
-from gcrsky.model import radiometer_sigma
+from gcrsky.model.noise import radiometer_sigma
 from gcrsky.sphere import rotate
 
 SMALL = dict(lmax=6, nside=32, n_lst=4)

@@ -20,15 +20,8 @@ from conftest import isotropic_problem
 
 import gcrsky
 from gcrsky.inference import condition, draw, log_evidence_system, prepare_system, sample_system, wiener_filter_system
-from gcrsky.solvers import (
-    CGOptions,
-    CholeskyOptions,
-    DataSpaceOptions,
-    EighOptions,
-    MModeOptions,
-    Result,
-    result_names,
-)
+from gcrsky.solvers import CGOptions, CholeskyOptions, DataSpaceOptions, EighOptions, MModeOptions
+from gcrsky.solvers.info import Result, result_names
 
 NBL = 12  # baselines kept (of 45): the data-space D stays small
 

@@ -43,19 +43,9 @@ from gcrsky.instrument import (
     response_matrix,
     unique_response,
 )
-from gcrsky.model import (
-    LinearSystem,
-    Prior,
-    VisOperator,
-    adjoint,
-    build_problem,
-    compress_problem,
-    compress_system,
-    compress_visibilities,
-    fluctuation_rhs,
-    precision_matrix,
-    wiener_rhs,
-)
+from gcrsky.model import LinearSystem, Prior, VisOperator, adjoint, build_problem, compress_problem, compress_system
+from gcrsky.model.compress import compress_visibilities
+from gcrsky.model.system import fluctuation_rhs, precision_matrix, wiener_rhs
 from gcrsky.solvers import CGOptions
 
 NT = 4

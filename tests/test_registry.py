@@ -21,8 +21,9 @@ from conftest import isotropic_problem
 
 import gcrsky
 from gcrsky.inference import condition
-from gcrsky.model import precision_matrix, wiener_rhs
-from gcrsky.parallel import resolve_channel_path, sample_channels
+from gcrsky.model.system import precision_matrix, wiener_rhs
+from gcrsky.parallel import sample_channels
+from gcrsky.parallel.channels import resolve_channel_path
 from gcrsky.solvers import PATHS, CholeskyOptions, EvidenceParts, SolveInfo, SolverPath, plan_sampler
 from gcrsky.solvers.info import DrawInfo, direct_info, exact_info
 from gcrsky.solvers.options import DEFAULT_TOL

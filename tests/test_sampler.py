@@ -19,8 +19,11 @@ from scipy import stats
 import gcrsky
 from gcrsky.inference import sample_system, wiener_filter_system
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
-from gcrsky.model import Prior, build_problem, fluctuation_rhs, isotropic_prior, wiener_rhs
-from gcrsky.solvers import CGOptions, EighOptions, Result, pcg
+from gcrsky.model import Prior, build_problem, isotropic_prior
+from gcrsky.model.system import fluctuation_rhs, wiener_rhs
+from gcrsky.solvers import CGOptions, EighOptions
+from gcrsky.solvers.cg import pcg
+from gcrsky.solvers.info import Result
 from gcrsky.sphere import hours_to_rad
 
 jax.config.update("jax_enable_x64", True)
@@ -401,7 +404,7 @@ def test_large_n_mode_factorises_on_the_host_and_equals_numpy(small):
     L = np.asarray(host_cholesky(bad))
     assert np.all(np.isfinite(L[0])) and np.all(np.isnan(L[1]))
     np.testing.assert_allclose(np.tril(L[0]), L[0], rtol=0, atol=0)  # lower triangular, zeros above
-    from gcrsky.model import precision_matrix
+    from gcrsky.model.system import precision_matrix
     from gcrsky.solvers.dense import _factor_cholesky_jit
 
     traced = jax.jit(lambda s: _factor_cholesky_jit(s, precision_matrix(s), opts)[2])

@@ -15,7 +15,7 @@ Draws are compared with the *padded* system on one device: the fluctuation noise
 drawn with the padded shape, so the unpadded system gives a different (equally
 exact) realisation from the same key (the summary records that difference, ~0.2).
 
-The subprocess's environment comes from :func:`gcrsky.parallel.host_devices_env`, which
+The subprocess's environment comes from :func:`gcrsky.parallel.runtime.host_devices_env`, which
 sizes XLA's CPU thread pool (``PJRT_NPROC``).  Without it, on a 2-core host about half
 the runs hung for good at 0% CPU: the Nystrom preconditioner's batched LAPACK calls
 (replicated, so one per device at a time) each blocked a thread of the 4-thread pool
@@ -37,16 +37,15 @@ import jax
 import numpy as np
 import pytest
 
-from gcrsky.parallel import (
+from gcrsky.parallel import baseline_mesh, shard_system
+from gcrsky.parallel.runtime import (
     POOL_THREADS_PER_DEVICE,
-    baseline_mesh,
     effective_pool_size,
     forced_device_count,
     host_devices_env,
-    pad_baselines,
     safe_pool_size,
-    shard_system,
 )
+from gcrsky.parallel.sharding import pad_baselines
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -243,7 +242,8 @@ def test_non_1d_mesh_rejected():
 def test_pad_baselines_exact_in_process(small_response):
     import jax.numpy as jnp
 
-    from gcrsky.model import LinearSystem, VisOperator, flat_prior, precision_apply
+    from gcrsky.model import LinearSystem, VisOperator, flat_prior
+    from gcrsky.model.system import precision_apply
 
     resp = small_response.response
     nf, nbl, n = resp.shape

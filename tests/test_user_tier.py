@@ -17,7 +17,8 @@ from conftest import isotropic_problem
 from scipy import stats
 
 import gcrsky
-from gcrsky.inference import condition, draw_bucket
+from gcrsky.inference import condition
+from gcrsky.inference.posterior import draw_bucket
 from gcrsky.solvers import (
     PATHS,
     CGOptions,
@@ -26,10 +27,10 @@ from gcrsky.solvers import (
     DrawInfo,
     EighOptions,
     MModeOptions,
-    Result,
-    draw_cg,
     path_of,
 )
+from gcrsky.solvers.cg import draw_cg
+from gcrsky.solvers.info import Result
 
 WF_REL = 1e-10  # Wiener filter of draw(..., data=d2) against a fresh prepare: rounding only
 
@@ -138,7 +139,7 @@ def test_mmode_under_jit_on_partial_coverage_reports_failure_and_throws(partial,
     assert set(np.asarray(st.wiener.result).tolist()) == {Result.INACCURATE}
     assert float(np.min(np.asarray(st.wiener.err_sigma))) > 1e3 * MModeOptions().tol  # measured 0.25, 0.46
     P = np.asarray(partial.precision_matrix())  # the truth: the block answer is far from the exact mean
-    b = np.asarray(gcrsky.model.wiener_rhs(partial.system()))
+    b = np.asarray(gcrsky.model.system.wiener_rhs(partial.system()))
     exact = np.stack([np.linalg.solve(P[f], b[f]) for f in range(P.shape[0])])
     sig = np.stack([np.sqrt(np.diag(np.linalg.inv(P[f]))) for f in range(P.shape[0])])
     assert np.max(np.abs(np.asarray(st.a_wf) - exact) / sig) > 0.1

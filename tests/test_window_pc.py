@@ -17,9 +17,17 @@ import numpy as np
 import pytest
 
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, groups_for_array, hex_array, make_array, unique_response
-from gcrsky.model import LinearSystem, VisOperator, isotropic_prior, precision_matrix
-from gcrsky.solvers import CGOptions, draw_cg, make_preconditioner, pcg, prepare_cg, resolve_cg_options, solve_cg
-from gcrsky.solvers.preconditioners import inverse_bound, precondition_one, resolve_preconditioner, stop_norm
+from gcrsky.model import LinearSystem, VisOperator, isotropic_prior
+from gcrsky.model.system import precision_matrix
+from gcrsky.solvers import CGOptions
+from gcrsky.solvers.cg import draw_cg, pcg, prepare_cg, resolve_cg_options, solve_cg
+from gcrsky.solvers.preconditioners import (
+    inverse_bound,
+    make_preconditioner,
+    precondition_one,
+    resolve_preconditioner,
+    stop_norm,
+)
 from gcrsky.solvers.window import (
     auto_bandwidth,
     window_data_matrix,

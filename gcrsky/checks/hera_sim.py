@@ -14,7 +14,7 @@ pairs ``i < j`` in 234 redundant groups), so the response is built for one basel
 group (:func:`gcrsky.instrument.unique_response`) and one autocorrelation, the
 noiseless visibilities are gcrsky's own forward model of the sky through it
 (:func:`gcrsky.model.operator.apply` with the ICRS -> CIRS-of-date frame map of the real
-observing times, :func:`gcrsky.model.observation_geometry`), and only then expanded to
+observing times, :func:`gcrsky.model.problem.observation_geometry`), and only then expanded to
 every baseline of the group, each with its own noise.  This is gcrsky's model, not an
 independent simulator: a run on the file tests the pipeline at scale and the
 posterior's calibration, not the response (that is :mod:`gcrsky.checks.uvsim`'s job,

@@ -313,7 +313,7 @@ def run_sbc(
     """Simulation-based calibration of ``sampler`` on ``system``'s model.
 
     Truths are drawn from ``system``'s prior, data from its likelihood (NaN under
-    flags, cleaned by :func:`gcrsky.model.clean_data` exactly as real data are), and
+    flags, cleaned by :func:`gcrsky.model.noise.clean_data` exactly as real data are), and
     the ranks come from ``sampler`` applied to ``posterior`` (default ``system``) with
     each replicate's data.  A ``posterior`` that differs from ``system`` (e.g. a noise
     variance off by 2) is a misspecification study: SBC should then fail.

@@ -32,9 +32,9 @@ of a fixed-key draw depends on ``method``; the Wiener filter's and the evidence'
 not.  C_l steps will live here too.
 """
 
-from .api import Method, as_system, fixed_path, prepare, sample, warn_unconverged, wiener_filter
-from .batches import KEY_SCHEME, BatchedDraws, batch_key, draw_batches
-from .cl import CL_PRIORS, cl_hat, power_law_log_marginal, sample_cl, sample_power_law
+from .api import Method, prepare, sample, wiener_filter
+from .batches import BatchedDraws, draw_batches
+from .cl import cl_hat, sample_cl, sample_power_law
 from .collapsed import (
     CollapsedInfo,
     CollapsedSamples,
@@ -42,32 +42,22 @@ from .collapsed import (
     effective_sample_size,
     sample_hyperparameters,
 )
-from .evidence import EvidenceInfo, evidence_terms, log_evidence, log_evidence_system
+from .evidence import EvidenceInfo, log_evidence, log_evidence_system
 from .gains import (
-    GainBlock,
-    GainInfo,
     GainState,
-    gain_conditional,
     gain_init,
-    gain_posterior,
     gain_setup,
     gain_sky_step,
-    gained_fixed,
     gains_step,
     gauge_step,
-    gauge_step_size,
     joint_gain_step,
     recentre,
-    scale_conditional,
-    scale_sky_step,
     scale_step,
 )
 from .gibbs import (
     GCRState,
-    GibbsFixed,
     GibbsInfo,
     GibbsState,
-    JointInfo,
     gcr_init,
     gcr_step,
     gibbs_init,
@@ -76,13 +66,11 @@ from .gibbs import (
     joint_step,
     sky_step,
 )
-from .hyper import FitResult, fit_hyperparameters, objective
+from .hyper import FitResult, fit_hyperparameters
 from .posterior import (
     DRAW_BATCH,
-    SamplerState,
     condition,
     draw,
-    draw_bucket,
     draw_exactly,
     prepare_sampler,
     prepare_system,
@@ -98,9 +86,7 @@ from .scalar_gibbs import (
     scalar_quadratics,
 )
 from .sources import (
-    FluxBlock,
     SkySourceState,
-    flux_posterior,
     flux_setup,
     flux_step,
     sample_fluxes,
@@ -110,54 +96,34 @@ from .sources import (
 )
 
 __all__ = [
-    "GainBlock",
-    "GainInfo",
     "GainState",
-    "gain_conditional",
     "gain_init",
-    "gain_posterior",
     "gain_setup",
     "gain_sky_step",
-    "gained_fixed",
     "gains_step",
     "gauge_step",
-    "gauge_step_size",
     "joint_gain_step",
     "recentre",
-    "scale_conditional",
-    "scale_sky_step",
     "scale_step",
-    "CL_PRIORS",
     "DRAW_BATCH",
-    "KEY_SCHEME",
     "BatchedDraws",
     "CollapsedInfo",
     "CollapsedSamples",
     "EvidenceInfo",
     "FitResult",
-    "FluxBlock",
     "GCRState",
-    "GibbsFixed",
     "GibbsInfo",
     "GibbsState",
-    "JointInfo",
     "Method",
-    "SamplerState",
     "SkySourceState",
-    "as_system",
-    "batch_key",
     "cl_hat",
     "condition",
     "draw",
     "draw_batches",
-    "draw_bucket",
     "draw_exactly",
     "draw_given_hyperparameters",
     "effective_sample_size",
-    "evidence_terms",
     "fit_hyperparameters",
-    "fixed_path",
-    "flux_posterior",
     "flux_setup",
     "flux_step",
     "gcr_init",
@@ -168,8 +134,6 @@ __all__ = [
     "joint_step",
     "log_evidence",
     "log_evidence_system",
-    "objective",
-    "power_law_log_marginal",
     "prepare",
     "prepare_sampler",
     "prepare_system",
@@ -183,7 +147,6 @@ __all__ = [
     "sky_source_step",
     "sky_step",
     "source_visibilities",
-    "warn_unconverged",
     "ScalarQuadratics",
     "ScalarState",
     "prepare_scalar",

@@ -93,7 +93,7 @@ def sample(
             data values than parameters; a proper prior only) or ``"cg"``
             (preconditioned CG, vmapped over draws).
         tol: CG tolerance in posterior-sigma units (P-norm of the error); default
-            :data:`gcrsky.solvers.DEFAULT_TOL`.
+            :data:`gcrsky.solvers.options.DEFAULT_TOL`.
         options: a path's options (:class:`~gcrsky.solvers.CGOptions`, ...: dense or
             matrix-free CG, preconditioner, iteration cap, eigen cut, ...); selects
             that path when ``method="auto"``.

@@ -32,14 +32,14 @@ the prior tightens and cancel catastrophically (measured: a prior-variance scale
   + log det N + N_d log 2 pi]`` with ``r~ = W^1/2 r`` and ``D = I + W^1/2 X S X^T W^1/2``
   over the unflagged samples (``r~^T D^-1 r~ = r^T W r - b'^T (a_wf - a0)`` by Woodbury,
   ``log det D = log det(I + H)`` by Sylvester), evaluated as written, without the
-  subtraction (:func:`gcrsky.solvers.dataspace_evidence_parts`);
+  subtraction (:func:`gcrsky.solvers.dataspace.dataspace_evidence_parts`);
 - ``"cg"``: stochastic Lanczos quadrature (matfree) of the Nystrom-preconditioned
   whitened precision (:class:`~gcrsky.solvers.SLQOptions`), with a standard error from
   the probes; ``a_wf`` by CG.
 
 Every term differentiates, to second order on the exact paths (the fit's Laplace
 Hessian): the solves implicitly, the Cholesky log determinants by
-``tr(P^-1 dP)`` / ``tr(D^-1 dD)`` (:func:`~gcrsky.solvers.cholesky_logdet`), the eigen and m-mode ones
+``tr(P^-1 dP)`` / ``tr(D^-1 dD)`` (:func:`~gcrsky.solvers.dense.cholesky_logdet`), the eigen and m-mode ones
 through their factorisations, SLQ through matfree's Lanczos adjoint (the
 preconditioner held fixed), so
 ``jax.grad(lambda t: log_evidence(make_system(t)).sum())`` works on every path.  A

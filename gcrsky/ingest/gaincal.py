@@ -1,6 +1,6 @@
 """The posterior-mean gains of sampled gain draws (:func:`gcrsky.io.write_gain_calibration` writes them).
 
-The gain model is physics (:func:`gcrsky.model.unit_gains`), so the average is here, above the
+The gain model is physics (:func:`gcrsky.model.gains.unit_gains`), so the average is here, above the
 file layer, which only writes the (Nf, Nt, U) array it is given.
 """
 

@@ -38,7 +38,7 @@ def inspect_uvdata(path, spec: IngestSpec | None = None, *, redundancy_tol_m: fl
     the antennas, baselines (and unique ones, within ``redundancy_tol_m`` metres), times and
     LST coverage, channels, products, units, conventions, the flagged fraction, a radiometer
     noise estimate from the autos (median per-component sigma of the modelled product, K sr,
-    or the file's units when uncalibrated: the run's own noise, :func:`gcrsky.model.raw_variance`),
+    or the file's units when uncalibrated: the run's own noise, :func:`gcrsky.model.observed.raw_variance`),
     the memory of the read and, with ``lmax`` (and ``nside``), of the dense posterior
     precision; then the data checks (``"data_checks"``: calibration, noise excess and
     outliers, fully flagged antennas, the flux scale with ``beam`` or ``dish_diameter_m``;

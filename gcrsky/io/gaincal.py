@@ -1,6 +1,6 @@
 """Sampled gains as a calibration file pyuvdata reads: the posterior-mean gains as calfits or calh5.
 
-The gains are given (:func:`gcrsky.ingest.posterior_mean_gains` averages :func:`gcrsky.model.unit_gains`);
+The gains are given (:func:`gcrsky.ingest.posterior_mean_gains` averages :func:`gcrsky.model.gains.unit_gains`);
 they are (``g_u = gbar_u sqrt(q(nu)) (1 + x_u)``), with the
 model ``V_ij = g_i conj(g_j) V^sky`` of row ``(ant_1, ant_2)``: pyuvdata's ``gain_convention``
 ``"divide"`` (its ``uvcalibrate`` divides row ``(1, 2)`` by ``g_1 conj(g_2)``), ``cal_style``

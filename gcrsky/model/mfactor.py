@@ -206,7 +206,7 @@ def _phases(angles: jax.Array, lmax: int, dtype) -> jax.Array:
 
 
 def to_response_frame(op, a: jax.Array) -> jax.Array:
-    """``M a`` (``a`` without a frame map), (..., n) -> (..., n_resp); as :func:`gcrsky.model.to_response_frame`
+    """``M a`` (``a`` without a frame map), (..., n) -> (..., n_resp); as :func:`gcrsky.model.operator.to_response_frame`
     (repeated here: :mod:`gcrsky.model.operator` imports this module, not the other way round)."""
     if op.frame is None:
         return a

@@ -21,11 +21,11 @@ the file's real observing times at the file's site (DESIGN section 2, mode (b)).
   (:func:`gcrsky.model.radiometer_variance`, the one implementation, also behind
   :func:`gcrsky.ingest.inspect_uvdata`'s estimate); ``"diff"``: one level per channel,
   baseline and product from time-adjacent differences
-  (:func:`gcrsky.model.time_difference_variance`); or a given per-component sigma in the
+  (:func:`gcrsky.model.noise.time_difference_variance`); or a given per-component sigma in the
   file's units.  Variances add as products are combined and scale with the factor squared.
 * Weights: a flagged or absent sample, a zero nsample, or a sample without a noise
   estimate (a missing or flagged autocorrelation) gets weight 0; a non-finite unflagged
-  sample is an error naming it (:func:`gcrsky.model.assemble_problem`).
+  sample is an error naming it (:func:`gcrsky.model.problem.assemble_problem`).
 * Redundant baselines are merged exactly (:func:`gcrsky.model.compress_problem`, within
   :data:`COMPRESS_RTOL`) unless ``compress=False``.
 """
@@ -188,7 +188,7 @@ def raw_variance(obs: Observation, raw: str, noise="autos") -> np.ndarray:
     ``noise``: ``"autos"``: the radiometer equation on the autocorrelations
     ``|V_ii,pp V_jj,qq|`` of the product ``pq``, the integration time, the channel width
     and the nsample (:func:`gcrsky.model.radiometer_variance`); ``"diff"``: from
-    time-adjacent differences (:func:`gcrsky.model.time_difference_variance`); or a
+    time-adjacent differences (:func:`gcrsky.model.noise.time_difference_variance`); or a
     per-component sigma broadcastable to (Nf, Nt, Nbl), divided by the nsample.  NaN (or
     Inf) where there is no estimate.
     """

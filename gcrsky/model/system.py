@@ -281,7 +281,7 @@ def check_system(system: LinearSystem) -> LinearSystem:
         where = "an unflagged" if w[f, t, b] > 0 else "a flagged"
         raise ValueError(f"data has {int(bad.sum())} non-finite samples, first {where} one at (freq {f}, time {t}, "
                          f"baseline {b}): {d[f, t, b]!r}; store flagged samples as 0 "
-                         "(gcrsky.model.clean_data) and flag bad ones")
+                         "(gcrsky.model.noise.clean_data) and flag bad ones")
     for name in ("mean", "inv_var"):
         x = np.asarray(getattr(system.prior, name))
         bad = ~np.isfinite(x) | ((x < 0) if name == "inv_var" else False)

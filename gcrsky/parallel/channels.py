@@ -273,7 +273,7 @@ def channel_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
     Default ``jax.local_devices()``: in a multi-process run each process meshes its own
     devices (:func:`distributed_channels` splits channels between processes itself).
     Logs a warning when several CPU devices share an XLA pool smaller than
-    :func:`gcrsky.parallel.safe_pool_size` (batched LAPACK can then deadlock; see
+    :func:`gcrsky.parallel.runtime.safe_pool_size` (batched LAPACK can then deadlock; see
     :mod:`gcrsky.parallel.runtime`).
     """
     devs = jax.local_devices() if devices is None else list(devices)

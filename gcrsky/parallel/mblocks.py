@@ -8,7 +8,7 @@ noise sums and the prior (each device gathers only its buckets' columns from it)
 factorises its blocks there (:func:`mmode_factor_on`), and keeps the factors.  The solves and the
 draws run bucket by bucket on the devices that hold them, with the right-hand sides and the
 normals cut from the same arrays as on one device and the results gathered back: the numbers are
-those of :func:`gcrsky.solvers.prepare_mmode` / :func:`~gcrsky.solvers.draw_mmode` (the same
+those of :func:`gcrsky.solvers.mmode.prepare_mmode` / :func:`~gcrsky.solvers.mmode.draw_mmode` (the same
 operations on the same inputs; tested equal to 1e-13 with 2 forced host devices in
 ``tests/test_parallel_mblocks.py``).
 
@@ -169,7 +169,7 @@ def _prepare(system: LinearSystem, devices: tuple, options: MModeOptions, owned)
 
 def prepare_mmode_on(system: LinearSystem, devices: Sequence | None = None,
                      options: MModeOptions | None = None) -> MModeSplitState:
-    """:func:`gcrsky.solvers.prepare_mmode` with the blocks split over ``devices`` (default: all local ones).
+    """:func:`gcrsky.solvers.mmode.prepare_mmode` with the blocks split over ``devices`` (default: all local ones).
 
     Raises ``ValueError`` naming the reason unless :func:`gcrsky.solvers.mmode_check` passes.  The Wiener
     filter is ``P^-1 b`` through the factors (as on one device), judged by its true matrix-free residual.
@@ -199,7 +199,7 @@ def prepare_mmode_processes(system: LinearSystem, options: MModeOptions | None =
 def draw_mmode_on(key: jax.Array, state: MModeSplitState, ndraws: int):
     """``ndraws`` exact draws ``a_wf + L_m^-T z``, each bucket's solve on its own device.
 
-    The normals are :func:`gcrsky.solvers.draw_mmode`'s (one (Nf, sum_b G_b 2H_b, ndraws) array from
+    The normals are :func:`gcrsky.solvers.mmode.draw_mmode`'s (one (Nf, sum_b G_b 2H_b, ndraws) array from
     ``key``, cut bucket by bucket), so the draws equal the single-device ones.  For a state of
     :func:`prepare_mmode_processes`, call it on every process: each solves its buckets and the pieces
     are summed over the processes (every process gets all draws).

@@ -9,7 +9,7 @@ angles, frame map) is enough: ``jax.jit``'s automatic partitioning (GSPMD /
 Shardy) then runs each device's baselines locally and combines the adjoint's
 partial sums with one all-reduce per product.  No gcrsky function needs to change:
 :func:`gcrsky.model.apply`, :func:`~gcrsky.model.adjoint`,
-:func:`gcrsky.model.precision_apply`, :func:`~gcrsky.model.wiener_rhs` and
+:func:`gcrsky.model.system.precision_apply`, :func:`~gcrsky.model.system.wiener_rhs` and
 :func:`gcrsky.inference.sample_system` (CG, ``dense=False``) accept the sharded system
 as is and return the same numbers as on one device, up to the order of the
 floating-point sum over baselines (~1e-16 relative per product).
@@ -24,14 +24,14 @@ Usage:
 
 Several devices on one CPU (``--xla_force_host_platform_device_count``, for tests and
 CI).  Set them up with :func:`gcrsky.parallel.use_host_devices` (this process, before
-JAX starts) or :func:`gcrsky.parallel.host_devices_env` (a subprocess's environment),
+JAX starts) or :func:`gcrsky.parallel.runtime.host_devices_env` (a subprocess's environment),
 not with ``XLA_FLAGS`` alone.  With jaxlib 0.10 a batched LAPACK call (the Nystrom
 preconditioner's QR/Cholesky/SVD over frequencies, replicated, so every device runs
 it) blocks a thread of XLA's intra-op pool while it waits for its own tasks on that
 pool, and the pool has only ``max(cores, devices)`` threads: with N devices on <= N
 cores every thread can end up waiting, a silent hang at 0% CPU (3 of 6 runs of the
 4-device check on a 2-core host; not the collectives, which merely looked suspect).
-The helpers raise the pool to :data:`gcrsky.parallel.POOL_THREADS_PER_DEVICE` threads
+The helpers raise the pool to :data:`gcrsky.parallel.runtime.POOL_THREADS_PER_DEVICE` threads
 per device (``PJRT_NPROC``); see :mod:`gcrsky.parallel.runtime`.  :func:`baseline_mesh` warns
 when the environment gives the pool fewer threads than that.
 
@@ -95,7 +95,7 @@ def baseline_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
     """A 1-d :class:`jax.sharding.Mesh` with axis ``"bl"`` over ``devices`` (default: all).
 
     Warns (RuntimeWarning) if the mesh has several CPU devices and the environment
-    gives XLA's CPU thread pool fewer than :func:`gcrsky.parallel.safe_pool_size`
+    gives XLA's CPU thread pool fewer than :func:`gcrsky.parallel.runtime.safe_pool_size`
     threads: batched LAPACK calls can then deadlock (module docstring; fix with
     :func:`gcrsky.parallel.use_host_devices` before JAX starts).
     """

@@ -30,7 +30,7 @@ correlated (the summary gives the amplitude's effective sample size).
 ``results.h5`` of a gain run (besides the standard datasets):
 
 * ``gain_draws`` (ndraws, Nf, Nt, U) complex: the units' gains ``g_u = gbar_u sqrt(q(nu)) (1 + x_u)``
-  of each draw (:func:`gcrsky.model.unit_gains`; ``gbar`` the linearisation point), relative to
+  of each draw (:func:`gcrsky.model.gains.unit_gains`; ``gbar`` the linearisation point), relative to
   the data as gcrsky read them (after ``--cal``), overall phase fixed by the gauge;
 * ``gain_theta`` (ndraws, P), ``gain_scale`` (ndraws, Kf), ``gain_info/gauge_accept`` (ndraws,);
 * ``gains/units`` (U, 2) (antenna index into the file's ``antenna_numbers``, feed: 0 one gain per
@@ -85,8 +85,8 @@ class GainChain(NamedTuple):
     """The chain's fixed parts and its state (:func:`gain_chain_setup`, :func:`read_gain_chain`).
 
     Attributes:
-        fixed: the sky's data term (:class:`gcrsky.inference.GibbsFixed`).
-        block: the gain block (:class:`gcrsky.inference.GainBlock`), about the linearisation point.
+        fixed: the sky's data term (:class:`gcrsky.inference.gibbs.GibbsFixed`).
+        block: the gain block (:class:`gcrsky.inference.gains.GainBlock`), about the linearisation point.
         lin: (Nf, Nt, U) complex, the units' gains at the linearisation point.
         state: the chain's :class:`gcrsky.inference.GainState`.
     """

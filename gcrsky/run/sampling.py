@@ -69,7 +69,7 @@ class GainSampling:
     Attributes:
         modes: ``(Kf, Kt)`` smooth modes per gain in frequency (delay) and time (fringe rate);
             ``(1, 1)``: one complex gain per antenna (or feed) over the selection.
-        basis: ``"dpss"``, ``"fourier"`` or ``"legendre"`` (:func:`gcrsky.model.mode_basis`).
+        basis: ``"dpss"``, ``"fourier"`` or ``"legendre"`` (:func:`gcrsky.model.gains.mode_basis`).
         sigma: prior standard deviation of each mode's coefficient (rms fractional gain error).
         burn: burn-in sweeps (>= 2: the linearisation point moves after each half).
         thin: sweeps per kept draw.

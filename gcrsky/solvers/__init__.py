@@ -24,78 +24,19 @@ with its options (:class:`CGOptions`, ...) and its typed state (:class:`CGState`
 :func:`path_of` and ask it; nothing else tests path names.
 """
 
-from .cg import CGPath, CGState, cg_solve, draw_cg, pcg, prepare_cg, resolve_cg_options, solve_cg, wiener_cg
-from .dataspace import (
-    DATASPACE_MAX_ND,
-    DataSpacePath,
-    DataSpaceState,
-    data_size,
-    dataspace_evidence_parts,
-    dataspace_matrix,
-    dataspace_memory_bytes,
-    draw_dataspace,
-    prepare_dataspace,
-)
-from .dense import (
-    DENSE_MAX_N,
-    CholeskyPath,
-    CholeskyState,
-    EighPath,
-    EighState,
-    cholesky_logdet,
-    cholesky_solve,
-    draw_cholesky,
-    draw_eigh,
-    eigh_functions,
-    prepare_cholesky,
-    prepare_eigh,
-)
-from .info import DrawInfo, Result, SolveInfo, result_names
-from .mmode import MModePath, MModeState, draw_mmode, mmode_blocks, mmode_check, prepare_mmode
-from .options import (
-    DEFAULT_TOL,
-    EIGH_RCOND,
-    CGOptions,
-    CholeskyOptions,
-    DataSpaceOptions,
-    EighOptions,
-    MModeOptions,
-    SLQOptions,
-)
+from .cg import CGPath, CGState
+from .dataspace import DataSpacePath, DataSpaceState
+from .dense import CholeskyPath, CholeskyState, EighPath, EighState
+from .info import DrawInfo, SolveInfo
+from .mmode import MModePath, MModeState, mmode_check
+from .options import CGOptions, CholeskyOptions, DataSpaceOptions, EighOptions, MModeOptions, SLQOptions
 from .path import EvidenceParts, SolverPath
-from .plan import (
-    DENSE_MEMORY_FRACTION,
-    PLAN_DRAWS,
-    SamplerPlan,
-    choose_path,
-    path_cost_flop,
-    path_memory_bytes,
-    plan_sampler,
-)
-from .preconditioners import (
-    MBlockPreconditioner,
-    NystromPreconditioner,
-    apply_preconditioner,
-    inverse_bound,
-    m_block_preconditioner,
-    make_preconditioner,
-    nystrom_preconditioner,
-    resolve_preconditioner,
-    stop_norm,
-)
-from .registry import METHODS, PATHS, SolverOptions, method_of, options_for, path_of
-from .window import WindowPreconditioner, auto_bandwidth, window_preconditioner
+from .plan import SamplerPlan, choose_path, path_cost_flop, path_memory_bytes, plan_sampler
+from .registry import METHODS, PATHS, SolverOptions, path_of
 
 __all__ = [
-    "DATASPACE_MAX_ND",
-    "DEFAULT_TOL",
-    "DENSE_MAX_N",
-    "DENSE_MEMORY_FRACTION",
-    "EIGH_RCOND",
     "METHODS",
     "PATHS",
-    "PLAN_DRAWS",
-    "WindowPreconditioner",
     "CGOptions",
     "CGPath",
     "CGState",
@@ -110,56 +51,18 @@ __all__ = [
     "EighPath",
     "EighState",
     "EvidenceParts",
-    "MBlockPreconditioner",
     "MModeOptions",
     "MModePath",
     "MModeState",
-    "NystromPreconditioner",
-    "Result",
     "SLQOptions",
     "SamplerPlan",
     "SolveInfo",
     "SolverOptions",
     "SolverPath",
-    "apply_preconditioner",
-    "cg_solve",
-    "cholesky_logdet",
-    "cholesky_solve",
     "choose_path",
-    "data_size",
-    "dataspace_evidence_parts",
-    "dataspace_matrix",
-    "dataspace_memory_bytes",
-    "draw_cg",
-    "draw_cholesky",
-    "draw_dataspace",
-    "draw_eigh",
-    "draw_mmode",
-    "eigh_functions",
-    "inverse_bound",
-    "m_block_preconditioner",
-    "make_preconditioner",
-    "method_of",
-    "mmode_blocks",
     "mmode_check",
-    "nystrom_preconditioner",
-    "options_for",
     "path_of",
     "path_cost_flop",
     "path_memory_bytes",
-    "pcg",
     "plan_sampler",
-    "prepare_cg",
-    "prepare_cholesky",
-    "prepare_dataspace",
-    "prepare_eigh",
-    "prepare_mmode",
-    "resolve_cg_options",
-    "resolve_preconditioner",
-    "result_names",
-    "solve_cg",
-    "stop_norm",
-    "auto_bandwidth",
-    "window_preconditioner",
-    "wiener_cg",
 ]

@@ -28,7 +28,7 @@ rows so that shapes stay static): row ``t * 2 Nbl + p * Nbl + b`` is the real
 How ``D`` is built.  X is never materialised for every time: :func:`dataspace_matrix`
 loops (``lax.map``) over the ``Nt (Nt + 1) / 2`` pairs of times ``t <= t'`` and forms
 the ``2 Nbl x 2 Nbl`` block ``Y_t S Y_t'^T`` from the two per-time responses
-(:func:`gcrsky.model.response_at`, ``O(Nf Nbl n)`` each, frame map included), so the
+(:func:`gcrsky.model.operator.response_at`, ``O(Nf Nbl n)`` each, frame map included), so the
 only large arrays are D and its factor, ``8 Nf N_d^2`` bytes each
 (:func:`dataspace_memory_bytes`), against ``8 Nf N_d n`` for X itself.  Each step is
 rematerialised under reverse-mode differentiation (``jax.checkpoint``), so a gradient
@@ -56,8 +56,8 @@ preconditioned by ``D0^-1`` (:mod:`gcrsky.solvers.dataspace_proxy`: rigorous sto
 iterations reported; no ``log det D``, so no evidence from such a state).
 
 Differentiation is implicit as on the primal Cholesky path: solves with D go through
-:func:`gcrsky.solvers.cholesky_solve` (``dx = D^-1 (db - dD x)``, the factor held
-fixed) and ``log det D`` through :func:`gcrsky.solvers.cholesky_logdet`
+:func:`gcrsky.solvers.dense.cholesky_solve` (``dx = D^-1 (db - dD x)``, the factor held
+fixed) and ``log det D`` through :func:`gcrsky.solvers.dense.cholesky_logdet`
 (``tr(D^-1 dD)``); D itself differentiates natively in the response, the angles, the
 noise and the prior.
 
@@ -373,7 +373,7 @@ def dataspace_matrix(system: LinearSystem, chunk: int | None = None, lags: LagSt
     chunks of ``chunk`` times (default :func:`time_chunk`: rows of at most
     :data:`CHUNK_BYTES`), and a
     ``lax.map`` over the pairs of chunks ``c <= c'`` forms ``Y_c S Y_c'^T`` from the
-    per-time responses (:func:`gcrsky.model.response_at`), rematerialised under
+    per-time responses (:func:`gcrsky.model.operator.response_at`), rematerialised under
     reverse-mode differentiation; memory ``O(Nf N_d^2 + CHUNK_BYTES)``.
     """
     if lags is not None:

@@ -26,10 +26,10 @@ smooth kernel over close channels, costs no accuracy), and ``log det M = log det
 Two exact paths:
 
 * dense (:func:`prepare_joint_dense`): ``M`` as one ``(Nf n, Nf n)`` Cholesky; the data part
-  ``H_nu`` from :func:`gcrsky.model.precision_data_matrix`; any coverage and noise; cost
+  ``H_nu`` from :func:`gcrsky.model.system.precision_data_matrix`; any coverage and noise; cost
   ``O(Nf^3 n^3)`` flop, ``O(Nf^2 n^2)`` memory;
 * m-mode (:func:`prepare_joint_mmode`, uniform full-day coverage, :func:`gcrsky.solvers.mmode_check`):
-  ``H_nu`` is block-diagonal in m (:func:`gcrsky.solvers.mmode_blocks`), and so is the prior
+  ``H_nu`` is block-diagonal in m (:func:`gcrsky.solvers.mmode.mmode_blocks`), and so is the prior
   coupling (it is diagonal in the mode), so ``M`` is block-diagonal in m with blocks of size
   ``Nf s_m`` (``s_m = 2 (lmax - m + 1)``, ``lmax + 1`` at m = 0), stored per bucket of the
   m-mode layout (:class:`gcrsky.solvers.mmode.MModeBuckets`, padding decoupled).  Cost

@@ -316,7 +316,7 @@ def _per_bucket(fn, system: LinearSystem, quantum: int) -> MModeBlocks:
 def mmode_blocks(system: LinearSystem, bucket: int = MModeOptions.bucket) -> MModeBlocks:
     """The m-blocks of P by buckets (:class:`MModeBlocks`, :func:`mmode_buckets`), identity on padding.
 
-    Exact (equal to the dense :func:`gcrsky.model.precision_matrix` restricted to each m)
+    Exact (equal to the dense :func:`gcrsky.model.system.precision_matrix` restricted to each m)
     only when :func:`mmode_check` passes; the time-constant noise enters as its sum over
     times (``Nt w``), so a derivative along a noise change that keeps it stationary
     (e.g. a noise scale) is exact.  Cost ``O(Nf Nbl lmax^3)``; never forms the dense P nor
@@ -435,8 +435,8 @@ def _by_time_chunks(system: LinearSystem, fn, chunk: int) -> jax.Array:
 def _mmode_wiener(system: LinearSystem, L: MModeBlocks, options: MModeOptions, chunk: int):
     """``a_wf`` through the block factors, with its info from the *true* (matrix-free) residual.
 
-    ``b`` and ``P x`` are the matrix-free :func:`~gcrsky.model.wiener_rhs` and
-    :func:`~gcrsky.model.precision_apply` (``O(Nf Nt Nbl n)`` flop); where ``chunk < Nt``, their
+    ``b`` and ``P x`` are the matrix-free :func:`~gcrsky.model.system.wiener_rhs` and
+    :func:`~gcrsky.model.system.precision_apply` (``O(Nf Nt Nbl n)`` flop); where ``chunk < Nt``, their
     data parts are summed over chunks of ``chunk`` times (:func:`_by_time_chunks`) so that they
     hold ``O(Nf chunk n)`` memory.
     """

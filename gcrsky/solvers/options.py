@@ -17,7 +17,7 @@ failed solve an error inside ``jit`` (``equinox.error_if``; reliable on CPU, whe
 check runs in the host callback before results are returned) instead of a flag in
 :class:`~gcrsky.solvers.SolveInfo`.
 
-:func:`gcrsky.solvers.options_for` (in :mod:`gcrsky.solvers.registry`, which knows every
+:func:`gcrsky.solvers.registry.options_for` (in :mod:`gcrsky.solvers.registry`, which knows every
 path) gives the default options of a path name and checks that options handed in belong
 to it.
 """

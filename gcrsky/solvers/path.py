@@ -129,7 +129,7 @@ class SolverPath(abc.ABC):
         return options
 
     def resolve_channels(self, system: LinearSystem, options, requested):
-        """Options chosen on one channel (:func:`gcrsky.parallel.resolve_channel_path`) made right for
+        """Options chosen on one channel (:func:`gcrsky.parallel.channels.resolve_channel_path`) made right for
         every channel of ``system``; ``requested``: what the user passed (or None)."""
         return self.resolve(system, options)
 
@@ -206,7 +206,7 @@ class SolverPath(abc.ABC):
     def evidence_parts(self, system: LinearSystem, options, terms, *, slq=None, key=None) -> EvidenceParts:
         """The path's pieces of ``log p(d)`` (:class:`EvidenceParts`), differentiable in ``system``.
 
-        ``terms``: :func:`gcrsky.inference.evidence_terms` of the system (``rWr``, ``b_res`` =
+        ``terms``: :func:`gcrsky.inference.evidence.evidence_terms` of the system (``rWr``, ``b_res`` =
         ``X^T W (d - X a0)`` (Nf, n), ...); ``slq``, ``key``: stochastic Lanczos settings of the
         iterative path.
         """

@@ -15,7 +15,7 @@ Paths (all exact; they differ only in cost):
   ``O(Nf Nbl lmax^3)`` to build and ``~(32/3) Nf lmax^3`` bytes, built and factorised by
   buckets of orders (:func:`gcrsky.solvers.mmode.mmode_memory`).
 * ``"cholesky"``: dense ``P`` built once by m-blocks (``~8 Nf Nbl n^2`` flop whatever
-  Nt, :func:`gcrsky.model.precision_matrix`; ``8 Nf n^2`` bytes, three times that with
+  Nt, :func:`gcrsky.model.system.precision_matrix`; ``8 Nf n^2`` bytes, three times that with
   its factor and ``L^-T``, twice for ``n >`` :data:`~gcrsky.solvers.dense.CHOLESKY_INVERSE_MAX_N`
   where draws solve with ``L^T``), then each draw is a product with ``L^-T`` (``2 n^2`` flop).
 * ``"eigh"``: like Cholesky, for a singular P (a flat prior, ``S^-1 = 0`` somewhere).
@@ -128,7 +128,7 @@ def path_cost_flop(system: LinearSystem, method: str, *, ndraws: int = PLAN_DRAW
     (:meth:`gcrsky.solvers.path.SolverPath.cost_flop` with the path's default options).
 
     Rough but of the right order (the planner compares them): ``"cholesky"`` / ``"eigh"``:
-    P by m-blocks (``8 Nf Nbl n^2``, :func:`gcrsky.model.precision_matrix`) and its factor
+    P by m-blocks (``8 Nf Nbl n^2``, :func:`gcrsky.model.system.precision_matrix`) and its factor
     (``Nf n^3 / 3``; ``9 Nf n^3`` for the eigen-decomposition), then ``2 n^2`` per draw;
     ``"dataspace"``: :meth:`gcrsky.solvers.dataspace.DataSpacePath.cost_flop`; ``"mmode"``: the
     blocks and their factors.

@@ -2,7 +2,7 @@
 
 On the matrix-free path there is no factor: ``log det(I + H)`` (``I + H = S^1/2 P S^1/2``)
 is split as ``log det(M) + log det(M^-1/2 (I + H) M^-1/2)`` with ``M`` the rank-k Nystrom
-approximation of ``I + H`` (:func:`gcrsky.solvers.nystrom_preconditioner`), whose
+approximation of ``I + H`` (:func:`gcrsky.solvers.preconditioners.nystrom_preconditioner`), whose
 log-determinant is exact; only the last, nearly-identity term is estimated, with
 Rademacher probes and a few Lanczos steps each (:class:`~gcrsky.solvers.SLQOptions`).
 The estimate differentiates through matfree's Lanczos adjoint with the preconditioner
