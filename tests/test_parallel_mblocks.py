@@ -42,9 +42,11 @@ import json, sys
 import jax, numpy as np
 jax.config.update("jax_enable_x64", True)
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
-from gcrsky.model import build_problem, isotropic_prior, precision_matrix, wiener_rhs
+from gcrsky.model import build_problem, isotropic_prior
+from gcrsky.model.system import precision_matrix, wiener_rhs
 from gcrsky.parallel.mblocks import draw_mmode_on, prepare_mmode_on
-from gcrsky.solvers import MModeOptions, draw_mmode, prepare_mmode
+from gcrsky.solvers import MModeOptions
+from gcrsky.solvers.mmode import draw_mmode, prepare_mmode
 
 ''' + SYSTEM + r'''opts = MModeOptions(bucket=4)
 one = prepare_mmode(system, opts)
@@ -96,7 +98,8 @@ init_distributed(f"localhost:{port}", 2, pid, initialization_timeout=120)
 from gcrsky.instrument import HERA_LATITUDE_DEG, gaussian_beam, hex_array, make_array
 from gcrsky.model import build_problem, isotropic_prior
 from gcrsky.parallel.mblocks import draw_mmode_on, prepare_mmode_processes
-from gcrsky.solvers import MModeOptions, draw_mmode, prepare_mmode
+from gcrsky.solvers import MModeOptions
+from gcrsky.solvers.mmode import draw_mmode, prepare_mmode
 
 ''' + SYSTEM + r'''opts = MModeOptions(bucket=4)
 one = prepare_mmode(system, opts)  # the single-process reference, computed by each process itself

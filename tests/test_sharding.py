@@ -90,15 +90,17 @@ jax.config.update("jax_enable_x64", True)
 from gcrsky.instrument import HERA_LATITUDE_DEG, antpairs, gaussian_beam, hex_array, make_array
 from gcrsky.instrument import response_matrix
 from gcrsky.sphere import n_params
-from gcrsky.model import LinearSystem, precision_apply, wiener_rhs
+from gcrsky.model import LinearSystem
+from gcrsky.model.system import precision_apply, wiener_rhs
 from gcrsky.model import VisOperator, adjoint, apply, isotropic_prior
 from gcrsky.inference import sample_system
 from gcrsky.solvers import CGOptions
-from gcrsky.parallel import baseline_mesh, pad_baselines, shard_system
+from gcrsky.parallel import baseline_mesh, shard_system
+from gcrsky.parallel.sharding import pad_baselines
 
 assert jax.device_count() == 4, jax.devices()
 ''' + SYSTEM + r'''
-from gcrsky.parallel import effective_pool_size
+from gcrsky.parallel.runtime import effective_pool_size
 stage("setup")
 with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("always")
@@ -347,10 +349,12 @@ init_distributed(f"localhost:{port}", 2, pid, initialization_timeout=120)
 from jax.experimental.multihost_utils import process_allgather
 from gcrsky.instrument import HERA_LATITUDE_DEG, antpairs, gaussian_beam, hex_array, make_array, response_matrix
 from gcrsky.sphere import n_params
-from gcrsky.model import LinearSystem, VisOperator, adjoint, apply, isotropic_prior, precision_apply
+from gcrsky.model import LinearSystem, VisOperator, adjoint, apply, isotropic_prior
+from gcrsky.model.system import precision_apply
 from gcrsky.inference import sample_system
 from gcrsky.solvers import CGOptions
-from gcrsky.parallel import baseline_mesh, pad_baselines, shard_system
+from gcrsky.parallel import baseline_mesh, shard_system
+from gcrsky.parallel.sharding import pad_baselines
 ''' + SYSTEM + r'''ssys = shard_system(system, baseline_mesh())  # every process's device: the baselines split over the processes
 psys = pad_baselines(system, 2)  # the one-process reference: the same padded system, computed here
 a = jnp.asarray(rng.standard_normal((nf, n)))
