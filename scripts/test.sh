@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Set up, then run the whole test suite: one pytest worker per core, each test file on one
-# worker (module fixtures are built once); about 20 minutes on 2 cores.  Extra arguments go
+# worker (module fixtures are built once); about 22 minutes on 2 cores.  Extra arguments go
 # to pytest, e.g. -m "not slow" for the fast subset, or -n 0 for a single process.
 set -euo pipefail
 cd "$(dirname "$0")/.."
