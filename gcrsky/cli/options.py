@@ -218,7 +218,8 @@ def add_check_options(g, *, with_data: bool) -> None:
                    "autos' radiometer noise) is a robust outlier; inspect reports them either way")
     g.add_argument("--flux-scale", choices=("check", "accept", "off"), default="check",
                    help="the data's autos against the GSM's through the beam: check (refuse a ratio outside "
-                   "0.5-2), accept (record it), off")
+                   "0.5-2 where the amplitude is fixed; a check beside the inferred amplitude), accept (record it), "
+                   "off")
     if not with_data:
         g.add_argument("--beam", default=None, metavar="FILE", help="beam file for the flux-scale check")
         g.add_argument("--dish-diameter", type=positive_float("dish-diameter"), default=None, metavar="D",
@@ -238,9 +239,17 @@ def add_beam_prior_options(g) -> None:
                    "~ 1/frequency); required for such a beam")
     g.add_argument("--accept-x-orientation-mismatch", action="store_true",
                    help="run although the beam's feed x points elsewhere than the file's (a symmetric beam)")
-    g.add_argument("--prior-mean", choices=("zero", "gsm"), default="zero",
-                   help="the prior's mean: zero (default) or gsm (the GSM's coefficients at the data's frequencies, "
-                   "l <= 16), so the sky the data do not see is the GSM rather than zero")
+    g.add_argument("--prior-mean", choices=("zero", "gsm"), default=None,
+                   help="the prior's mean: zero or gsm (the GSM's coefficients at the data's frequencies, l <= 16), so "
+                   "the sky the data do not see is the GSM rather than zero (default: gsm where the amplitude is "
+                   "inferred, whose scale it anchors; zero otherwise)")
+    g.add_argument("--amplitude", choices=("auto", "infer", "fixed"), default="auto",
+                   help="the overall amplitude per channel (bandpass): auto (default: inferred with the sky where the "
+                   "data are not absolutely calibrated: vis_units uncalib, or --cal solutions without a gain_scale; "
+                   "fixed otherwise), infer, fixed (the data taken as calibrated)")
+    g.add_argument("--model-sd", type=positive_float("model-sd"), default=None, metavar="S",
+                   help="where the amplitude is inferred: the fractional uncertainty of the sky model's overall scale "
+                   "(default 0.1, the GSM's stated accuracy; docs/amplitude.md)")
 
 
 def _gain_modes(s: str) -> tuple:
@@ -256,9 +265,9 @@ def _gain_modes(s: str) -> tuple:
 
 def add_gain_options(g) -> None:
     """``--gains sample`` and the gain block's settings (:class:`gcrsky.run.GainSampling`)."""
-    g.add_argument("--gains", choices=("off", "sample"), default="off",
-                   help="off (default): the data are taken as calibrated; sample: gains and the overall amplitude "
-                   "sampled with the sky")
+    g.add_argument("--gains", choices=("auto", "off", "sample"), default="auto",
+                   help="per-antenna gains sampled with the sky: auto (default: sampled where the amplitude is "
+                   "inferred, off otherwise), off (the data's gains taken as right), sample")
     g.add_argument("--gain-modes", type=_gain_modes, default=(1, 1), metavar="KF[,KT]",
                    help="smooth modes per gain in frequency (delay) and time (fringe rate); one number sets both "
                    "(default 1,1: one complex gain per antenna over the selection)")
@@ -334,6 +343,13 @@ def frequency_model(args):
                           basis_sigma=args.freq_basis_sigma, nugget=args.freq_nugget, fit=args.freq_fit)
 
 
+def amplitude_sampling(args):
+    """The :class:`gcrsky.run.AmplitudeSampling` of the options (``--model-sd``)."""
+    from ..run.spec import AmplitudeSampling
+
+    return AmplitudeSampling() if args.model_sd is None else AmplitudeSampling(model_sd=args.model_sd)
+
+
 def gain_sampling(args, applied: float = 1.0):
     """The :class:`gcrsky.run.GainSampling` of the options, or None without ``--gains sample``."""
     if args.gains != "sample":
@@ -367,6 +383,8 @@ def ingest_spec(args, *, run: bool):
 
     kw = dict(lmax=args.lmax, nside=args.nside, beam=args.beam, dish_diameter_m=args.dish_diameter, cal=args.cal,
               flag_outliers=args.flag_outliers, flux_scale=args.flux_scale, **_selection_keywords(args))
+    if run and getattr(args, "amplitude", None) in ("infer", "fixed"):
+        kw["amplitude"] = args.amplitude
     if run:
         kw.update(prior=args.prior, prior_scale=args.prior_scale, noise=args.noise, compress=not args.no_compress,
                   band_limit=args.band_limit, beam_normalization=args.beam_normalization,

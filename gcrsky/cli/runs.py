@@ -21,14 +21,16 @@ def existing_mode(args) -> str:
     return "resume" if args.resume else ("overwrite" if args.overwrite else "refuse")
 
 
-def run_spec(args, *, nsamples: int, method: str, tol: float, scenario: str | None = None, extra=None, gains=None):
+def run_spec(args, *, nsamples: int, method: str, tol: float, scenario: str | None = None, extra=None, gains=None,
+             amplitude=None):
     """The :class:`~gcrsky.run.RunSpec` of ``gcrsky run``'s options (draws, output, channels, argv, gains,
     frequency prior)."""
     from ..run import Draws, Output, RunSpec, Solver
     from ..run.spec import sampling_of
 
     return RunSpec(Draws(nsamples, args.seed, args.batch), Output(args.out, existing_mode(args), not args.no_plots),
-                   Solver(method, tol), sampling_of(channel_mode(args), gains, frequency_model(args)),
+                   Solver(method, tol), sampling_of(channel_mode(args), gains, frequency_model(args),
+                                                       amplitude),
                    scenario=scenario, argv=getattr(args, "_argv", None), extra=extra)
 
 

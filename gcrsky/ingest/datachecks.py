@@ -22,7 +22,7 @@ from ..io.visdata import Observation, parse_products
 from ..model.datachecks import DEFAULT_K, find_outliers, flag_outliers, flagged_antennas, noise_excess
 from ..model.fluxscale import FLUX_BOUNDS, flux_scale_check
 
-__all__ = ["FLUX_SCALE_MODES", "CheckedObservation", "InspectedChecks", "flag_checks", "flux_checks", "inspect_checks",
+__all__ = ["AMPLITUDE_MODES", "FLUX_SCALE_MODES", "amplitude_checks", "amplitude_needed", "CheckedObservation", "InspectedChecks", "flag_checks", "flux_checks", "inspect_checks",
            "read_checked"]
 
 log = logging.getLogger(__name__)
@@ -44,6 +44,66 @@ class InspectedChecks(NamedTuple):
 
 #: ``flux_scale``: refuse a ratio outside the bounds, accept it (recorded, a warning), or skip the check.
 FLUX_SCALE_MODES = ("check", "accept", "off")
+#: ``amplitude``: inferred with the sky where the data are not absolutely calibrated (``"auto"``), always
+#: (``"infer"``), or fixed (the data taken as calibrated, ``"fixed"``).
+AMPLITUDE_MODES = ("auto", "infer", "fixed")
+
+
+def _not_absolute(units: str, cal_given: bool, gain_scale, cal_style) -> str | None:
+    """Why data with these units and calibration are not absolutely calibrated, or None."""
+    if units == "uncalib" and not cal_given:
+        return "the file's visibilities are uncalibrated (vis_units 'uncalib')"
+    if cal_given and gain_scale is None:
+        return (f"the gain solutions ({cal_style}) carry no gain_scale: their overall amplitude is the solver's "
+                "convention")
+    return None
+
+
+def amplitude_needed(data, cal=None) -> str | None:
+    """Why the amplitude must be inferred (None: the data are absolutely calibrated), from the headers of the
+    visibility file (or a ``UVData``) and of the gain solutions ``cal`` (a path), before anything is read."""
+    from pyuvdata import UVCal, UVData
+
+    if isinstance(data, UVData):
+        units = data.vis_units
+    else:
+        try:
+            units = UVData.from_file(str(data), read_data=False).vis_units
+        except (TypeError, ValueError, NotImplementedError):  # a format without a metadata-only read
+            units = UVData.from_file(str(data)).vis_units
+    if cal is None:
+        return _not_absolute(units, False, None, None)
+    uvc = UVCal.from_file(str(cal))
+    return _not_absolute(units, True, uvc.gain_scale, uvc.cal_style)
+
+
+def amplitude_checks(obs: Observation, checks: dict, mode: str = "auto") -> CheckedObservation:
+    """Whether the overall amplitude is inferred (:mod:`gcrsky.run.amplitude`): ``(obs, {"amplitude": ...})``.
+
+    The data are absolutely calibrated when their units are Jy or K str and no gain solutions were
+    applied, or the applied ones carry a ``gain_scale``.  Otherwise (``vis_units`` ``"uncalib"``, or
+    solutions without a ``gain_scale``, e.g. redundant ones) ``"auto"`` infers the amplitude, and
+    ``"uncalib"`` data are then read as Jy (the amplitude ``q`` carries the scale).
+
+    Raises:
+        ValueError: an unknown mode.
+    """
+    import dataclasses
+
+    if mode not in AMPLITUDE_MODES:
+        raise ValueError(f"amplitude must be one of {AMPLITUDE_MODES}, got {mode!r}")
+    applied = (checks.get("calibration") or {}).get("applied")
+    why = _not_absolute(obs.vis_units, applied is not None, (applied or {}).get("gain_scale"),
+                        (applied or {}).get("cal_style"))
+    infer = mode == "infer" or (mode == "auto" and why is not None)
+    rec = {"mode": "infer" if infer else "fixed", "asked": mode,
+           "why": why if infer and why else ("asked (--amplitude infer)" if infer else
+                                             "the data are taken as absolutely calibrated" if why is None else
+                                             f"asked (--amplitude fixed), although {why}")}
+    if infer and obs.vis_units == "uncalib":
+        obs = dataclasses.replace(obs, vis_units="Jy")
+        rec["units"] = "uncalib, read as Jy: the inferred amplitude carries the scale"
+    return CheckedObservation(obs, {"amplitude": rec})
 
 
 def read_checked(data, *, cal=None, pol="pI", **selection) -> CheckedObservation:
