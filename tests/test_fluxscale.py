@@ -54,13 +54,11 @@ def _simulate(alm, lmax, times, freqs, dish_m=14.0, nside_matvis=64):
     return read_observation(sim.uvdata, pol="pI")
 
 
-def _gsm_as(monkeypatch, alm, lmax, nside=64):
-    """The check's GSM replaced by the band-limited sky ``alm`` (Nf, n) as maps at ``nside``."""
-    from gcrsky.model import gsmsky
+def _maps(alm, lmax, nside=64):
+    """(Nf, npix) K maps at ``nside`` of the band-limited ICRS sky ``alm`` (Nf, n): the check's ``sky``."""
     from gcrsky.sphere.maps import alm_to_map
 
-    maps = np.stack([alm_to_map(a, lmax, nside) for a in np.atleast_2d(alm)])
-    monkeypatch.setattr(gsmsky, "gsm_maps", lambda f: (maps, nside))
+    return np.stack([alm_to_map(a, lmax, nside) for a in np.atleast_2d(alm)])
 
 
 @pytest.fixture(scope="module")
@@ -76,39 +74,49 @@ def day(gsm_sky):
     return _simulate(gsm_sky, LMAX, _times(4.0 * np.arange(6)), FREQS)
 
 
-def test_model_autos_match_matvis_at_six_lsts(day, gsm_sky, monkeypatch):
+def test_model_autos_match_matvis_at_six_lsts(day, gsm_sky):
     """Per channel and time, data / model = 1 within TOL; the data converted here independently of the check."""
     from gcrsky.model.fluxscale import flux_scale_check, model_autos
 
     lst_h = np.rad2deg(np.unwrap(day.lsts_rad)) / 15 % 24
     assert day.n_times == 6 and np.ptp(np.sort(lst_h)) > 18  # spread over the day
-    _gsm_as(monkeypatch, gsm_sky, LMAX)
-    beam = gaussian_beam(14.0)
+    sky, beam = _maps(gsm_sky, LMAX), gaussian_beam(14.0)
     k = [day.pol_index(p) for p in ("xx", "yy")]
     # "sum": V_xx + V_yy = int P I dOmega (each feed sees I/2), Jy -> K sr by 2 k nu^2 / c^2
     data = (day.autos[k[0]].real + day.autos[k[1]].real) / kelvin_sr_to_jy(day.freqs_hz)[:, None, None]
-    ratio = data / model_autos(day, beam)[:, :, None]  # (Nf, Nt, Nant)
+    ratio = data / model_autos(day, beam, sky=sky)[:, :, None]  # (Nf, Nt, Nant)
     np.testing.assert_allclose(ratio, 1.0, atol=TOL)
-    rec = flux_scale_check(day, beam)
+    rec = flux_scale_check(day, beam, sky=sky)
     assert abs(rec["ratio"] - 1) < TOL and rec["within"] and rec["units"] == "Jy"
     # data x 0.003 and stored as uncalibrated (taken as Jy): the check reads 0.003
     scaled = dataclasses.replace(day, autos=0.003 * day.autos, vis=0.003 * np.asarray(day.vis), vis_units="uncalib")
-    rec = flux_scale_check(scaled, beam)
+    rec = flux_scale_check(scaled, beam, sky=sky)
     assert abs(rec["ratio"] / 0.003 - 1) < TOL and rec["units"] == "uncalib (taken as Jy)" and not rec["within"]
     # negative control: a calibration 1.3x off is caught per channel
-    off = flux_scale_check(dataclasses.replace(day, autos=1.3 * day.autos), beam)
+    off = flux_scale_check(dataclasses.replace(day, autos=1.3 * day.autos), beam, sky=sky)
     assert all(abs(r - 1.3) < 1.3 * TOL for r in off["ratio_per_channel"])
 
 
-def test_a_beam_twice_as_wide_is_caught(gsm_sky, monkeypatch):
+def test_a_beam_twice_as_wide_is_caught(gsm_sky):
     """Data through a 7 m dish (beam twice as wide) checked with the 14 m beam: far outside the tolerance."""
     from gcrsky.model.fluxscale import flux_scale_check
 
     obs = _simulate(gsm_sky[1:2], LMAX, _times([0.0, 12.0]), FREQS[1:2], dish_m=7.0, nside_matvis=32)
-    _gsm_as(monkeypatch, gsm_sky[1:2], LMAX)
-    rec = flux_scale_check(obs, gaussian_beam(14.0))
-    assert rec["ratio"] > 3  # ~4x the solid angle, less the sky's fall-off away from the zenith
-    assert abs(flux_scale_check(obs, gaussian_beam(7.0))["ratio"] - 1) < TOL  # the right beam: 1 again
+    sky = _maps(gsm_sky[1:2], LMAX)
+    rec = flux_scale_check(obs, gaussian_beam(14.0), sky=sky)
+    assert rec["ratio"] > 3  # measured 3.85: ~4x the solid angle, less the sky's fall-off away from the zenith
+    assert abs(flux_scale_check(obs, gaussian_beam(7.0), sky=sky)["ratio"] - 1) < TOL  # the right beam: 1 again
+
+
+def test_the_default_sky_is_the_gsm_and_a_wrong_shape_is_refused(day):
+    """``sky=None`` is the GSM's maps given explicitly, to the bit; a sky of the wrong shape is refused."""
+    from gcrsky.model.fluxscale import model_autos
+    from gcrsky.model.gsmsky import gsm_maps
+
+    beam = gaussian_beam(14.0)
+    assert np.array_equal(model_autos(day, beam), model_autos(day, beam, sky=gsm_maps(day.freqs_hz)[0]))
+    with pytest.raises(ValueError, match="sky must be HEALPix maps"):
+        model_autos(day, beam, sky=np.ones((day.n_freqs + 1, 768)))
 
 
 def test_the_twins_deficit_is_its_sky_beyond_the_gsms_resolution():
@@ -128,6 +136,8 @@ def test_the_twins_deficit_is_its_sky_beyond_the_gsms_resolution():
     twin = sky_truth(f, 160, source="pyradiosky", extend_seed=2024)
     obs = _simulate(twin.alm, 160, _times([0.0]), f, nside_matvis=128)
     assert abs(flux_scale_check(obs, gaussian_beam(14.0))["ratio"] - 0.741) < 0.01
+    truth = _maps(twin.alm, 160, nside=128)  # the check against the twin's own sky: its true scale, 1
+    assert abs(flux_scale_check(obs, gaussian_beam(14.0), sky=truth, nside=64)["ratio"] - 1) < TOL
     from gcrsky.sphere.modes import realify, unrealify
 
     full = np.atleast_2d(unrealify(twin.alm, 160))  # healpy order, m-major

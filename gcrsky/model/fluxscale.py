@@ -55,19 +55,30 @@ def _pixel_altaz(obs: Observation, times_jd: np.ndarray, nside: int) -> tuple[np
     return np.mod(np.pi / 2 - az, 2 * np.pi), np.pi / 2 - alt
 
 
-def model_autos(obs: Observation, beam, *, nside: int = NSIDE_QUAD) -> np.ndarray:
-    """(Nf, Nt) model autocorrelations ``int P T_GSM dOmega`` at the data's times, K sr (module docstring).
+def model_autos(obs: Observation, beam, *, nside: int = NSIDE_QUAD, sky=None) -> np.ndarray:
+    """(Nf, Nt) model autocorrelations ``int P T dOmega`` at the data's times, K sr (module docstring).
 
     Args:
         obs: the Observation (its frequencies, times, site).
         beam: a pyuvdata beam object (feed x power is used for every product).
         nside: HEALPix nside of the quadrature.
+        sky: None (the GSM, :func:`gcrsky.model.gsmsky.gsm_maps`), or the sky's Stokes I as
+            HEALPix RING ICRS maps (Nf, npix) K at the data's frequencies, any nside (e.g. a
+            simulation's truth): interpolated onto the quadrature grid as the GSM is.
+
+    Raises:
+        ValueError: ``sky`` is not (Nf, 12 nside^2).
     """
     import healpy as hp
 
-    from .gsmsky import gsm_maps
+    if sky is None:
+        from .gsmsky import gsm_maps
 
-    maps, _ = gsm_maps(obs.freqs_hz)  # any nside: interpolated onto the quadrature grid
+        maps, _ = gsm_maps(obs.freqs_hz)  # any nside: interpolated onto the quadrature grid
+    else:
+        maps = np.asarray(sky, np.float64)
+        if maps.ndim != 2 or maps.shape[0] != obs.n_freqs or not hp.isnpixok(maps.shape[1]):
+            raise ValueError(f"sky must be HEALPix maps (Nf={obs.n_freqs}, 12 nside^2), got shape {maps.shape}")
     theta, phi = hp.pix2ang(nside, np.arange(hp.nside2npix(nside)))
     temp = np.stack([hp.get_interp_val(m, theta, phi) for m in maps])  # (Nf, npix) K
     idx = np.unique(np.linspace(0, obs.n_times - 1, min(obs.n_times, MAX_MODEL_TIMES)).round().astype(int))
@@ -132,8 +143,11 @@ def _data_autos(obs: Observation, prod: str) -> tuple[np.ndarray, str]:
 
 
 def flux_scale_check(obs: Observation, beam, *, prod: str = "pI", bounds=FLUX_BOUNDS,
-                     nside: int = NSIDE_QUAD) -> dict:
+                     nside: int = NSIDE_QUAD, sky=None) -> dict:
     """The ratio of the data's autos to the GSM's model autos (module docstring), JSON-friendly.
+
+    ``sky``: as :func:`model_autos`' (None: the GSM); a simulation's own truth gives the ratio
+    the check would read were the GSM exact, i.e. the data's true scale.
 
     Returns:
         ``{"ratio", "ratio_per_channel", "freqs_mhz", "bounds", "within", "units", "model_k_sr", "method"}``;
@@ -145,7 +159,7 @@ def flux_scale_check(obs: Observation, beam, *, prod: str = "pI", bounds=FLUX_BO
     if not obs.has_autos:
         raise ValueError("the flux-scale check needs the autocorrelations (none in the selection)")
     data, units = _data_autos(obs, prod)
-    model = model_autos(obs, beam, nside=nside)  # (Nf, Nt)
+    model = model_autos(obs, beam, nside=nside, sky=sky)  # (Nf, Nt)
     with np.errstate(invalid="ignore", divide="ignore"):
         r = data / model[:, :, None]
     per = np.array([np.median(x[np.isfinite(x) & (x > 0)]) if np.any(np.isfinite(x) & (x > 0)) else np.nan
@@ -157,7 +171,7 @@ def flux_scale_check(obs: Observation, beam, *, prod: str = "pI", bounds=FLUX_BO
            "within": ratio is not None and bounds[0] <= ratio <= bounds[1], "units": units, "product": prod,
            "model_k_sr_median": float(np.median(model)),
            "method": f"median over channels of median(data auto / int P T_GSM dOmega) over times and antennas; "
-                     f"beam feed-x power, GSM (pyradiosky) at nside {nside}"}
+                     f"beam feed-x power, {'GSM (pyradiosky)' if sky is None else 'the given sky'} at nside {nside}"}
     if ratio is None:
         out["reason"] = "no unflagged positive autocorrelation"
     log.info("flux scale: data / model autos = %s (bounds %s)", ratio, bounds)
