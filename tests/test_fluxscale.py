@@ -42,15 +42,16 @@ def _times(offsets_sidereal_hours):
     return Time(JD_H1C + np.asarray(offsets_sidereal_hours) / 24 / 1.0027379, format="jd", scale="utc")
 
 
-def _simulate(alm, lmax, times, freqs, dish_m=14.0, nside_matvis=64):
-    """pI Observation of matvis autos (and the crosses of two antennas) of the ICRS sky ``alm``, Jy, "sum"."""
+def _simulate(alm, lmax, times, freqs, dish_m=14.0, nside_matvis=64, **kw):
+    """pI Observation of matvis autos (and the crosses of two antennas) of the ICRS sky ``alm``, Jy, "sum"
+    unless ``kw`` (``vis_units``, ``pol_convention``) says otherwise."""
     from gcrsky.checks.matvis import HERA_SITE, site
     from gcrsky.checks.uvsim import simulate_uvdata
     from gcrsky.io.observation import read_observation
 
     pos = np.array([[0.0, 0.0, 0.0], [14.6, 0.0, 0.0]])
     sim = simulate_uvdata(pos, site(*HERA_SITE), times, freqs, gaussian_beam(dish_m), alm, lmax,
-                          nside_matvis=nside_matvis, noise_seed=None)
+                          nside_matvis=nside_matvis, noise_seed=None, **kw)
     return read_observation(sim.uvdata, pol="pI")
 
 
@@ -95,6 +96,17 @@ def test_model_autos_match_matvis_at_six_lsts(day, gsm_sky):
     # negative control: a calibration 1.3x off is caught per channel
     off = flux_scale_check(dataclasses.replace(day, autos=1.3 * day.autos), beam, sky=sky)
     assert all(abs(r - 1.3) < 1.3 * TOL for r in off["ratio_per_channel"])
+
+
+@pytest.mark.parametrize("units, convention", [("K str", "sum"), ("Jy", "avg"), ("K str", "avg")])
+def test_units_and_pol_conventions(gsm_sky, units, convention):
+    """Files in K str and/or with pol_convention "avg" (products doubled: I-equivalent) read 1 as well."""
+    from gcrsky.model.fluxscale import flux_scale_check
+
+    obs = _simulate(gsm_sky[1:2], LMAX, _times([8.0]), FREQS[1:2], nside_matvis=32, vis_units=units,
+                    pol_convention=convention)
+    assert (obs.vis_units, obs.pol_convention) == (units, convention)
+    assert abs(flux_scale_check(obs, gaussian_beam(14.0), sky=_maps(gsm_sky[1:2], LMAX))["ratio"] - 1) < TOL
 
 
 def test_a_beam_twice_as_wide_is_caught(gsm_sky):
