@@ -1,4 +1,4 @@
-"""How well the flux-scale check's GSM model predicts the autos of a sky finer than the GSM (``gcrsky.model.fluxscale``).
+"""How well the flux-scale check's GSM model predicts the autos of a sky finer than the GSM (gcrsky.model.fluxscale).
 
 The implementation itself is pinned against matvis in ``tests/test_fluxscale.py`` (1 +- 0.003
 given the sky matvis simulates).  This measures what the nside-8 GSM costs, at the H1C site
@@ -9,7 +9,8 @@ and 12 LSTs 2 sidereal hours apart from the H1C file's (5.71 h), 14 m Gaussian d
 (b) skies made as the twins' are (``sky_truth`` at l = 160: the GSM's l <= 16 plus an
     isotropic Gaussian extension of its power law, 16 seeds; 2024 is the twins' default):
     the true autos (the check given the sky, ``sky=``, nside-64 quadrature of nside-128 maps)
-    over the check's GSM model, 146.9 MHz.
+    over the check's GSM model, 146.9 MHz; and the spread the check predicts per LST
+    (``model_rel_sd``: ``unresolved_variance`` over the model autos).
 
 Run: ``PYTHONPATH=. .venv/bin/python benchmarks/fluxscale_accuracy.py`` (~10 s).
 Measured (2026-12-05)::
@@ -19,6 +20,8 @@ Measured (2026-12-05)::
     (b) one time: mean 1.008 sd 0.168, 5-95 % 0.756-1.288, min 0.435 max 1.408
         sd per LST (5.7, 7.7, ... 3.7 h): 0.184 0.111 0.140 0.196 0.084 0.054 0.015 0.083 0.167
         0.176 0.152 0.250; median over the 12 LSTs, per seed: sd 0.033
+        predicted (model_rel_sd, unresolved_variance): 0.221 0.119 0.139 0.177 0.100 0.065 0.016
+        0.083 0.155 0.172 0.184 0.243
         seed 2024 at LST 5.7 h: 0.743 (the H1C twin's 0.769 of issue 38)
 """
 
@@ -32,7 +35,7 @@ import numpy as np
 
 from gcrsky.checks.matvis import HERA_SITE, site
 from gcrsky.instrument.beams import gaussian_beam
-from gcrsky.model.fluxscale import model_autos
+from gcrsky.model.fluxscale import model_autos, unresolved_variance
 from gcrsky.model.skyprior import gsm_prior_mean
 from gcrsky.sim.sky import sky_truth
 from gcrsky.sphere.maps import alm_to_map
@@ -58,17 +61,18 @@ def main():
 
     o = obs(FREQS)
     r16 = model_autos(o, beam, sky=maps(gsm_prior_mean(FREQS, 16), 16, 64), nside=64) / model_autos(o, beam)
-    print("(a) l<=16 / bilinear:", ", ".join(f"{f / 1e6:.1f} MHz {x.min():.3f}-{x.max():.3f} (median {np.median(x):.3f})"
-                                             for f, x in zip(FREQS, r16)))
+    print("(a) l<=16 / bilinear:", ", ".join(
+        f"{f / 1e6:.1f} MHz {x.min():.3f}-{x.max():.3f} (median {np.median(x):.3f})" for f, x in zip(FREQS, r16)))
     print("    per LST at 146.9 MHz:", np.round(r16[1], 3))
     f1 = FREQS[1:2]
     o1 = obs(f1)
     gsm = model_autos(o1, beam)[0]
-    rs = np.array([model_autos(o1, beam, sky=maps(sky_truth(f1, 160, source="pyradiosky", extend_seed=s).alm, 160, 128),
-                               nside=64)[0] / gsm for s in [2024, *range(1, 16)]])
+    skies = (sky_truth(f1, 160, source="pyradiosky", extend_seed=s).alm for s in [2024, *range(1, 16)])
+    rs = np.array([model_autos(o1, beam, sky=maps(a, 160, 128), nside=64)[0] / gsm for a in skies])
     print(f"(b) one time: mean {rs.mean():.3f} sd {rs.std():.3f}, 5-95 % {np.percentile(rs, 5):.3f}-"
           f"{np.percentile(rs, 95):.3f}, min {rs.min():.3f} max {rs.max():.3f}")
     print("    sd per LST:", np.round(rs.std(0), 3), f"; median over LSTs per seed: sd {np.median(rs, 1).std():.3f}")
+    print("    predicted (model_rel_sd):", np.round(np.sqrt(unresolved_variance(f1, beam))[0] / gsm, 3))
     print(f"    seed 2024 at LST 5.7 h: {rs[0, 0]:.3f}; ({time.time() - t0:.0f} s)")
 
 
