@@ -20,8 +20,8 @@ Measured (2026-12-05)::
     (b) one time: mean 1.008 sd 0.168, 5-95 % 0.756-1.288, min 0.435 max 1.408
         sd per LST (5.7, 7.7, ... 3.7 h): 0.184 0.111 0.140 0.196 0.084 0.054 0.015 0.083 0.167
         0.176 0.152 0.250; median over the 12 LSTs, per seed: sd 0.033
-        predicted (model_rel_sd, unresolved_variance): 0.221 0.119 0.139 0.177 0.100 0.065 0.016
-        0.083 0.155 0.172 0.184 0.243
+        predicted (model_rel_sd, unresolved_variance): 0.221 0.118 0.139 0.177 0.100 0.065 0.016
+        0.083 0.155 0.172 0.184 0.242
         seed 2024 at LST 5.7 h: 0.743 (the H1C twin's 0.769 of issue 38)
 """
 
