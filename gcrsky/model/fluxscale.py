@@ -38,8 +38,9 @@ Gaussian dish, FWHM 8.4 deg at 147 MHz, the H1C site and LSTs 5.7 + 4 k h over t
   :func:`unresolved_variance`): it predicts the measured sd per LST (0.016-0.24) to the
   ensemble's sampling error (72 skies x LSTs: 0.92 +- 0.08 of it).
 * So the H1C twin's 0.769 (issue 38) is its sky, not the check: the twin's sky (seed 2024)
-  is cold in the beam at LST 5.7 h (0.741 at 146.9 MHz; 0.925 with the same sky cut at
-  l = 16), and the check given the twin's own sky (``sky=``) reads 1.000.  One short
+  is cold in the beam at LST 5.7 h (0.741 at 146.9 MHz, over the file's 10 times 0.89 at
+  100 MHz falling to 0.71 at 150 MHz as the beam narrows; 0.925 at 146.9 MHz with the same
+  sky cut at l = 16), and the check given the twin's own sky (``sky=``) reads 1.000.  One short
   observation's ratio is a measure of the flux scale to ~20 % (1 sigma) on cold sky.
 
 Bounds :data:`FLUX_BOUNDS` = (0.5, 2): calibrated autos exceed the sky's by the receiver
