@@ -22,7 +22,7 @@ from conftest import H1C  # noqa: E402
 pytest.importorskip("matvis")
 pytest.importorskip("pyradiosky")
 
-from pyuvdata import UVData, utils  # noqa: E402
+from pyuvdata import UVCal, UVData, utils  # noqa: E402
 
 from gcrsky.checks.twin import DEFAULT_CHANNELS, bandpass, change_lmax, make_twin, twin_sky  # noqa: E402
 from gcrsky.sphere.maps import alm_to_map  # noqa: E402
@@ -217,3 +217,8 @@ def test_command_line_writes_a_twin(tmp_path):
     uvd = UVData.from_file(str(out))
     assert uvd.Nfreqs == 2 and uvd.vis_units == "uncalib"
     assert '"amplitude_q"' in r.stdout
+    truth = np.load(tmp_path / "cli.truth.npz")
+    np.testing.assert_allclose(truth["amplitude"], bandpass(uvd.freq_array.reshape(-1)), rtol=1e-15)
+    assert truth["alm"].shape == (2, 25**2) and int(truth["lmax"]) == 24
+    cal = utils.uvcalibrate(uvd, UVCal.from_file(str(tmp_path / "cli.truth.calh5")), inplace=False)
+    assert cal.vis_units == "Jy"

@@ -418,7 +418,13 @@ def make_twin(template, out=None, *, channels=DEFAULT_CHANNELS, lmax_sky: int = 
 
 
 def main(argv=None) -> int:  # pragma: no cover - exercised through tests/test_twin.py's subprocess
-    """``python -m gcrsky.checks.twin TEMPLATE OUT [--channels i,j,...] [...]``: write a twin file."""
+    """``python -m gcrsky.checks.twin TEMPLATE OUT [--channels i,j,...] [...]``: write a twin file and its truth.
+
+    Beside ``OUT`` (``X.uvh5``): ``X.truth.calh5``, the UVCal of ``g sqrt(q)`` (``--cal`` it to get the
+    Jy data), and ``X.truth.npz`` (``freqs_hz``, ``amplitude`` q, ``gains``, ``ant_array``, the sky's
+    ``alm``, ``base``, ``prior_mean``, ``modulation_alm`` at ``lmax``, ``settings`` as JSON); the
+    settings are printed as JSON.
+    """
     import argparse
     import json
 
@@ -439,7 +445,15 @@ def main(argv=None) -> int:  # pragma: no cover - exercised through tests/test_t
                      slope=a.slope, gain_amp=a.gain_amp, gain_phase_deg=a.gain_phase_deg,
                      dish_diameter_m=a.dish_diameter, sky_seed=a.seed, gain_seed=a.seed, noise_seed=a.seed,
                      overwrite=a.overwrite)
-    truth = {**twin.settings, "amplitude_q": twin.amplitude.tolist(), "path": str(twin.path)}
+    stem = twin.path.with_suffix("")
+    cal_path, npz_path = Path(f"{stem}.truth.calh5"), Path(f"{stem}.truth.npz")
+    twin.uvcal.write_calh5(str(cal_path), clobber=a.overwrite)
+    sky = twin.sky
+    np.savez(npz_path, freqs_hz=twin.freqs_hz, amplitude=twin.amplitude, gains=twin.gains,
+             ant_array=np.asarray(twin.uvcal.ant_array), alm=sky.alm, base=sky.base, prior_mean=sky.prior_mean,
+             modulation_alm=sky.modulation_alm, lmax=sky.lmax, settings=json.dumps(twin.settings))
+    truth = {**twin.settings, "amplitude_q": twin.amplitude.tolist(), "path": str(twin.path),
+             "truth_calibration": str(cal_path), "truth_arrays": str(npz_path)}
     print(json.dumps(truth, indent=1))
     return 0
 
