@@ -40,9 +40,10 @@ by ``1 + modulation M`` (``M`` a random dipole + quadrupole field of unit rms ov
 ``modulation`` 5 %), with small-scale structure beyond the GSM map's resolution (20 % rms,
 scaling with the local brightness) up to a degree ``lmax_sky`` above a run's.
 
-Cost (2 CPU cores, 8 antennas, 10 times, 4 channels): matvis dominates; ~3 s at
-``lmax_sky`` 64 / ``nside_matvis`` 64, ~15 s at 192 / 128 (``tests/test_twin.py`` uses the
-former).  Command line: ``python -m gcrsky.checks.twin TEMPLATE.uvh5 OUT.uvh5 [--channels ...]``.
+Cost (2 shared CPU cores, 8 antennas, 10 times, 4 channels): matvis dominates; ~3-6 s at
+``lmax_sky`` 64 / ``nside_matvis`` 64 (``tests/test_twin.py``), ~10 s at the defaults 256 / 128 (25 s under load)
+(55 s at 600 / 256).  matvis at nside 128 agrees with nside 256 on the sky to l = 256 to 2e-4 of
+the noise sigma (rms; 1e-3 at most; 1e-5 of the visibilities' norm).  Command line: ``python -m gcrsky.checks.twin TEMPLATE.uvh5 OUT.uvh5 [--channels ...]``.
 """
 
 from __future__ import annotations
@@ -298,7 +299,7 @@ def _template(template):
     return UVData.from_file(str(template), read_data=False)
 
 
-def make_twin(template, out=None, *, channels=DEFAULT_CHANNELS, lmax_sky: int = 192, nside_matvis: int = 128,
+def make_twin(template, out=None, *, channels=DEFAULT_CHANNELS, lmax_sky: int = 256, nside_matvis: int = 128,
               boost: float = 0.05, modulation: float = 0.05, small_scale: float = 0.2, amplitude: float = 0.003,
               slope: float = -0.3, gain_amp: float = 0.05, gain_phase_deg: float = 5.0, dish_diameter_m: float = 14.0,
               noise: bool = True, sky_seed: int = 0, gain_seed: int = 0, noise_seed: int = 0,
@@ -306,9 +307,9 @@ def make_twin(template, out=None, *, channels=DEFAULT_CHANNELS, lmax_sky: int = 
     """A twin of ``template``: matvis visibilities of :func:`twin_sky` with gains, a bandpass and noise.
 
     The model is the module docstring's.  Defaults: 4 channels over 120-180 MHz
-    (:data:`DEFAULT_CHANNELS`), a sky to l = 192 (a run's default lmax on H1C's 8 antennas at
-    180 MHz is ~200, its reach; runs at lower lmax see a sky far beyond theirs), matvis at nside
-    128, 5 % boost and 5 % modulation, q = 0.003 with slope -0.3, 5 % / 5 deg gains, 14 m dish.
+    (:data:`DEFAULT_CHANNELS`), a sky to l = 256 (beyond the reach of H1C's longest baseline at
+    180 MHz, 223, the lmax a default run takes: above it the data see nothing; runs at lower
+    lmax see a sky far beyond theirs), matvis at nside 128, 5 % boost and 5 % modulation, q = 0.003 with slope -0.3, 5 % / 5 deg gains, 14 m dish.
 
     Args:
         template: path of a visibility file pyuvdata reads, or a ``UVData``: its data antennas,
@@ -433,7 +434,7 @@ def main(argv=None) -> int:  # pragma: no cover - exercised through tests/test_t
     p.add_argument("out", help="the twin's UVH5 path")
     p.add_argument("--channels", default=",".join(map(str, DEFAULT_CHANNELS)),
                    help="comma-separated channel indices of the template")
-    for name, kind, default in (("lmax-sky", int, 192), ("nside-matvis", int, 128), ("boost", float, 0.05),
+    for name, kind, default in (("lmax-sky", int, 256), ("nside-matvis", int, 128), ("boost", float, 0.05),
                                 ("modulation", float, 0.05), ("amplitude", float, 0.003), ("slope", float, -0.3),
                                 ("gain-amp", float, 0.05), ("gain-phase-deg", float, 5.0),
                                 ("dish-diameter", float, 14.0), ("seed", int, 0)):
