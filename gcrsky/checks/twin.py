@@ -41,9 +41,11 @@ by ``1 + modulation M`` (``M`` a random dipole + quadrupole field of unit rms ov
 scaling with the local brightness) up to a degree ``lmax_sky`` above a run's.
 
 Cost (2 shared CPU cores, 8 antennas, 10 times, 4 channels): matvis dominates; ~3-6 s at
-``lmax_sky`` 64 / ``nside_matvis`` 64 (``tests/test_twin.py``), ~10 s at the defaults 256 / 128 (25 s under load)
-(55 s at 600 / 256).  matvis at nside 128 agrees with nside 256 on the sky to l = 256 to 2e-4 of
-the noise sigma (rms; 1e-3 at most; 1e-5 of the visibilities' norm).  Command line: ``python -m gcrsky.checks.twin TEMPLATE.uvh5 OUT.uvh5 [--channels ...]``.
+``lmax_sky`` 64 / ``nside_matvis`` 64 (``tests/test_twin.py``), ~10 s at the defaults 256 / 128
+(25 s under load; 55 s at 600 / 256).  matvis at nside 128 agrees with nside 256 on the sky to
+l = 256 to 2e-4 of the noise sigma (rms; 1e-3 at most; 1e-5 of the visibilities' norm).
+Command line: ``python -m gcrsky.checks.twin TEMPLATE.uvh5 OUT.uvh5 [--channels ...]``
+(:func:`main`).
 """
 
 from __future__ import annotations
@@ -309,7 +311,8 @@ def make_twin(template, out=None, *, channels=DEFAULT_CHANNELS, lmax_sky: int = 
     The model is the module docstring's.  Defaults: 4 channels over 120-180 MHz
     (:data:`DEFAULT_CHANNELS`), a sky to l = 256 (beyond the reach of H1C's longest baseline at
     180 MHz, 223, the lmax a default run takes: above it the data see nothing; runs at lower
-    lmax see a sky far beyond theirs), matvis at nside 128, 5 % boost and 5 % modulation, q = 0.003 with slope -0.3, 5 % / 5 deg gains, 14 m dish.
+    lmax see a sky far beyond theirs), matvis at nside 128, 5 % boost and 5 % modulation,
+    q = 0.003 with slope -0.3, 5 % / 5 deg gains, 14 m dish.
 
     Args:
         template: path of a visibility file pyuvdata reads, or a ``UVData``: its data antennas,
