@@ -209,6 +209,17 @@ def test_change_lmax_pads_and_truncates_by_degree():
     np.testing.assert_array_equal(change_lmax(up, 7, 4), a)
 
 
+def test_the_truth_at_a_runs_lmax_is_the_twins_sky_truncated(twin):
+    from gcrsky.sphere.modes import mode_table
+
+    a = twin.sky.at(20)
+    tab, full = mode_table(20), mode_table(twin.sky.lmax)
+    where = {(int(ell), int(m), bool(im)): k for k, (ell, m, im) in enumerate(zip(full.ell, full.m, full.is_imag))}
+    idx = [where[(int(ell), int(m), bool(im))] for ell, m, im in zip(tab.ell, tab.m, tab.is_imag)]
+    np.testing.assert_array_equal(a, twin.sky.alm[:, idx])
+
+
+@pytest.mark.slow
 def test_command_line_writes_a_twin(tmp_path):
     out = tmp_path / "cli.uvh5"
     r = subprocess.run([sys.executable, "-m", "gcrsky.checks.twin", str(H1C), str(out), "--channels", "13,51",

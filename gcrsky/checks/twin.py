@@ -95,6 +95,11 @@ class TwinSky(NamedTuple):
     modulation: float
     note: str
 
+    def at(self, lmax: int) -> np.ndarray:
+        """The sky's coefficients at a run's degree: (Nf, (lmax+1)^2), truncated (or zero-padded), what a
+        run's ``Problem.a_true`` would hold."""
+        return change_lmax(self.alm, self.lmax, lmax)
+
 
 class Twin(NamedTuple):
     """What :func:`make_twin` returns.
