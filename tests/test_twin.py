@@ -233,3 +233,24 @@ def test_command_line_writes_a_twin(tmp_path):
     assert truth["alm"].shape == (2, 25**2) and int(truth["lmax"]) == 24
     cal = utils.uvcalibrate(uvd, UVCal.from_file(str(tmp_path / "cli.truth.calh5")), inplace=False)
     assert cal.vis_units == "Jy"
+
+
+def test_the_autos_reference_reads_the_boost_on_a_boost_only_twin():
+    """A twin whose sky is 1.07 x the prior mean (no modulation, no small scales): its calibrated autos are 1.07 x
+    matvis' autos of the prior mean, whatever the gains and q (divided out) -- and the default twin's departs from
+    1 + boost by its modulation and small scales only (a few per cent)."""
+    from gcrsky.checks.twin import autos_against_the_prior_mean
+
+    tw = make_twin(H1C, None, lmax_sky=24, nside_matvis=32, boost=0.07, modulation=0.0, small_scale=0.0, noise=False)
+    np.testing.assert_allclose(autos_against_the_prior_mean(tw), 1.07, rtol=1e-6)
+    plain = make_twin(H1C, None, lmax_sky=24, nside_matvis=32, boost=0.0, modulation=0.0, small_scale=0.0, noise=False)
+    np.testing.assert_allclose(autos_against_the_prior_mean(plain), 1.0, rtol=1e-6)  # negative control
+
+
+def test_the_default_twins_autos_are_brighter_than_the_prior_means(twin):
+    from gcrsky.checks.twin import autos_against_the_prior_mean
+
+    r = autos_against_the_prior_mean(twin)
+    # brighter than the prior mean, by the boost and what the modulation and small scales put in the beam: 1.066 (120
+    # MHz) to 1.121 (180 MHz, the narrowest beam) here (sky to l = 64); 1.044 to 1.029 at the defaults (l = 256)
+    assert np.all((r > 1.0) & (r < 1.15)), r
