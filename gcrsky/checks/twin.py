@@ -2,7 +2,7 @@
 
 :func:`make_twin` takes a real visibility file (the template: HERA H1C's
 ``zen.2458098.45361.HH_downselected.uvh5`` in the tests) for everything but the data: its
-data antennas (numbers, names, ENU positions), site, integration times, integration
+data antennas (numbers, names, ENU positions), site, observing times, integration
 time and channel width, and a choice of its channels.  It then writes what such a file
 would hold for a known sky and a known calibration error:
 
@@ -24,8 +24,8 @@ would hold for a known sky and a known calibration error:
   ``q(nu) = amplitude (1 + slope (nu - nu0) / bandwidth)`` (``nu0`` the centre and
   ``bandwidth`` the span of the chosen channels; 0.003 and -0.3 by default: 0.00345 at the
   lowest channel to 0.00255 at the highest), applied as a common ``|g|^2``, noise and all.
-  Convention: the data are ``q`` x the visibilities in calibrated units (Jy), so ``data / q``
-  is calibrated (what gcrsky's ``"flux_scale"`` reports as the amplitude).
+  Convention: the data are ``q`` x the visibilities in calibrated units (Jy) (gains apart), so
+  ``data / q`` is calibrated: ``q`` is what issue 38's ``"flux_scale"`` block reports.
 
 The file says ``vis_units = "uncalib"`` and has no pol_convention (as the template; gcrsky
 then reads "sum", which is what the simulation is).  :class:`Twin` carries the truth: ``q``
