@@ -254,3 +254,22 @@ def test_the_default_twins_autos_are_brighter_than_the_prior_means(twin):
     # brighter than the prior mean, by the boost and what the modulation and small scales put in the beam: 1.066 (120
     # MHz) to 1.121 (180 MHz, the narrowest beam) here (sky to l = 64); 1.044 to 1.029 at the defaults (l = 256)
     assert np.all((r > 1.0) & (r < 1.15)), r
+
+
+def test_isotropic_small_scales_are_a_draw_from_the_priors_cl(twin):
+    """``small_scale_kind="isotropic"``: at 16 < l <= 40 the sky's measured C_l is the prior's (gsm_cl) within the
+    scatter of ~1400 modes; at l <= 16 it is the prior mean, bit for bit."""
+    import healpy as hp
+
+    from gcrsky.model.skyprior import gsm_cl
+    from gcrsky.sphere.modes import unrealify
+
+    iso = twin_sky(twin.freqs_hz, 40, boost=0.0, modulation=0.0, small_scale_kind="isotropic")
+    np.testing.assert_array_equal(change_lmax(iso.alm, 40, 16), change_lmax(iso.prior_mean, 40, 16))
+    cl = np.stack([hp.alm2cl(unrealify(a, 40)) for a in iso.alm])
+    ell = np.arange(17, 41)
+    w = (2 * ell + 1) / np.sum(2 * ell + 1)
+    ratio = np.sum(w * cl[:, 17:] / gsm_cl(twin.freqs_hz, 40)[:, 17:], axis=1)
+    np.testing.assert_allclose(ratio, 1.0, atol=0.12)  # ~1392 modes: sd of the weighted ratio ~0.04
+    brightness = twin_sky(twin.freqs_hz, 40, boost=0.0, modulation=0.0)
+    assert not np.allclose(brightness.alm, iso.alm)

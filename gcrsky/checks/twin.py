@@ -220,7 +220,8 @@ class _GLGrid:
 
 
 def twin_sky(freqs_hz, lmax: int, *, boost: float = 0.05, modulation: float = 0.05, modulation_lmax: int = 2,
-             small_scale: float = 0.2, small_scale_slope: float = -2.5, seed: int = 0) -> TwinSky:
+             small_scale: float = 0.2, small_scale_slope: float = -2.5, small_scale_kind: str = "brightness",
+             seed: int = 0) -> TwinSky:
     """The twin's sky: the GSM prior mean with small scales added, brighter and modulated on large scales.
 
     ``T(n, nu) = (1 + boost) (1 + modulation M(n)) T_base(n, nu)``, ``T_base = T_gsm + [T_gsm delta]_{l > 16}``:
@@ -236,7 +237,11 @@ def twin_sky(freqs_hz, lmax: int, *, boost: float = 0.05, modulation: float = 0.
       (The prior's own C_l beyond l = 16, :func:`gcrsky.model.skyprior.gsm_cl`, has about the
       same total power, ~0.2 x the rms brightness at l = 17-190; an isotropic Gaussian field of
       that power would make 2-4 % of the sky negative.)  Skipped where the degrees leave no
-      room (``lmax - modulation_lmax < 33``) or ``small_scale`` is 0;
+      room (``lmax - modulation_lmax < 33``) or ``small_scale`` is 0.  ``small_scale_kind``
+      ``"isotropic"`` instead adds one draw from that prior C_l at ``16 < l <= lmax -
+      modulation_lmax`` (the same unit normals at every frequency; ``small_scale`` then only
+      switches it on): small scales the prior's covariance describes exactly, as bright off
+      the Galactic plane as on it (and 2-4 % of the sky negative);
     * ``M``: a random field at ``1 <= l <= modulation_lmax`` (dipole + quadrupole by default;
       equal power per degree), no monopole, unit rms over the sphere, the same at every
       frequency.
@@ -255,6 +260,7 @@ def twin_sky(freqs_hz, lmax: int, *, boost: float = 0.05, modulation: float = 0.
         modulation: rms of ``modulation M`` (keep it well below 1: the sky stays positive).
         modulation_lmax: highest degree of ``M`` (>= 1).
         small_scale, small_scale_slope: rms and C_l slope of ``delta``.
+        small_scale_kind: ``"brightness"`` (``delta``, above) or ``"isotropic"`` (the prior's C_l).
         seed: NumPy ``default_rng`` seed of ``M`` and ``delta``.
 
     Returns:
@@ -273,6 +279,8 @@ def twin_sky(freqs_hz, lmax: int, *, boost: float = 0.05, modulation: float = 0.
         raise ValueError(f"boost must be > -1, got {boost}")
     if not small_scale >= 0:
         raise ValueError(f"small_scale must be >= 0, got {small_scale}")
+    if small_scale_kind not in ("brightness", "isotropic"):
+        raise ValueError(f"small_scale_kind must be 'brightness' or 'isotropic', got {small_scale_kind!r}")
     rng = np.random.default_rng(seed)
     mfield = _unit_rms_field(modulation_lmax, 1, 0.0, rng)
     grid = _GLGrid(lmax)
@@ -280,7 +288,15 @@ def twin_sky(freqs_hz, lmax: int, *, boost: float = 0.05, modulation: float = 0.
     ld = lb - _GSM_L
     base = gsm_prior_mean(f, lb)
     note = f"(1 + {boost:g}) x (1 + {modulation:g} M) x [GSM prior mean (l <= {_GSM_L})"
-    if small_scale and ld > _GSM_L:
+    if small_scale and small_scale_kind == "isotropic" and lb > _GSM_L:
+        from ..model.prior import isotropic_prior
+        from ..model.skyprior import gsm_cl
+
+        sd = 1.0 / np.sqrt(isotropic_prior(gsm_cl(f, lb), (lb + 1) ** 2).inv_var)  # (Nf, n): sqrt(C_l [/ 2])
+        z = np.where(mode_table(lb).ell > _GSM_L, rng.standard_normal((lb + 1) ** 2), 0.0)
+        base = base + sd * z[None, :]
+        note += f" + a draw from the prior's C_l (gsm_cl) at {_GSM_L} < l <= {lb}"
+    elif small_scale and ld > _GSM_L:
         delta = small_scale * _unit_rms_field(ld, _GSM_L + 1, small_scale_slope, rng)
         dmap = grid.synth(delta, ld)
         high = mode_table(lb).ell > _GSM_L
@@ -310,7 +326,8 @@ def _template(template):
 
 
 def make_twin(template, out=None, *, channels=DEFAULT_CHANNELS, lmax_sky: int = 256, nside_matvis: int = 128,
-              boost: float = 0.05, modulation: float = 0.05, small_scale: float = 0.2, amplitude: float = 0.003,
+              boost: float = 0.05, modulation: float = 0.05, small_scale: float = 0.2,
+              small_scale_kind: str = "brightness", amplitude: float = 0.003,
               slope: float = -0.3, gain_amp: float = 0.05, gain_phase_deg: float = 5.0, dish_diameter_m: float = 14.0,
               noise: bool = True, sky_seed: int = 0, gain_seed: int = 0, noise_seed: int = 0,
               overwrite: bool = False) -> Twin:
@@ -328,7 +345,7 @@ def make_twin(template, out=None, *, channels=DEFAULT_CHANNELS, lmax_sky: int = 
         out: UVH5 path to write, or None.
         channels: indices into the template's channels.
         lmax_sky, nside_matvis: degree of the sky and HEALPix nside of matvis' pixel sky.
-        boost, modulation, small_scale: :func:`twin_sky`'s (with ``sky_seed``).
+        boost, modulation, small_scale, small_scale_kind: :func:`twin_sky`'s (with ``sky_seed``).
         amplitude, slope: :func:`bandpass`'s ``q``; 1 and 0 for data in Jy (``vis_units`` still
             "uncalib").
         gain_amp, gain_phase_deg: rms fractional amplitude and phase (degrees) of the gains
@@ -371,7 +388,8 @@ def make_twin(template, out=None, *, channels=DEFAULT_CHANNELS, lmax_sky: int = 
     times = Time(np.unique(tpl.time_array), format="jd", scale="utc")
     location = tpl.telescope.location
 
-    sky = twin_sky(freqs, lmax_sky, boost=boost, modulation=modulation, small_scale=small_scale, seed=sky_seed)
+    sky = twin_sky(freqs, lmax_sky, boost=boost, modulation=modulation, small_scale=small_scale,
+                   small_scale_kind=small_scale_kind, seed=sky_seed)
     seconds["sky"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     sim = simulate_uvdata(pos, location, times, freqs, gaussian_beam(dish_diameter_m), sky.alm, lmax_sky,
@@ -420,7 +438,8 @@ def make_twin(template, out=None, *, channels=DEFAULT_CHANNELS, lmax_sky: int = 
     settings = dict(template=str(template) if not hasattr(template, "data_array") else "a UVData",
                     channels=chans.tolist(), freqs_hz=freqs.tolist(), lmax_sky=int(lmax_sky),
                     nside_matvis=int(nside_matvis), boost=float(boost), modulation=float(modulation),
-                    small_scale=float(small_scale), amplitude=float(amplitude), slope=float(slope),
+                    small_scale=float(small_scale), small_scale_kind=small_scale_kind, amplitude=float(amplitude),
+                    slope=float(slope),
                     gain_amp=float(gain_amp), gain_phase_deg=float(gain_phase_deg),
                     dish_diameter_m=float(dish_diameter_m), noise=bool(noise), sky_seed=int(sky_seed),
                     gain_seed=int(gain_seed), noise_seed=int(noise_seed), dt_s=dt, dnu_hz=float(widths[0]),
@@ -494,13 +513,14 @@ def main(argv=None) -> int:  # pragma: no cover - exercised through tests/test_t
                                 ("gain-amp", float, 0.05), ("gain-phase-deg", float, 5.0),
                                 ("dish-diameter", float, 14.0), ("seed", int, 0)):
         p.add_argument(f"--{name}", type=kind, default=default)
+    p.add_argument("--small-scale-kind", choices=("brightness", "isotropic"), default="brightness")
     p.add_argument("--overwrite", action="store_true")
     a = p.parse_args(argv)
     twin = make_twin(a.template, a.out, channels=[int(c) for c in a.channels.split(",")], lmax_sky=a.lmax_sky,
                      nside_matvis=a.nside_matvis, boost=a.boost, modulation=a.modulation, amplitude=a.amplitude,
-                     slope=a.slope, gain_amp=a.gain_amp, gain_phase_deg=a.gain_phase_deg,
-                     dish_diameter_m=a.dish_diameter, sky_seed=a.seed, gain_seed=a.seed, noise_seed=a.seed,
-                     overwrite=a.overwrite)
+                     slope=a.slope, small_scale_kind=a.small_scale_kind, gain_amp=a.gain_amp,
+                     gain_phase_deg=a.gain_phase_deg, dish_diameter_m=a.dish_diameter, sky_seed=a.seed,
+                     gain_seed=a.seed, noise_seed=a.seed, overwrite=a.overwrite)
     stem = twin.path.with_suffix("")
     cal_path, npz_path = Path(f"{stem}.truth.calh5"), Path(f"{stem}.truth.npz")
     twin.uvcal.write_calh5(str(cal_path), clobber=a.overwrite)
