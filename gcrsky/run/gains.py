@@ -314,8 +314,16 @@ def _interval(x) -> dict:
 
 def gain_summary(prob, gains, h5) -> dict:
     """``summary.json``'s ``gains`` block: the overall flux scale the crosses say (against the autos'
-    check), the phase gradients' posterior against their prior, the chain's gauge acceptance and ESS."""
+    check), the phase gradients' posterior against their prior, the chain's gauge acceptance and ESS.
+
+    ``chain`` is :func:`gcrsky.inference.chain_diagnostics` of every sampled scalar: the amplitude
+    ``q(nu)`` per channel (``flux_scale[i]``), its modes ``s`` (``scale_modes[k]``) and every gain
+    coefficient (``gain_theta[p]``), against the ESS floor (:data:`gcrsky.inference.diagnostics.ESS_FLOOR`).
+    Below it the block's ``warnings`` holds :func:`gcrsky.inference.diagnostics_warning`'s line (also
+    logged), which the run adds to the summary's warnings.
+    """
     from ..inference.collapsed import effective_sample_size
+    from ..inference.diagnostics import chain_diagnostics, diagnostics_warning
     from ..model.gains import phase_gradient_directions
 
     g = _read_gain_draws(h5)
@@ -334,8 +342,15 @@ def gain_summary(prob, gains, h5) -> dict:
         "note": ("flux_scale: the posterior of q(nu) x applied^2, the factor by which the cross-correlations exceed "
                  "the sky model (the flux-scale check's ratio is the autocorrelations' view of the same); "
                  "phase_gradients: posterior sd of the tip-tilt directions against their prior sd (ratio near 1: "
-                 "prior-dominated). The draws are a Markov chain's (flux_scale_ess: effective sample size)."),
+                 "prior-dominated). The draws are a Markov chain's (flux_scale_ess: effective sample size of the "
+                 "first channel's; chain: that of every sampled scalar against a floor; warnings: the chain's, when "
+                 "below it)."),
     }
+    out["chain"] = chain_diagnostics({"flux_scale": q, "scale_modes": g["gain_scale"], "gain_theta": g["gain_theta"]})
+    line = diagnostics_warning(out["chain"], "the gain chain")
+    out["warnings"] = [] if line is None else [line]
+    if line is not None:
+        log.warning(line.removeprefix("WARNING: "))
     if prob.antpos_enu_m is not None and nd > 1:
         nf, nt = g["basis_f"].shape[0], g["basis_t"].shape[0]
         model = gain_model(prob.antpairs, nf, nt, gains.modes, basis=gains.basis, pols=prob.pols)

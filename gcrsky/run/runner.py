@@ -130,6 +130,7 @@ def _after_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, stored, meth
     st.start("write")
     finalized = _write(prob, spec, run, stored, view.maps, method, channels)
     gains = None if (run.out / SUMMARY_FILE).exists() else spec.sampling.finish(prob, run.out, run.h5)
+    warnings += (gains or {}).get("warnings", [])  # a stage's own (e.g. a chain that has not mixed)
     st.stop()
     timings, compiled = _timings(st, stored, compile0)
     summary = _summary(prob, spec, run, view, solver, warnings, (timings, compiled), figures, method, gof, gains,
