@@ -173,9 +173,11 @@ def _run_data(args) -> int:
     print(band_limit_line(cfg.checks.get("band_limit")))
     if args.gains == "sample":
         spec = run_spec(args, nsamples=spec.draws.nsamples, method=spec.solver.method, tol=spec.solver.tol,
-                        extra=spec.extra, gains=gain_sampling(args, _applied_amplitude(prob)))
-        print(f"gcrsky: gains sampled with the sky: {spec.gains.modes[0]} x {spec.gains.modes[1]} modes per gain, "
+                        extra=spec.extra, gains=gain_sampling(args, _applied_amplitude(prob), prob))
+        how = "" if args.gain_modes is not None else " (from the channels and time span)"
+        print(f"gcrsky: gains sampled with the sky: {spec.gains.modes[0]} x {spec.gains.modes[1]} "
+              f"{spec.gains.basis} modes per gain{how}, "
               f"prior sd {spec.gains.sigma:g}, starting amplitude {spec.gains.applied:.4g}, burn-in {spec.gains.burn}"
               f" sweeps; the draws are a Markov chain's")
     done = execute_with_bars(args, prob, spec, (PaperReport(),), build_s=build_s, compile_since=compile0)
-    return done if isinstance(done, int) else report_run(*done, out)
+    return done if isinstance(done, int) else report_run(*done, out, strict=args.strict)
