@@ -262,8 +262,8 @@ def add_gain_options(g) -> None:
     g.add_argument("--gain-modes", type=_gain_modes, default=None, metavar="KF[,KT]",
                    help="smooth modes per gain in frequency (delay) and time (fringe rate); one number sets both "
                    "(default: from the selection, gcrsky.run.gains.default_gain_modes: 2,2 -- constant and slope in "
-                   "each -- one more in frequency per 20 %% of fractional bandwidth beyond 20 %%, 3 in time over "
-                   "12 h or more, never more than the channels or times)")
+                   "each -- plus one in frequency for each full 20 %% of fractional bandwidth (at most 4), 3 in time "
+                   "over 12 h or more, never more than the channels or times)")
     g.add_argument("--gain-basis", choices=("dpss", "fourier", "legendre"), default=None,
                    help="the modes' basis (default legendre: polynomials, which hold a linear drift exactly)")
     g.add_argument("--gain-sigma", type=positive_float("gain-sigma"), default=0.05, metavar="S",

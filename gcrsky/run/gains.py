@@ -101,12 +101,12 @@ def default_gain_modes(freqs_hz, lsts_rad) -> tuple[int, int]:
       order, linear, and polynomials hold a linear drift exactly with two modes, where DPSS and
       Fourier modes leave 49 % and 61 % of it outside three modes on 12 samples
       (``tests/test_gains_files.py``): on ``gcrsky.checks.gainsim``'s defaults (5 % / 5 deg, linear
-      in frequency and time) one constant gain per antenna is rejected by the fit (chi2/dof 62), the
-      linear modes pass.
+      in frequency and time) one constant DPSS gain per antenna is rejected by the fit (chi2/dof 62
+      in issue 38; ``tests/test_gains_defaults.py``), the linear Legendre modes pass.
     * **frequency**: ``Kf = 2`` (constant and slope) for a band narrower than :data:`BAND_PER_MODE`
       (20 %) of its centre, one more for each further 20 % (a bandpass is not linear over a wide
-      band: the H1C file's autos fall 16x from 133 to 194 MHz, 37 %, which takes a curvature), at
-      most :data:`MAX_DEFAULT_MODES` and never more than the channels (one channel: 1).
+      band: the H1C file's autos against the GSM's fall 16x from 133 to 194 MHz, 37 %, which takes a
+      curvature), at most :data:`MAX_DEFAULT_MODES` and never more than the channels (one channel: 1).
     * **time**: ``Kt = 2`` (constant and drift), 3 for a span of :data:`LONG_SPAN_H` (12 h) or more
       (a night's thermal drift is not linear), never more than the integrations (one: 1).
 
