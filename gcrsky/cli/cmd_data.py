@@ -196,7 +196,7 @@ def _run_data(args) -> int:
     print(band_limit_line(cfg.checks.get("band_limit")))
     if infer:
         spec = run_spec(args, nsamples=spec.draws.nsamples, method=spec.solver.method, tol=spec.solver.tol,
-                        extra=spec.extra, gains=gain_sampling(args), amplitude=amplitude_sampling(args))
+                        extra=spec.extra, gains=gain_sampling(args, prob=prob), amplitude=amplitude_sampling(args))
         g = spec.sampling.amplitude.gains
         print("gcrsky: amplitude inferred per channel (exact marginal, then the sky given it)"
               + ("; the draws are independent" if g is None else
@@ -204,9 +204,11 @@ def _run_data(args) -> int:
                  f"{g.sigma:g}, burn-in {g.burn} sweeps; the draws are a Markov chain's"))
     elif args.gains == "sample":
         spec = run_spec(args, nsamples=spec.draws.nsamples, method=spec.solver.method, tol=spec.solver.tol,
-                        extra=spec.extra, gains=gain_sampling(args, _applied_amplitude(prob)))
-        print(f"gcrsky: gains sampled with the sky: {spec.gains.modes[0]} x {spec.gains.modes[1]} modes per gain, "
+                        extra=spec.extra, gains=gain_sampling(args, _applied_amplitude(prob), prob))
+        how = "" if args.gain_modes is not None else " (from the channels and time span)"
+        print(f"gcrsky: gains sampled with the sky: {spec.gains.modes[0]} x {spec.gains.modes[1]} "
+              f"{spec.gains.basis} modes per gain{how}, "
               f"prior sd {spec.gains.sigma:g}, starting amplitude {spec.gains.applied:.4g}, burn-in {spec.gains.burn}"
               f" sweeps; the draws are a Markov chain's")
     done = execute_with_bars(args, prob, spec, (PaperReport(),), build_s=build_s, compile_since=compile0)
-    return done if isinstance(done, int) else report_run(*done, out)
+    return done if isinstance(done, int) else report_run(*done, out, strict=args.strict)

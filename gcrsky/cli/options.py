@@ -268,11 +268,13 @@ def add_gain_options(g) -> None:
     g.add_argument("--gains", choices=("auto", "off", "sample"), default="auto",
                    help="per-antenna gains sampled with the sky: auto (default: sampled where the amplitude is "
                    "inferred, off otherwise), off (the data's gains taken as right), sample")
-    g.add_argument("--gain-modes", type=_gain_modes, default=(1, 1), metavar="KF[,KT]",
+    g.add_argument("--gain-modes", type=_gain_modes, default=None, metavar="KF[,KT]",
                    help="smooth modes per gain in frequency (delay) and time (fringe rate); one number sets both "
-                   "(default 1,1: one complex gain per antenna over the selection)")
-    g.add_argument("--gain-basis", choices=("dpss", "fourier", "legendre"), default="dpss",
-                   help="the modes' basis (legendre: polynomials, which hold a linear drift)")
+                   "(default: from the selection, gcrsky.run.gains.default_gain_modes: 2,2 -- constant and slope in "
+                   "each -- plus one in frequency for each full 20 %% of fractional bandwidth (at most 4), 3 in time "
+                   "over 12 h or more, never more than the channels or times)")
+    g.add_argument("--gain-basis", choices=("dpss", "fourier", "legendre"), default=None,
+                   help="the modes' basis (default legendre: polynomials, which hold a linear drift exactly)")
     g.add_argument("--gain-sigma", type=positive_float("gain-sigma"), default=0.05, metavar="S",
                    help="prior sd of each mode's coefficient: the rms fractional gain error (default 0.05)")
     g.add_argument("--gain-burn", type=int_at_least(2, "gain-burn"), default=200, metavar="N",
@@ -350,14 +352,28 @@ def amplitude_sampling(args):
     return AmplitudeSampling() if args.model_sd is None else AmplitudeSampling(model_sd=args.model_sd)
 
 
-def gain_sampling(args, applied: float = 1.0):
-    """The :class:`gcrsky.run.GainSampling` of the options, or None without ``--gains sample``."""
+def gain_sampling(args, applied: float = 1.0, prob=None):
+    """The :class:`gcrsky.run.GainSampling` of the options, or None without ``--gains sample``.
+
+    Modes and basis the options leave out follow the selection of ``prob`` (its channels and
+    times: :func:`gcrsky.run.gains.default_gain_modes`, :data:`gcrsky.run.gains.DEFAULT_GAIN_BASIS`);
+    without ``prob``, ``GainSampling``'s own defaults."""
     if args.gains != "sample":
         return None
+    from ..run.gains import DEFAULT_GAIN_BASIS, default_gain_modes
     from ..run.spec import GainSampling
 
-    return GainSampling(modes=args.gain_modes, basis=args.gain_basis, sigma=args.gain_sigma, burn=args.gain_burn,
-                        thin=args.gain_thin, gauge_moves=args.gauge_moves, applied=applied)
+    kw = {}
+    if args.gain_modes is not None:
+        kw["modes"] = args.gain_modes
+    elif prob is not None:
+        kw["modes"] = default_gain_modes(prob.freqs_hz, prob.lsts_rad)
+    if args.gain_basis is not None:
+        kw["basis"] = args.gain_basis
+    elif prob is not None:
+        kw["basis"] = DEFAULT_GAIN_BASIS
+    return GainSampling(**kw, sigma=args.gain_sigma, burn=args.gain_burn, thin=args.gain_thin,
+                        gauge_moves=args.gauge_moves, applied=applied)
 
 
 def _selection_keywords(args) -> dict:

@@ -131,6 +131,8 @@ def _after_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, stored, meth
     st.start("write")
     finalized = _write(prob, spec, run, stored, view.maps, method, channels)
     blocks = {} if (run.out / SUMMARY_FILE).exists() else spec.sampling.finish(prob, run.out, run.h5)
+    for block in blocks.values():  # a stage's own warnings (e.g. a chain that has not mixed)
+        warnings += (block or {}).get("warnings", [])
     st.stop()
     timings, compiled = _timings(st, stored, compile0)
     summary = _summary(prob, spec, run, view, solver, warnings, (timings, compiled), figures, method, gof, blocks,
