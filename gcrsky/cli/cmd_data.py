@@ -13,9 +13,9 @@ import time
 from pathlib import Path
 
 from ..io.files import check_input_file
+from ..run.sampling import AMPLITUDE_MODEL_SD
 from ..solvers.options import DEFAULT_TOL
 from .errors import report_user_error
-from ..run.sampling import AMPLITUDE_MODEL_SD
 from .options import CLI_SELECTION, DEFAULT_NSAMPLES, amplitude_sampling, gain_sampling, ingest_spec
 from .runs import EXIT_REFUSED, execute_with_bars, report_run, run_spec
 from .terminal import band_limit_line, refusal_message

@@ -26,9 +26,9 @@ from ..solvers.options import DEFAULT_TOL
 from .output import EXISTING
 from .sampling import (
     CHANNEL_MODES,
+    FREQ_PRIORS,
     Amplitude,
     AmplitudeSampling,
-    FREQ_PRIORS,
     DrawStage,
     FrequencyModel,
     Gains,
