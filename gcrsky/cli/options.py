@@ -372,6 +372,10 @@ def gain_sampling(args, applied: float = 1.0, prob=None):
         kw["basis"] = args.gain_basis
     elif prob is not None:
         kw["basis"] = DEFAULT_GAIN_BASIS
+    if getattr(args, "amplitude", None) == "fixed":  # the data are calibrated: q held at 1 (issue 38)
+        from ..run.sampling import FIXED_SCALE_SD
+
+        kw["scale_sd"], applied = FIXED_SCALE_SD, 1.0
     return GainSampling(**kw, sigma=args.gain_sigma, burn=args.gain_burn, thin=args.gain_thin,
                         gauge_moves=args.gauge_moves, applied=applied)
 

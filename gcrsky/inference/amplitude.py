@@ -273,11 +273,14 @@ def sky_given(key: jax.Array, fixed: AmplitudeFixed, eig: AmplitudeEigen, u) -> 
     return delta + u[:, None] * s * whitened_adjoint(system, sw, _b(fixed, eig, x, conj=True))
 
 
-def amplitude_sweep(key: jax.Array, state: AmplitudeState, fixed: AmplitudeFixed, block: GainBlock | None):
+def amplitude_sweep(key: jax.Array, state: AmplitudeState, fixed: AmplitudeFixed, block: GainBlock | None,
+                    free_u: bool = True):
     """One sweep of the chain with gains: ``theta | q a`` then ``(u, delta) | theta`` (the amplitude collapsed).
 
-    ``block`` None: no gains (``theta`` stays empty and the sweep is an independent draw).  Returns
-    ``(state, eigen)`` (the eigendecomposition at the new ``theta``'s gain factor).
+    ``block`` None: no gains (``theta`` stays empty and the sweep is an independent draw).  ``free_u``
+    False holds ``u`` at the state's (a burn-in's first sweeps, while the gains settle from a start far
+    from them: the data's misfit would otherwise push ``u`` anywhere).  Returns ``(state, eigen)`` (the
+    eigendecomposition at the new ``theta``'s gain factor).
     """
     from ..model.gains import gain_factor
 
@@ -293,6 +296,6 @@ def amplitude_sweep(key: jax.Array, state: AmplitudeState, fixed: AmplitudeFixed
         theta = theta_draw(k_t, block, system.data, system.inv_noise, vis, 1.0)
         factor = gain_factor(block.model, theta, 1.0) * block.pair_gains
     eig = amplitude_eigen(fixed, factor)
-    log_u = draw_log_u(k_u, fixed, eig, 1)[0]
+    log_u = draw_log_u(k_u, fixed, eig, 1)[0] if free_u else state.log_u
     delta = sky_given(k_s, fixed, eig, jnp.exp(log_u))
     return AmplitudeState(log_u, delta, theta), eig

@@ -162,8 +162,10 @@ def flag_checks(obs: Observation, *, flag: bool = True, k: float = DEFAULT_K,
     return CheckedObservation(obs, {"flags": rec})
 
 
-def flux_checks(obs: Observation, beam, *, pol="pI", mode: str = "check", bounds=FLUX_BOUNDS) -> dict:
-    """``{"flux_scale": ...}``: the ratio (:func:`gcrsky.model.fluxscale.flux_scale_check`) and the decision.
+def flux_checks(obs: Observation, beam, *, pol="pI", mode: str = "check", bounds=FLUX_BOUNDS,
+                inferred: bool = False) -> dict:
+    """``{"flux_scale": ...}``: the ratio (:func:`gcrsky.model.fluxscale.flux_scale_check`) and the decision
+    (``inferred``: the amplitude is inferred with the sky: the ratio is recorded as a check, never refused).
 
     Raises:
         ValueError: ``mode == "check"`` and the ratio is outside ``bounds`` (the message names
@@ -184,19 +186,27 @@ def flux_checks(obs: Observation, beam, *, pol="pI", mode: str = "check", bounds
         log.warning("flux-scale check skipped: %s", why)
         return {"flux_scale": {"mode": mode, "skipped": why}}
     try:
-        rec = {"mode": mode, **flux_scale_check(obs, beam, prod=prods[0], bounds=bounds)}
+        rec = {"mode": "check beside the inferred amplitude" if inferred else mode,
+               **flux_scale_check(obs, beam, prod=prods[0], bounds=bounds)}
     except ImportError as err:  # the GSM map is pyradiosky's (the "sim" extra)
         log.warning("flux-scale check skipped: %s", err)
         return {"flux_scale": {"mode": mode, "skipped": str(err)}}
     ratio = rec["ratio"]
+    if inferred:
+        mode = "accept"
     if ratio is not None and not rec["within"]:
         what = (f"the data's autocorrelations are {ratio:.4g} x the GSM sky's through the beam (expected "
                 f"{bounds[0]:g}-{bounds[1]:g} for calibrated data in {rec['units']}): the flux scale is off by that "
                 "factor (calibration, units or beam normalisation)")
         if mode == "check":
             raise ValueError(what + "; fix the calibration, or accept the scale with --flux-scale accept "
-                             "(flux_scale='accept'; the posterior is then on the data's scale)")
-        log.warning("%s; accepted (flux_scale='accept')", what)
+                             "(flux_scale='accept'; the posterior is then on the data's scale), or infer the amplitude "
+                             "with the sky (--amplitude infer)")
+        if inferred:
+            log.info("flux scale: the data's autocorrelations are %.4g x the GSM sky's through the beam; the amplitude "
+                     "is inferred with the sky (this ratio is a check beside it)", ratio)
+        else:
+            log.warning("%s; accepted (flux_scale='accept')", what)
     return {"flux_scale": rec}
 
 

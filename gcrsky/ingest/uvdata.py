@@ -148,8 +148,7 @@ def ingest(data, spec: IngestSpec) -> Problem:
                                           freq_scaling=b.beam_freq_scaling,
                                           accept_x_orientation_mismatch=b.accept_x_orientation_mismatch)
     infer = checks["amplitude"]["mode"] == "infer"
-    flux_mode = "accept" if infer and spec.checks.flux_scale == "check" else spec.checks.flux_scale
-    checks.update(flux_checks(obs, beams.beams[0], pol=pol, mode=flux_mode))  # through the beam: a check
+    checks.update(flux_checks(obs, beams.beams[0], pol=pol, mode=spec.checks.flux_scale, inferred=infer))
     band = band_limited(obs, beams.beams, spec, pol)
     if infer and spec.prior.prior_mean is None:  # the amplitude is anchored by a sky model: the GSM's coefficients
         spec = dataclasses.replace(spec, prior=dataclasses.replace(spec.prior, prior_mean="gsm"))

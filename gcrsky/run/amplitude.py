@@ -19,7 +19,9 @@ an overall factor ``c ~ N(1, model_sd^2)``, and ``D`` the per-antenna gains when
    ``theta | q a``, ``(u, delta) | theta`` from the state the previous batch ended in (stored with each
    batch, so a killed run resumes exactly).
 
-Key scheme (:data:`AMPLITUDE_KEY_SCHEME`): pilot ``fold_in(key, 2**31 - 3)``, burn-in halves
+Key scheme (:data:`AMPLITUDE_KEY_SCHEME`): pilot ``fold_in(key, 2**31 - 3)``, the settling sweeps (with gains:
+:data:`SETTLE` of the burn-in before it, the amplitude held at the autos' ratio while the gains settle)
+``fold_in(key, 2**31 - 4)``, burn-in halves
 ``fold_in(key, 2**31 - 1)`` and ``fold_in(key, 2**31 - 2)``, batch ``b`` ``fold_in(key, b)`` split into one
 key per kept state (then per sweep), each split into the sweep's and ``c``'s.
 
@@ -67,9 +69,12 @@ __all__ = ["AMPLITUDE_KEY_SCHEME", "ESS_FLOOR", "PILOT", "AmplitudeChain", "ampl
 log = logging.getLogger(__name__)
 
 #: The key scheme of an amplitude run (module doc).
-AMPLITUDE_KEY_SCHEME = ("amplitude-v1: pilot fold_in(key, 2**31-3); burn-in halves fold_in(key, 2**31-1), "
+AMPLITUDE_KEY_SCHEME = ("amplitude-v1: pilot fold_in(key, 2**31-3); settling fold_in(key, 2**31-4), burn-in halves "
+                        "fold_in(key, 2**31-1), "
                         "fold_in(key, 2**31-2); batch b fold_in(key, b), split per kept state, then (sweeps, c)")
-_PILOT, _BURN = 2**31 - 3, (2**31 - 1, 2**31 - 2)
+_PILOT, _BURN, _SETTLE = 2**31 - 3, (2**31 - 1, 2**31 - 2), 2**31 - 4
+#: Fraction of the burn-in (before it, with gains) run with the amplitude held at the autos' ratio.
+SETTLE = 0.1
 #: What ``results.h5`` records as the path's options (no solver path's: the data-space eigendecomposition).
 OPTIONS_JSON = '{"method": "amplitude", "fields": {"path": "data space, eigendecomposition per channel"}}'
 #: Draws of ``u`` whose median sets the Wiener filter's (and the fit's) amplitude.
@@ -106,10 +111,22 @@ def _fixed_at(prob, factor):
     return amplitude_setup(noise_at(prob, factor).system())
 
 
-def _pilot(key, fixed, block, theta) -> np.ndarray:
+@jax.jit
+def _eigen_at(fixed, block, theta):
+    """The eigendecomposition at the gain perturbation ``theta`` (``block`` None: no gains)."""
     factor = None if block is None else gain_factor(block.model, theta, 1.0) * block.pair_gains
-    eig = amplitude_eigen(fixed, factor)
-    return np.exp(np.median(np.asarray(draw_log_u(key, fixed, eig, PILOT)), axis=0)), eig
+    return amplitude_eigen(fixed, factor)
+
+
+@functools.partial(jax.jit, static_argnames=("n",))
+def _log_u_draws(key, fixed, eig, *, n: int):
+    return draw_log_u(key, fixed, eig, n)
+
+
+def _pilot(key, fixed, block, theta) -> tuple[np.ndarray, object]:
+    """The median ``u`` (Nf,) of :data:`PILOT` draws at ``theta``, and the eigendecomposition there."""
+    eig = _eigen_at(fixed, block, theta)
+    return np.exp(np.median(np.asarray(_log_u_draws(key, fixed, eig, n=PILOT)), axis=0)), eig
 
 
 def amplitude_chain_setup(key, prob, amp) -> AmplitudeChain:
@@ -136,10 +153,15 @@ def amplitude_chain_setup(key, prob, amp) -> AmplitudeChain:
         theta = jnp.zeros(n_gain_params(model))
     log.info("amplitude: data-space set-up of %d channels (N_d = %d) in %.1f s", nf, fixed.y.shape[1],
              time.perf_counter() - t0)
-    u_med, eig = _pilot(jax.random.fold_in(key, _PILOT), fixed, block, theta)
-    delta = wiener_given(fixed, eig, jnp.asarray(u_med))
+    if g is None:
+        u_med, eig = _pilot(jax.random.fold_in(key, _PILOT), fixed, block, theta)
+    else:  # the chain starts at the autos' amplitude, held while the gains settle (SETTLE of the burn-in)
+        u_med = np.full(nf, u0)
+    delta = jax.jit(wiener_given)(fixed, _eigen_at(fixed, block, theta), jnp.asarray(u_med))
     state = AmplitudeState(jnp.log(jnp.asarray(u_med)), delta, theta)
     if g is not None:
+        settle = max(1, int(SETTLE * g.burn))
+        state = _segment(fixed, block, state, jax.random.fold_in(key, _SETTLE), n=settle, thin=1, free_u=False)[0]
         half = g.burn // 2
         for fold, n in zip(_BURN, (half, g.burn - half)):
             state = _segment(fixed, block, state, jax.random.fold_in(key, fold), n=n, thin=1)[0]
@@ -163,12 +185,12 @@ def _draw_c(key, sd: float, shape=()):
     return 1.0 + sd * jax.random.truncated_normal(key, -1.0 / sd, jnp.inf, shape, jnp.float64)
 
 
-@functools.partial(jax.jit, static_argnames=("n", "thin"))
-def _segment(fixed, block, state, key, *, n: int, thin: int):
+@functools.partial(jax.jit, static_argnames=("n", "thin", "free_u"))
+def _segment(fixed, block, state, key, *, n: int, thin: int, free_u: bool = True):
     """``n`` kept states of the chain with gains, one every ``thin`` sweeps: (last state, kept states)."""
 
     def sweep(s, k):
-        return amplitude_sweep(k, s, fixed, block)[0], None
+        return amplitude_sweep(k, s, fixed, block, free_u)[0], None
 
     def keep(s, k):
         s, _ = jax.lax.scan(sweep, s, jax.random.split(k, thin))
@@ -280,11 +302,9 @@ def amplitude_draws(prob, spec, run: OpenRun, st: StageTimer, watch: Watch) -> s
     st.start("wiener")
     if run.state is None:
         chain = amplitude_chain_setup(key, prob, amp)
-        factor = None if chain.block is None else gain_factor(chain.block.model, chain.state.theta, 1.0) * \
-            chain.block.pair_gains
-        eig = amplitude_eigen(chain.fixed, factor)
-        a_wf = np.asarray(prob.system().prior.mean) + np.asarray(wiener_given(chain.fixed, eig,
-                                                                               jnp.asarray(chain.u_med)))
+        eig = _eigen_at(chain.fixed, chain.block, chain.state.theta)
+        a_wf = np.asarray(prob.system().prior.mean) + np.asarray(jax.jit(wiener_given)(chain.fixed, eig,
+                                                                                       jnp.asarray(chain.u_med)))
         zeros = jnp.zeros(nf)
         winfo = direct_info(zeros, zeros, jnp.all(jnp.isfinite(jnp.asarray(a_wf)), axis=-1), DEFAULT_TOL)
         setup_factor = chain.u_med[:, None, None] * _lin_factor(chain.block, nf, nt, nbl)
@@ -295,7 +315,7 @@ def amplitude_draws(prob, spec, run: OpenRun, st: StageTimer, watch: Watch) -> s
                  PILOT)
     elif run.start < d.n_batches:
         chain = _read_chain(key, prob, amp, run.h5)
-        eig = amplitude_eigen(chain.fixed) if chain.block is None else None
+        eig = _eigen_at(chain.fixed, None, None) if chain.block is None else None
     st.stop()
     st.start("draws")
     a0 = np.asarray(prob.system().prior.mean)

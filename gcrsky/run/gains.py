@@ -167,7 +167,7 @@ def gain_chain_setup(prob, gains, *, tol: float | None = None, factor=None) -> G
     nf, nt, _ = prob.data.shape
     model = gain_model(prob.antpairs, nf, nt, gains.modes, basis=gains.basis, pols=prob.pols)
     lin = np.full((nf, nt, model.units.shape[0]), gains.applied, complex)
-    block = gain_setup(model, sigma=gains.sigma, gbar=lin)
+    block = gain_setup(model, sigma=gains.sigma, gbar=lin, scale_sd=gains.scale_sd)
     if prob.n <= GAIN_DENSE_MAX_N:
         options = CholeskyOptions()
     else:

@@ -38,7 +38,7 @@ from .frequency import channels_block, frequency_draws
 from .gains import gain_draws, gain_summary, gained_problem, stored_gain_factor, write_gain_products
 from .output import GAIN_FILE
 
-__all__ = ["AMPLITUDE_MODEL_SD", "Amplitude", "AmplitudeSampling", "CHANNEL_MODES", "DEFAULT_NUGGET", "FREQ_PRIORS", "DrawStage", "FrequencyModel", "GainSampling", "Gains",
+__all__ = ["AMPLITUDE_MODEL_SD", "Amplitude", "AmplitudeSampling", "CHANNEL_MODES", "FIXED_SCALE_SD", "DEFAULT_NUGGET", "FREQ_PRIORS", "DrawStage", "FrequencyModel", "GainSampling", "Gains",
            "Independent", "Joint", "JointFrequency", "STAGES", "check_choice", "check_integer", "check_positive"]
 
 #: The frequency models of a run: independent channels (each its own prior), or one prior over all of them
@@ -62,6 +62,11 @@ def check_choice(where: str, value, allowed: tuple) -> None:
         raise ValueError(f"{where} must be one of {', '.join(map(repr, allowed))}, got {value!r}")
 
 
+#: ``GainSampling.scale_sd`` of a run whose amplitude is fixed (``--amplitude fixed --gains sample``): ``q``
+#: held at 1 to 1e-6, far below any posterior spread the data give it.
+FIXED_SCALE_SD = 1e-6
+
+
 @dataclasses.dataclass(frozen=True)
 class GainSampling:
     """Per-antenna gains sampled with the sky (:mod:`gcrsky.run.gains`; the model of :mod:`gcrsky.model.gains`).
@@ -81,6 +86,9 @@ class GainSampling:
             (:func:`gcrsky.inference.gauge_step`; 0 is plain Gibbs, which barely moves along it).
         applied: the overall amplitude ``gbar`` the gains start from (e.g. the square root of
             the autocorrelations' flux-scale ratio); the sampled amplitude is relative to it.
+        scale_sd: prior sd of the amplitude ``q`` about 1 (relative to ``applied^2``): ``inf`` (the
+            library's default) flat, the amplitude sampled; :data:`FIXED_SCALE_SD` (the command line's
+            ``--amplitude fixed``, calibrated data) holds it at 1.
     """
 
     modes: tuple = (1, 1)
@@ -90,6 +98,7 @@ class GainSampling:
     thin: int = 1
     gauge_moves: int = 4
     applied: float = 1.0
+    scale_sd: float = math.inf
 
     def __post_init__(self):
         modes = tuple(self.modes)
@@ -102,13 +111,19 @@ class GainSampling:
             if isinstance(v, bool) or not isinstance(v, numbers.Real) or not (v > 0 and math.isfinite(v)):
                 raise ValueError(f"gains.{name} must be a positive finite number, got {v!r}")
             object.__setattr__(self, name, float(v))
+        v = self.scale_sd
+        if isinstance(v, bool) or not isinstance(v, numbers.Real) or not v > 0:
+            raise ValueError(f"gains.scale_sd must be a positive number (inf: flat), got {v!r}")
+        object.__setattr__(self, "scale_sd", float(v))
         check_integer(self, "burn", "gains.burn", 2)
         check_integer(self, "thin", "gains.thin", 1)
         check_integer(self, "gauge_moves", "gains.gauge_moves", 0)
 
     def to_dict(self) -> dict:
-        """The settings as a JSON-able dict (recorded with the run's settings)."""
-        return {**dataclasses.asdict(self), "modes": list(self.modes)}
+        """The settings as a JSON-able dict (recorded with the run's settings; a flat ``scale_sd`` as None)."""
+        d = {**dataclasses.asdict(self), "modes": list(self.modes)}
+        d["scale_sd"] = None if math.isinf(self.scale_sd) else self.scale_sd
+        return d
 
 
 #: Default fractional uncertainty of the sky model's overall scale (``AmplitudeSampling.model_sd``): the GSM's
