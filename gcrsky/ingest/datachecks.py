@@ -62,7 +62,7 @@ def _not_absolute(units: str, cal_given: bool, gain_scale, cal_style) -> str | N
 def amplitude_needed(data, cal=None) -> str | None:
     """Why the amplitude must be inferred (None: the data are absolutely calibrated), from the headers of the
     visibility file (or a ``UVData``) and of the gain solutions ``cal`` (a path), before anything is read."""
-    from pyuvdata import UVCal, UVData
+    from pyuvdata import UVData
 
     if isinstance(data, UVData):
         units = data.vis_units
@@ -73,7 +73,9 @@ def amplitude_needed(data, cal=None) -> str | None:
             units = UVData.from_file(str(data)).vis_units
     if cal is None:
         return _not_absolute(units, False, None, None)
-    uvc = UVCal.from_file(str(cal))
+    from ..io.calibration import read_calibration
+
+    uvc, _ = read_calibration(cal)  # offline: a file without a location is not looked up by name on the internet
     return _not_absolute(units, True, uvc.gain_scale, uvc.cal_style)
 
 

@@ -120,9 +120,11 @@ class GainSampling:
         check_integer(self, "gauge_moves", "gains.gauge_moves", 0)
 
     def to_dict(self) -> dict:
-        """The settings as a JSON-able dict (recorded with the run's settings; a flat ``scale_sd`` as None)."""
+        """The settings as a JSON-able dict (recorded with the run's settings).  ``scale_sd`` only where finite: the
+        flat default records what runs recorded before it existed, so that they still resume."""
         d = {**dataclasses.asdict(self), "modes": list(self.modes)}
-        d["scale_sd"] = None if math.isinf(self.scale_sd) else self.scale_sd
+        if math.isinf(self.scale_sd):
+            del d["scale_sd"]
         return d
 
 
