@@ -33,7 +33,7 @@ LMAX = 6
 GAINS = ["--gains", "sample", "--gain-burn", "30", "--gain-sigma", "0.05", "--gain-modes", "1,1", "--gain-basis",
          "dpss"]
 SMALL = ["--dish-diameter", "14", "--lmax", str(LMAX), "--nside", "32", "--nsamples", "12", "--batch", "6",
-         "--no-progress", "--no-plots", "--band-limit", "truncate", *GAINS]
+         "--no-progress", "--no-plots", "--band-limit", "truncate", "--pol", "pI", *GAINS]
 
 
 def _simulation():
@@ -59,6 +59,32 @@ def gain_run(files, tmp_path_factory):
     out = tmp_path_factory.mktemp("gainrun")
     rc = cli.main(["run", "--data", str(files[0]), "--out", str(out), *SMALL])
     return out, rc
+
+
+def test_gains_sample_models_the_feed_products_by_default(files, tmp_path):
+    """Without --pol, --gains sample models the file's two feed products jointly (each feed has its own gain);
+    a file with one feed product gets that one; --pol given is kept."""
+    from types import SimpleNamespace
+
+    from pyuvdata import UVData
+
+    from gcrsky.cli.cmd_data import _feed_products, _gain_inputs
+
+    both = _feed_products(files[0])
+    assert both in ("xx,yy", "ee,nn")  # as the file names them (its x_orientation)
+    one = UVData.from_file(str(files[0]))
+    one.select(polarizations=[-6])  # yy
+    one.write_uvh5(str(tmp_path / "yy.uvh5"))
+    assert _feed_products(tmp_path / "yy.uvh5") == both.split(",")[1]
+    assert _feed_products(tmp_path / "absent.uvh5") == "pI"  # the reader names the problem later
+    args = SimpleNamespace(gains="sample", pol=None, data=files[0], no_compress=True, flux_scale="accept",
+                           amplitude="fixed")
+    _gain_inputs(args)
+    assert args.pol == both
+    args = SimpleNamespace(gains="sample", pol="pI", data=files[0], no_compress=True, flux_scale="accept",
+                           amplitude="fixed")
+    _gain_inputs(args)
+    assert args.pol == "pI"
 
 
 @pytest.mark.slow

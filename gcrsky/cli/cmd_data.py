@@ -107,6 +107,11 @@ def _gain_inputs(args) -> None:
     different gains) and samples the overall amplitude (the flux-scale check's ratio starts it, not refuses it)."""
     if args.gains != "sample":
         return
+    if args.pol is None:
+        args.pol = _feed_products(args.data)
+        if args.pol != "pI":
+            print(f"gcrsky: --gains sample: the feed products modelled separately (--pol {args.pol}): each feed has its "
+                  "own gain, and pseudo-Stokes I would mix the two feeds' (--pol pI to model it anyway)")
     if not args.no_compress:
         print("gcrsky: --gains sample: every baseline kept (gains are per antenna; redundant compression would "
               "average baselines with different gains)")
@@ -115,6 +120,23 @@ def _gain_inputs(args) -> None:
         print("gcrsky: --gains sample: the overall amplitude is sampled; the flux-scale check's ratio is recorded "
               "and starts it (--flux-scale accept)")
         args.flux_scale = "accept"
+
+
+def _feed_products(data) -> str:
+    """The file's two feed products as ``--pol`` names them (``"xx,yy"``, or ``"ee,nn"`` where the file names them
+    so), its one feed product, or ``"pI"`` where it has neither (or its header cannot be read here: the reader
+    says why later)."""
+    from pyuvdata import UVData
+
+    try:
+        pols = set(UVData.from_file(str(data), read_data=False).get_pols())
+    except Exception:  # noqa: BLE001 - any unreadable header: ingest reports it with the file's name
+        return "pI"
+    for pair in (("xx", "yy"), ("ee", "nn")):
+        have = [p for p in pair if p in pols]
+        if have:
+            return ",".join(have)
+    return "pI"
 
 
 def _applied_amplitude(prob) -> float:

@@ -195,9 +195,11 @@ def add_data_options(g, *, with_data: bool) -> None:
                        "says which lengths), marginalise the sky above lmax (its variance from the prior's C_l added "
                        "to the noise), or truncate (keep them: a control)")
         add_beam_prior_options(g)
-    g.add_argument("--pol", default="pI", metavar="pI|xx|yy|xx,yy",
+    g.add_argument("--pol", default=None, metavar="pI|xx|yy|xx,yy",
                    help="modelled product: pseudo-Stokes I (xx + yy), one feed product, or xx and yy jointly; "
-                   "ee / nn (ee,nn) name feed products through the file's x_orientation (east: ee = xx)")
+                   "ee / nn (ee,nn) name feed products through the file's x_orientation (east: ee = xx). "
+                   "Default pI; with --gains sample the file's two feed products jointly (each feed has its own "
+                   "gain: pI would mix them)")
     g.add_argument("--freq-range", nargs=2, type=positive_float("freq-range"), default=None, metavar=("LO", "HI"),
                    help="keep channels in [LO, HI] MHz")
     g.add_argument("--chans", type=_csv("chans", int), default=None, metavar="I,J,...", help="channel indices to keep")
@@ -380,6 +382,10 @@ def gain_sampling(args, applied: float = 1.0, prob=None):
                         gauge_moves=args.gauge_moves, applied=applied)
 
 
+def _pol_of(pol: str):
+    return tuple(pol.split(",")) if "," in pol else pol
+
+
 def _selection_keywords(args) -> dict:
     """The selection options as :class:`gcrsky.ingest.Selection`'s keywords (MHz -> Hz)."""
     return dict(
@@ -387,7 +393,7 @@ def _selection_keywords(args) -> dict:
         freq_range_hz=None if args.freq_range is None else tuple(1e6 * x for x in args.freq_range),
         lst_range_hours=None if args.lst_range is None else tuple(args.lst_range),
         antennas=args.antennas,
-        pol=tuple(args.pol.split(",")) if "," in args.pol else args.pol,
+        pol=_pol_of(args.pol or "pI"),
     )
 
 

@@ -53,6 +53,7 @@ from ..inference.amplitude import (
     sky_given,
     wiener_given,
 )
+from ..inference.diagnostics import ESS_FLOOR
 from ..inference.gains import GainState, gain_setup, recentre
 from ..io.results import append_batch
 from ..model.gains import gain_factor, gain_model, n_gain_params, perturbations
@@ -85,9 +86,6 @@ RECENTRES = 8
 OPTIONS_JSON = '{"method": "amplitude", "fields": {"path": "data space, eigendecomposition per channel"}}'
 #: Draws of ``u`` whose median sets the Wiener filter's (and the fit's) amplitude.
 PILOT = 256
-#: Effective sample size below which a sampled scalar is reported as not mixed (a WARNING): 100 draws give
-#: a posterior mean to 0.1 posterior sd and a 95 % interval's ends to about 0.05 in probability.
-ESS_FLOOR = 100
 
 
 class AmplitudeChain(NamedTuple):
@@ -395,8 +393,15 @@ def amplitude_summary(prob, amp, h5) -> dict:
     else:
         ess_theta_min = None
     low = sorted(k for k, v in ess.items() if v is not None and v < min(ESS_FLOOR, 0.5 * rows))
-    if low:
-        log.warning("the chain has not mixed: ESS below %d (of %d draws) for %s", ESS_FLOOR, rows, ", ".join(low))
+    chain = warning = None
+    if amp.gains is not None and rows:  # a Markov chain: every sampled scalar's ESS and R-hat, and the WARNING
+        from ..inference.diagnostics import chain_diagnostics, diagnostics_warning
+
+        chain = chain_diagnostics({"amplitude_q": q, **({"gain_theta": theta} if theta.shape[1] else {})},
+                                  floor=ESS_FLOOR)
+        warning = diagnostics_warning(chain, "the amplitude and gain chain")
+        if warning is not None:
+            log.warning(warning.removeprefix("WARNING: "))
     flux = {"source": "inferred", "per_channel": chans,
             "autos_ratio": checks.get("ratio"),
             "model_sd": amp.model_sd,
@@ -407,5 +412,5 @@ def amplitude_summary(prob, amp, h5) -> dict:
                      "check of the same number (it includes the receiver's noise)")}
     block = {"settings": amp.to_dict(), "ndraws": rows, "ess": ess, "ess_floor": ESS_FLOOR, "ess_low": low,
              "ess_theta_min": ess_theta_min, "c_mean": float(np.mean(c)) if rows else None,
-             "independent_draws": amp.gains is None}
+             "independent_draws": amp.gains is None, "chain": chain, "warnings": [warning] if warning else []}
     return {"flux_scale": flux, "amplitude": block}
