@@ -28,9 +28,12 @@ from gcrsky.checks.uvsim import simulate_uvdata  # noqa: E402
 from gcrsky.instrument import gaussian_beam, hex_array  # noqa: E402
 
 LMAX = 6
-GAINS = ["--gains", "sample", "--gain-burn", "30", "--gain-sigma", "0.05"]
+# one constant gain per antenna (the modes these checks were measured with; the default follows the selection,
+# tests/test_gains_defaults.py)
+GAINS = ["--gains", "sample", "--gain-burn", "30", "--gain-sigma", "0.05", "--gain-modes", "1,1", "--gain-basis",
+         "dpss"]
 SMALL = ["--dish-diameter", "14", "--lmax", str(LMAX), "--nside", "32", "--nsamples", "12", "--batch", "6",
-         "--no-progress", "--no-plots", "--band-limit", "truncate", *GAINS]
+         "--no-progress", "--no-plots", "--band-limit", "truncate", "--pol", "pI", *GAINS]
 
 
 def _simulation():
@@ -58,6 +61,32 @@ def gain_run(files, tmp_path_factory):
     return out, rc
 
 
+def test_gains_sample_models_the_feed_products_by_default(files, tmp_path):
+    """Without --pol, --gains sample models the file's two feed products jointly (each feed has its own gain);
+    a file with one feed product gets that one; --pol given is kept."""
+    from types import SimpleNamespace
+
+    from pyuvdata import UVData
+
+    from gcrsky.cli.cmd_data import _feed_products, _gain_inputs
+
+    both = _feed_products(files[0])
+    assert both in ("xx,yy", "ee,nn")  # as the file names them (its x_orientation)
+    one = UVData.from_file(str(files[0]))
+    one.select(polarizations=[-6])  # yy
+    one.write_uvh5(str(tmp_path / "yy.uvh5"))
+    assert _feed_products(tmp_path / "yy.uvh5") == both.split(",")[1]
+    assert _feed_products(tmp_path / "absent.uvh5") == "pI"  # the reader names the problem later
+    args = SimpleNamespace(gains="sample", pol=None, data=files[0], no_compress=True, flux_scale="accept",
+                           amplitude="fixed")
+    _gain_inputs(args)
+    assert args.pol == both
+    args = SimpleNamespace(gains="sample", pol="pI", data=files[0], no_compress=True, flux_scale="accept",
+                           amplitude="fixed")
+    _gain_inputs(args)
+    assert args.pol == "pI"
+
+
 @pytest.mark.slow
 def test_gain_run_writes_gain_draws_and_a_calh5_pyuvdata_reads(gain_run):
     from pyuvdata import UVCal
@@ -79,9 +108,11 @@ def test_gain_run_writes_gain_draws_and_a_calh5_pyuvdata_reads(gain_run):
         q = h["gain_scale"][()] @ h["gains/basis_f"][()].T  # (ndraws, Nf)
         settings = json.loads(h.attrs["run_settings_json"])
     assert settings["gains"]["burn"] == 30 and settings["compress"] is False
-    # the summary's flux scale is q(nu) x applied^2 over the draws; applied^2 is the autos' ratio
+    # the summary's flux scale is q(nu) x applied^2 over the draws; calibrated (Jy) data: the amplitude is held,
+    # applied 1 (not the autos' ratio, which is recorded beside it)
     applied = g["settings"]["applied"]
-    assert applied**2 == pytest.approx(g["autos_flux_ratio"], rel=1e-12)
+    assert applied == 1.0 and g["settings"]["scale_sd"] == pytest.approx(1e-6)
+    assert g["autos_flux_ratio"] is not None
     assert g["flux_scale"][0]["mean"] == pytest.approx(np.mean(q[:, 0]) * applied**2, rel=1e-12)
     # the gains' overall amplitude is the square root of q (the gauge: no common real part in x)
     rms = np.sqrt(np.mean(np.abs(gd) ** 2, axis=-1))  # (ndraws, Nf, Nt)
@@ -112,17 +143,30 @@ def test_killed_gain_run_resumes_to_the_uninterrupted_draws(gain_run, files, tmp
 
 
 @pytest.mark.slow
-def test_crosses_brighter_than_the_autos_are_caught_by_the_posterior_flux_scale(gain_run, files, tmp_path):
-    ref, _ = gain_run
-    out = tmp_path / "bright"
-    assert cli.main(["run", "--data", str(files[1]), "--out", str(out), *SMALL]) == 0
-    g0 = json.loads((ref / "summary.json").read_text())["gains"]
-    g1 = json.loads((out / "summary.json").read_text())["gains"]
-    # the autos are the same file's: the check's ratio does not move; the crosses' posterior does, by ~4 (2^2)
-    assert g1["autos_flux_ratio"] == pytest.approx(g0["autos_flux_ratio"], rel=1e-9)
-    f0, f1 = g0["flux_scale"][0], g1["flux_scale"][0]
-    assert 2.5 < f1["mean"] / f0["mean"] < 6.0, (f0, f1)
-    assert f1["ci95"][0] > f0["ci95"][1]  # the intervals exclude each other
+def test_crosses_brighter_than_the_autos_are_caught_by_the_posterior_flux_scale(files, tmp_path):
+    """With the amplitude inferred (``--amplitude infer``; on these Jy files it is otherwise held at 1), crosses 2x
+    brighter give an amplitude 2x larger (data = q x the model), the autos' ratio unchanged."""
+    s = []
+    for name, path in (("ref", files[0]), ("bright", files[1])):
+        out = tmp_path / name
+        assert cli.main(["run", "--data", str(path), "--out", str(out), *SMALL, "--amplitude", "infer"]) == 0
+        s.append(json.loads((out / "summary.json").read_text())["flux_scale"])
+    assert all(f["source"] == "inferred" for f in s)
+    # the autos are the same file's: the check's ratio does not move; the crosses' posterior does, by ~2
+    assert s[1]["autos_ratio"] == pytest.approx(s[0]["autos_ratio"], rel=1e-9)
+    f0, f1 = s[0]["per_channel"][0], s[1]["per_channel"][0]
+    assert 1.5 < f1["u_median"] / f0["u_median"] < 2.7, (f0, f1)
+    assert f1["lo95"] > f0["hi95"]  # the intervals exclude each other
+
+
+def test_calibrated_data_hold_the_amplitude_at_one(gain_run):
+    """On Jy data ``--gains sample`` keeps the amplitude fixed (issue 38): q = 1 to the prior's 1e-6."""
+    out, rc = gain_run
+    assert rc == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["flux_scale"]["source"] == "fixed"
+    for f in s["gains"]["flux_scale"]:
+        assert abs(f["mean"] - 1.0) < 1e-4, f
 
 
 def test_gain_options_need_gains_sample_and_a_file(capsys):

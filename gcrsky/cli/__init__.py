@@ -64,7 +64,10 @@ together: the coordinator could not be reached, or a process did not join, withi
 port or refuses a process (another ``--num-processes``, a process id taken); each waiting
 process prints one line naming the address, its process id, the number of processes and
 the timeout, with no traceback (:func:`gcrsky.parallel.init_distributed`); 5 when the run failed after its draws (the maps, products, figures or summary): the draws are kept in
-``results.h5`` and ``--resume`` redoes the rest from them.
+``results.h5`` and ``--resume`` redoes the rest from them; 6 with ``--strict`` when the run completed
+(everything written) but the goodness of fit (``summary.json``'s ``goodness_of_fit``,
+:mod:`gcrsky.run.fit`) rejects the model in some channel.  Without ``--strict`` a rejected fit exits 0
+and the terminal says in one WARNING line which channels were rejected, their chi^2/dof and tail.
 """
 
 from __future__ import annotations
@@ -74,9 +77,9 @@ import sys
 from .errors import EXIT_USAGE, USER_ERRORS, report_user_error
 from .options import EXIT_DIST
 from .parser import build_parser
-from .runs import EXIT_REFUSED
+from .runs import EXIT_REFUSED, EXIT_REJECTED
 
-__all__ = ["EXIT_DIST", "EXIT_REFUSED", "EXIT_USAGE", "build_parser", "main"]
+__all__ = ["EXIT_DIST", "EXIT_REFUSED", "EXIT_REJECTED", "EXIT_USAGE", "build_parser", "main"]
 
 #  One module per command, the parser and what they share:
 #  - ``parser``: :func:`build_parser`, one builder per command (``set_defaults(func=...)``);

@@ -13,9 +13,10 @@ import time
 from pathlib import Path
 
 from ..io.files import check_input_file
+from ..run.sampling import AMPLITUDE_MODEL_SD
 from ..solvers.options import DEFAULT_TOL
 from .errors import report_user_error
-from .options import CLI_SELECTION, DEFAULT_NSAMPLES, gain_sampling, ingest_spec
+from .options import CLI_SELECTION, DEFAULT_NSAMPLES, amplitude_sampling, gain_sampling, ingest_spec
 from .runs import EXIT_REFUSED, execute_with_bars, report_run, run_spec
 from .terminal import band_limit_line, refusal_message
 
@@ -71,13 +72,34 @@ GAIN_ONLY = (("gain_modes", "--gain-modes"), ("gain_basis", "--gain-basis"), ("g
 def check_gain_options(parser, args) -> None:
     """The gain block's options need ``--gains sample``; ``--gains sample`` needs ``--data`` and a joint run."""
     defaults = parser.parse_args(["run"])
-    if args.gains != "sample":
+    if args.gains == "off" or (args.gains == "auto" and args.data is None):
         used = [opt for dest, opt in GAIN_ONLY if getattr(args, dest) != getattr(defaults, dest)]
         if used:
             parser.error(f"{', '.join(used)} set the gain block: add --gains sample")
         return
+    if args.gains == "auto":
+        return
     if args.data is None:
         parser.error("--gains sample samples the gains of a file's data: give --data FILE")
+
+
+def _amplitude_inputs(args) -> bool:
+    """Resolve ``--amplitude auto`` (from the file's and the calibration's headers) and ``--gains auto``; True when
+    the amplitude is inferred (then ``--gains auto`` samples the gains too)."""
+    from ..ingest.datachecks import amplitude_needed
+
+    why = amplitude_needed(args.data, args.cal) if args.amplitude == "auto" else None
+    infer = args.amplitude == "infer" or why is not None
+    if args.amplitude == "auto":
+        args.amplitude = "infer" if infer else "fixed"
+    if args.gains == "auto":
+        args.gains = "sample" if infer else "off"
+    if infer:
+        print(f"gcrsky: the overall amplitude per channel is inferred with the sky ({why or 'asked'}); the sky's scale "
+              f"is anchored by the sky model (--prior-mean {args.prior_mean or 'gsm'}, its scale known to "
+              f"{100 * (args.model_sd or AMPLITUDE_MODEL_SD):g} %)"
+              + ("; per-antenna gains sampled too (--gains off to keep the file's)" if args.gains == "sample" else ""))
+    return infer
 
 
 def _gain_inputs(args) -> None:
@@ -85,14 +107,36 @@ def _gain_inputs(args) -> None:
     different gains) and samples the overall amplitude (the flux-scale check's ratio starts it, not refuses it)."""
     if args.gains != "sample":
         return
+    if args.pol is None:
+        args.pol = _feed_products(args.data)
+        if args.pol != "pI":
+            print(f"gcrsky: --gains sample: the feed products modelled separately (--pol {args.pol}): each feed has its "
+                  "own gain, and pseudo-Stokes I would mix the two feeds' (--pol pI to model it anyway)")
     if not args.no_compress:
         print("gcrsky: --gains sample: every baseline kept (gains are per antenna; redundant compression would "
               "average baselines with different gains)")
         args.no_compress = True
-    if args.flux_scale == "check":
+    if args.flux_scale == "check" and args.amplitude == "fixed":
         print("gcrsky: --gains sample: the overall amplitude is sampled; the flux-scale check's ratio is recorded "
               "and starts it (--flux-scale accept)")
         args.flux_scale = "accept"
+
+
+def _feed_products(data) -> str:
+    """The file's two feed products as ``--pol`` names them (``"xx,yy"``, or ``"ee,nn"`` where the file names them
+    so), its one feed product, or ``"pI"`` where it has neither (or its header cannot be read here: the reader
+    says why later)."""
+    from pyuvdata import UVData
+
+    try:
+        pols = set(UVData.from_file(str(data), read_data=False).get_pols())
+    except Exception:  # noqa: BLE001 - any unreadable header: ingest reports it with the file's name
+        return "pI"
+    for pair in (("xx", "yy"), ("ee", "nn")):
+        have = [p for p in pair if p in pols]
+        if have:
+            return ",".join(have)
+    return "pI"
 
 
 def _applied_amplitude(prob) -> float:
@@ -124,7 +168,7 @@ def _data_settings(args, spec) -> dict:
             "prior_scale": kw["prior_scale"], "noise": kw["noise"], "compress": kw["compress"],
             "lmax": kw["lmax"], "nside": kw["nside"], "band_limit": kw["band_limit"],
             **{k: kw[k] for k in ("beam_normalization", "beam_freq_scaling", "accept_x_orientation_mismatch",
-                                  "prior_mean", "cal", "flag_outliers", "flux_scale")},
+                                  "prior_mean", "cal", "flag_outliers", "flux_scale", "amplitude")},
             "cal_sha256": _file_digest(args.cal) if args.cal else None,
             "selection": {k: (list(kw[k]) if isinstance(kw[k], tuple) else kw[k]) for k in CLI_SELECTION}}
 
@@ -146,6 +190,7 @@ def _run_data(args) -> int:
     from ..paper.report import PaperReport
     from ..run import RunExistsError, check_out_dir, check_unlocked, existing_run_files
 
+    infer = _amplitude_inputs(args)
     _gain_inputs(args)
     ingested = ingest_spec(args, run=True)
     spec = run_spec(args, nsamples=args.nsamples or DEFAULT_NSAMPLES, method=args.method or "auto",
@@ -171,11 +216,21 @@ def _run_data(args) -> int:
           f"({'compressed' if cfg.compressed else 'all baselines'}), {prob.data.shape[1]} times, "
           f"{prob.data.shape[0]} channels, {cfg.pol}; prior: {cfg.prior}")
     print(band_limit_line(cfg.checks.get("band_limit")))
-    if args.gains == "sample":
+    if infer:
         spec = run_spec(args, nsamples=spec.draws.nsamples, method=spec.solver.method, tol=spec.solver.tol,
-                        extra=spec.extra, gains=gain_sampling(args, _applied_amplitude(prob)))
-        print(f"gcrsky: gains sampled with the sky: {spec.gains.modes[0]} x {spec.gains.modes[1]} modes per gain, "
+                        extra=spec.extra, gains=gain_sampling(args, prob=prob), amplitude=amplitude_sampling(args))
+        g = spec.sampling.amplitude.gains
+        print("gcrsky: amplitude inferred per channel (exact marginal, then the sky given it)"
+              + ("; the draws are independent" if g is None else
+                 f"; gains sampled with the sky: {g.modes[0]} x {g.modes[1]} {g.basis} modes per gain, prior sd "
+                 f"{g.sigma:g}, burn-in {g.burn} sweeps; the draws are a Markov chain's"))
+    elif args.gains == "sample":
+        spec = run_spec(args, nsamples=spec.draws.nsamples, method=spec.solver.method, tol=spec.solver.tol,
+                        extra=spec.extra, gains=gain_sampling(args, _applied_amplitude(prob), prob))
+        how = "" if args.gain_modes is not None else " (from the channels and time span)"
+        print(f"gcrsky: gains sampled with the sky: {spec.gains.modes[0]} x {spec.gains.modes[1]} "
+              f"{spec.gains.basis} modes per gain{how}, "
               f"prior sd {spec.gains.sigma:g}, starting amplitude {spec.gains.applied:.4g}, burn-in {spec.gains.burn}"
               f" sweeps; the draws are a Markov chain's")
     done = execute_with_bars(args, prob, spec, (PaperReport(),), build_s=build_s, compile_since=compile0)
-    return done if isinstance(done, int) else report_run(*done, out)
+    return done if isinstance(done, int) else report_run(*done, out, strict=args.strict)

@@ -131,4 +131,4 @@ def _run(args) -> int:
     prob = problem_from_config(config)
     done = execute_with_bars(args, prob, spec, paper_hooks(prob), build_s=time.perf_counter() - t0,
                              compile_since=compile0)
-    return done if isinstance(done, int) else report_run(*done, spec.output.out)
+    return done if isinstance(done, int) else report_run(*done, spec.output.out, strict=args.strict)

@@ -195,9 +195,11 @@ def add_data_options(g, *, with_data: bool) -> None:
                        "says which lengths), marginalise the sky above lmax (its variance from the prior's C_l added "
                        "to the noise), or truncate (keep them: a control)")
         add_beam_prior_options(g)
-    g.add_argument("--pol", default="pI", metavar="pI|xx|yy|xx,yy",
+    g.add_argument("--pol", default=None, metavar="pI|xx|yy|xx,yy",
                    help="modelled product: pseudo-Stokes I (xx + yy), one feed product, or xx and yy jointly; "
-                   "ee / nn (ee,nn) name feed products through the file's x_orientation (east: ee = xx)")
+                   "ee / nn (ee,nn) name feed products through the file's x_orientation (east: ee = xx). "
+                   "Default pI; with --gains sample the file's two feed products jointly (each feed has its own "
+                   "gain: pI would mix them)")
     g.add_argument("--freq-range", nargs=2, type=positive_float("freq-range"), default=None, metavar=("LO", "HI"),
                    help="keep channels in [LO, HI] MHz")
     g.add_argument("--chans", type=_csv("chans", int), default=None, metavar="I,J,...", help="channel indices to keep")
@@ -218,7 +220,8 @@ def add_check_options(g, *, with_data: bool) -> None:
                    "autos' radiometer noise) is a robust outlier; inspect reports them either way")
     g.add_argument("--flux-scale", choices=("check", "accept", "off"), default="check",
                    help="the data's autos against the GSM's through the beam: check (refuse a ratio outside "
-                   "0.5-2), accept (record it), off")
+                   "0.5-2 where the amplitude is fixed; a check beside the inferred amplitude), accept (record it), "
+                   "off")
     if not with_data:
         g.add_argument("--beam", default=None, metavar="FILE", help="beam file for the flux-scale check")
         g.add_argument("--dish-diameter", type=positive_float("dish-diameter"), default=None, metavar="D",
@@ -238,9 +241,17 @@ def add_beam_prior_options(g) -> None:
                    "~ 1/frequency); required for such a beam")
     g.add_argument("--accept-x-orientation-mismatch", action="store_true",
                    help="run although the beam's feed x points elsewhere than the file's (a symmetric beam)")
-    g.add_argument("--prior-mean", choices=("zero", "gsm"), default="zero",
-                   help="the prior's mean: zero (default) or gsm (the GSM's coefficients at the data's frequencies, "
-                   "l <= 16), so the sky the data do not see is the GSM rather than zero")
+    g.add_argument("--prior-mean", choices=("zero", "gsm"), default=None,
+                   help="the prior's mean: zero or gsm (the GSM's coefficients at the data's frequencies, l <= 16), so "
+                   "the sky the data do not see is the GSM rather than zero (default: gsm where the amplitude is "
+                   "inferred, whose scale it anchors; zero otherwise)")
+    g.add_argument("--amplitude", choices=("auto", "infer", "fixed"), default="auto",
+                   help="the overall amplitude per channel (bandpass): auto (default: inferred with the sky where the "
+                   "data are not absolutely calibrated: vis_units uncalib, or --cal solutions without a gain_scale; "
+                   "fixed otherwise), infer, fixed (the data taken as calibrated)")
+    g.add_argument("--model-sd", type=positive_float("model-sd"), default=None, metavar="S",
+                   help="where the amplitude is inferred: the fractional uncertainty of the sky model's overall scale "
+                   "(default 0.1, the GSM's stated accuracy; docs/amplitude.md)")
 
 
 def _gain_modes(s: str) -> tuple:
@@ -256,14 +267,16 @@ def _gain_modes(s: str) -> tuple:
 
 def add_gain_options(g) -> None:
     """``--gains sample`` and the gain block's settings (:class:`gcrsky.run.GainSampling`)."""
-    g.add_argument("--gains", choices=("off", "sample"), default="off",
-                   help="off (default): the data are taken as calibrated; sample: gains and the overall amplitude "
-                   "sampled with the sky")
-    g.add_argument("--gain-modes", type=_gain_modes, default=(1, 1), metavar="KF[,KT]",
+    g.add_argument("--gains", choices=("auto", "off", "sample"), default="auto",
+                   help="per-antenna gains sampled with the sky: auto (default: sampled where the amplitude is "
+                   "inferred, off otherwise), off (the data's gains taken as right), sample")
+    g.add_argument("--gain-modes", type=_gain_modes, default=None, metavar="KF[,KT]",
                    help="smooth modes per gain in frequency (delay) and time (fringe rate); one number sets both "
-                   "(default 1,1: one complex gain per antenna over the selection)")
-    g.add_argument("--gain-basis", choices=("dpss", "fourier", "legendre"), default="dpss",
-                   help="the modes' basis (legendre: polynomials, which hold a linear drift)")
+                   "(default: from the selection, gcrsky.run.gains.default_gain_modes: 2,2 -- constant and slope in "
+                   "each -- plus one in frequency for each full 20 %% of fractional bandwidth (at most 4), 3 in time "
+                   "over 12 h or more, never more than the channels or times)")
+    g.add_argument("--gain-basis", choices=("dpss", "fourier", "legendre"), default=None,
+                   help="the modes' basis (default legendre: polynomials, which hold a linear drift exactly)")
     g.add_argument("--gain-sigma", type=positive_float("gain-sigma"), default=0.05, metavar="S",
                    help="prior sd of each mode's coefficient: the rms fractional gain error (default 0.05)")
     g.add_argument("--gain-burn", type=int_at_least(2, "gain-burn"), default=200, metavar="N",
@@ -334,14 +347,43 @@ def frequency_model(args):
                           basis_sigma=args.freq_basis_sigma, nugget=args.freq_nugget, fit=args.freq_fit)
 
 
-def gain_sampling(args, applied: float = 1.0):
-    """The :class:`gcrsky.run.GainSampling` of the options, or None without ``--gains sample``."""
+def amplitude_sampling(args):
+    """The :class:`gcrsky.run.AmplitudeSampling` of the options (``--model-sd``)."""
+    from ..run.spec import AmplitudeSampling
+
+    return AmplitudeSampling() if args.model_sd is None else AmplitudeSampling(model_sd=args.model_sd)
+
+
+def gain_sampling(args, applied: float = 1.0, prob=None):
+    """The :class:`gcrsky.run.GainSampling` of the options, or None without ``--gains sample``.
+
+    Modes and basis the options leave out follow the selection of ``prob`` (its channels and
+    times: :func:`gcrsky.run.gains.default_gain_modes`, :data:`gcrsky.run.gains.DEFAULT_GAIN_BASIS`);
+    without ``prob``, ``GainSampling``'s own defaults."""
     if args.gains != "sample":
         return None
+    from ..run.gains import DEFAULT_GAIN_BASIS, default_gain_modes
     from ..run.spec import GainSampling
 
-    return GainSampling(modes=args.gain_modes, basis=args.gain_basis, sigma=args.gain_sigma, burn=args.gain_burn,
-                        thin=args.gain_thin, gauge_moves=args.gauge_moves, applied=applied)
+    kw = {}
+    if args.gain_modes is not None:
+        kw["modes"] = args.gain_modes
+    elif prob is not None:
+        kw["modes"] = default_gain_modes(prob.freqs_hz, prob.lsts_rad)
+    if args.gain_basis is not None:
+        kw["basis"] = args.gain_basis
+    elif prob is not None:
+        kw["basis"] = DEFAULT_GAIN_BASIS
+    if getattr(args, "amplitude", None) == "fixed":  # the data are calibrated: q held at 1 (issue 38)
+        from ..run.sampling import FIXED_SCALE_SD
+
+        kw["scale_sd"], applied = FIXED_SCALE_SD, 1.0
+    return GainSampling(**kw, sigma=args.gain_sigma, burn=args.gain_burn, thin=args.gain_thin,
+                        gauge_moves=args.gauge_moves, applied=applied)
+
+
+def _pol_of(pol: str):
+    return tuple(pol.split(",")) if "," in pol else pol
 
 
 def _selection_keywords(args) -> dict:
@@ -351,7 +393,7 @@ def _selection_keywords(args) -> dict:
         freq_range_hz=None if args.freq_range is None else tuple(1e6 * x for x in args.freq_range),
         lst_range_hours=None if args.lst_range is None else tuple(args.lst_range),
         antennas=args.antennas,
-        pol=tuple(args.pol.split(",")) if "," in args.pol else args.pol,
+        pol=_pol_of(args.pol or "pI"),
     )
 
 
@@ -367,6 +409,8 @@ def ingest_spec(args, *, run: bool):
 
     kw = dict(lmax=args.lmax, nside=args.nside, beam=args.beam, dish_diameter_m=args.dish_diameter, cal=args.cal,
               flag_outliers=args.flag_outliers, flux_scale=args.flux_scale, **_selection_keywords(args))
+    if run and getattr(args, "amplitude", None) in ("infer", "fixed"):
+        kw["amplitude"] = args.amplitude
     if run:
         kw.update(prior=args.prior, prior_scale=args.prior_scale, noise=args.noise, compress=not args.no_compress,
                   band_limit=args.band_limit, beam_normalization=args.beam_normalization,

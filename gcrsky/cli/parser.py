@@ -90,6 +90,9 @@ def _add_run_parser(sub) -> None:
     r.add_argument("--batch", type=int_at_least(1, "batch"), default=DEFAULT_BATCH,
                    help="draws per batch (part of the draws' seed: see the module doc)")
     add_run_flags(r, plots_help="skip the PNG figures")
+    r.add_argument("--strict", action="store_true",
+                   help="exit with status 6 when the run completes but the goodness of fit rejects the model in "
+                   "some channel (everything is still written); without it a rejected fit is a WARNING, status 0")
     add_compile_cache_options(r)
     add_channel_options(r)
     dg = r.add_argument_group(

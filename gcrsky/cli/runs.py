@@ -8,12 +8,15 @@ import sys
 from .options import channel_mode, frequency_model
 from .terminal import StageBar, batch_bar, channel_bar, print_summary, refusal_message, stage_names
 
-__all__ = ["EXIT_AFTER_DRAWS", "EXIT_REFUSED", "execute_with_bars", "existing_mode", "report_run", "run_spec"]
+__all__ = ["EXIT_AFTER_DRAWS", "EXIT_REFUSED", "EXIT_REJECTED", "execute_with_bars", "existing_mode", "report_run",
+           "run_spec"]
 
 #: Exit status when the output directory's results are not ours to touch (see :mod:`gcrsky.cli`).
 EXIT_REFUSED = 3
 #: Exit status when a run failed after its draws (kept in results.h5; ``--resume`` finishes it).
 EXIT_AFTER_DRAWS = 5
+#: Exit status under ``--strict`` of a run that completed (everything written) but whose fit is rejected.
+EXIT_REJECTED = 6
 
 
 def existing_mode(args) -> str:
@@ -21,14 +24,16 @@ def existing_mode(args) -> str:
     return "resume" if args.resume else ("overwrite" if args.overwrite else "refuse")
 
 
-def run_spec(args, *, nsamples: int, method: str, tol: float, scenario: str | None = None, extra=None, gains=None):
+def run_spec(args, *, nsamples: int, method: str, tol: float, scenario: str | None = None, extra=None, gains=None,
+             amplitude=None):
     """The :class:`~gcrsky.run.RunSpec` of ``gcrsky run``'s options (draws, output, channels, argv, gains,
     frequency prior)."""
     from ..run import Draws, Output, RunSpec, Solver
     from ..run.spec import sampling_of
 
     return RunSpec(Draws(nsamples, args.seed, args.batch), Output(args.out, existing_mode(args), not args.no_plots),
-                   Solver(method, tol), sampling_of(channel_mode(args), gains, frequency_model(args)),
+                   Solver(method, tol), sampling_of(channel_mode(args), gains, frequency_model(args),
+                                                       amplitude),
                    scenario=scenario, argv=getattr(args, "_argv", None), extra=extra)
 
 
@@ -57,8 +62,9 @@ def execute_with_bars(args, prob, spec, hooks, *, build_s: float, compile_since)
     return done
 
 
-def report_run(summary, products, out) -> int:
-    """Print what the run did, its warnings (stderr), and return the exit status (1: non-finite draws)."""
+def report_run(summary, products, out, *, strict: bool = False) -> int:
+    """Print what the run did, its warnings (stderr), and return the exit status: 1 for non-finite draws;
+    with ``strict`` (``--strict``), :data:`EXIT_REJECTED` when the goodness of fit rejects some channel; else 0."""
     if products.already_complete:
         missing = products.written
         print(f"gcrsky: the run in {out} was already complete; "
@@ -70,4 +76,9 @@ def report_run(summary, products, out) -> int:
         print("gcrsky: the draws contain NaN/inf; exiting with status 1 (results written for diagnosis).",
               file=sys.stderr)
         return 1
+    gof = summary.goodness_of_fit or {}
+    if strict and gof.get("rejected"):
+        print(f"gcrsky: --strict: the fit is rejected in {len(gof['rejected_channels'])} of {len(gof['chi2'])} "
+              f"channels; exiting with status {EXIT_REJECTED} (everything is written)", file=sys.stderr)
+        return EXIT_REJECTED
     return 0

@@ -133,6 +133,12 @@ def gains_line(g: dict) -> str:
         text += f" against the autos' {g['autos_flux_ratio']:.4g}"
     if g.get("flux_scale_ess") is not None:
         text += f", ESS {g['flux_scale_ess']:.0f} of {g['ndraws']}"
+    chain = g.get("chain") or {}
+    if chain.get("ok") is not None:
+        least = "never moved" if chain["ess_min"] is None else f"{chain['ess_min']:.0f}"
+        text += (f"; chain: least ESS {least} ({chain['worst']}), "
+                 + (f"{chain['n_below_floor']} of {chain['n_scalars']} scalars below {chain['floor']:.0f}"
+                    if chain["n_below_floor"] else f"every scalar at or above {chain['floor']:.0f}"))
     for p in g.get("phase_gradients") or ():
         text += f"; {p['direction']} phase gradient sd {p['ratio']:.2f} x prior"
     return text

@@ -11,6 +11,8 @@
   amplitude from one eigendecomposition (O(n^2) a draw, O(n) an evidence)
 - ``collapsed``: :func:`sample_hyperparameters`: NUTS (blackjax, the ``[nuts]`` extra) on
   the exact evidence, then :func:`draw_given_hyperparameters`: exact draws of ``a`` per sample
+- ``diagnostics``: :func:`chain_diagnostics`: the effective sample size of every sampled scalar of a
+  Markov chain against a stated floor, :func:`diagnostics_warning` its WARNING line
 - ``cl``: :func:`cl_hat`, :func:`sample_cl` (``C_l | a``), :func:`sample_power_law`
   (``(A, alpha) | a``)
 - ``evidence``: :func:`log_evidence`, the exact log marginal likelihood (dense, m-mode, or
@@ -42,6 +44,7 @@ from .collapsed import (
     effective_sample_size,
     sample_hyperparameters,
 )
+from .diagnostics import chain_diagnostics, diagnostics_warning
 from .evidence import EvidenceInfo, log_evidence, log_evidence_system
 from .gains import (
     GainState,
@@ -121,6 +124,8 @@ __all__ = [
     "draw",
     "draw_batches",
     "draw_exactly",
+    "chain_diagnostics",
+    "diagnostics_warning",
     "draw_given_hyperparameters",
     "effective_sample_size",
     "fit_hyperparameters",

@@ -75,6 +75,7 @@ __all__ = [
     "scale_conditional",
     "scale_sky_step",
     "scale_step",
+    "theta_draw",
 ]
 
 
@@ -209,11 +210,18 @@ def gains_step(key: jax.Array, state: GainState, fixed: GibbsFixed, block: GainB
     application ``X a``, the mode sums and a ``P x P`` Cholesky.
     """
     system = fixed.system
-    prec, rhs = gain_conditional(block, system.data, system.inv_noise, apply(system.op, state.sky), state.scale)
+    theta = theta_draw(key, block, system.data, system.inv_noise, apply(system.op, state.sky), state.scale)
+    return state._replace(theta=theta)
+
+
+def theta_draw(key: jax.Array, block: GainBlock, data, inv_noise, sky_vis, scale) -> jax.Array:
+    """One exact draw (P,) of ``theta | a, q, d`` from the model visibilities ``X a`` (Nf, Nt, Nbl) and the scale
+    ``s`` (Kf,) or ``q`` (a scalar, or (Nf,) per channel folded into ``sky_vis`` with ``scale=1``):
+    :func:`gain_conditional`, then ``mean + L^-T z``."""
+    prec, rhs = gain_conditional(block, data, inv_noise, sky_vis, scale)
     L = jnp.linalg.cholesky(prec)
     z = jax.random.normal(key, rhs.shape, rhs.dtype)
-    theta = jax.scipy.linalg.cho_solve((L, True), rhs) + jax.scipy.linalg.solve_triangular(L.T, z, lower=False)
-    return state._replace(theta=theta)
+    return jax.scipy.linalg.cho_solve((L, True), rhs) + jax.scipy.linalg.solve_triangular(L.T, z, lower=False)
 
 
 def recentre(block: GainBlock, state: GainState) -> tuple[GainBlock, GainState]:

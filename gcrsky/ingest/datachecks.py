@@ -22,7 +22,7 @@ from ..io.visdata import Observation, parse_products
 from ..model.datachecks import DEFAULT_K, find_outliers, flag_outliers, flagged_antennas, noise_excess
 from ..model.fluxscale import FLUX_BOUNDS, flux_scale_check
 
-__all__ = ["FLUX_SCALE_MODES", "CheckedObservation", "InspectedChecks", "flag_checks", "flux_checks", "inspect_checks",
+__all__ = ["AMPLITUDE_MODES", "FLUX_SCALE_MODES", "amplitude_checks", "amplitude_needed", "CheckedObservation", "InspectedChecks", "flag_checks", "flux_checks", "inspect_checks",
            "read_checked"]
 
 log = logging.getLogger(__name__)
@@ -44,6 +44,68 @@ class InspectedChecks(NamedTuple):
 
 #: ``flux_scale``: refuse a ratio outside the bounds, accept it (recorded, a warning), or skip the check.
 FLUX_SCALE_MODES = ("check", "accept", "off")
+#: ``amplitude``: inferred with the sky where the data are not absolutely calibrated (``"auto"``), always
+#: (``"infer"``), or fixed (the data taken as calibrated, ``"fixed"``).
+AMPLITUDE_MODES = ("auto", "infer", "fixed")
+
+
+def _not_absolute(units: str, cal_given: bool, gain_scale, cal_style) -> str | None:
+    """Why data with these units and calibration are not absolutely calibrated, or None."""
+    if units == "uncalib" and not cal_given:
+        return "the file's visibilities are uncalibrated (vis_units 'uncalib')"
+    if cal_given and gain_scale is None:
+        return (f"the gain solutions ({cal_style}) carry no gain_scale: their overall amplitude is the solver's "
+                "convention")
+    return None
+
+
+def amplitude_needed(data, cal=None) -> str | None:
+    """Why the amplitude must be inferred (None: the data are absolutely calibrated), from the headers of the
+    visibility file (or a ``UVData``) and of the gain solutions ``cal`` (a path), before anything is read."""
+    from pyuvdata import UVData
+
+    if isinstance(data, UVData):
+        units = data.vis_units
+    else:
+        try:
+            units = UVData.from_file(str(data), read_data=False).vis_units
+        except (TypeError, ValueError, NotImplementedError):  # a format without a metadata-only read
+            units = UVData.from_file(str(data)).vis_units
+    if cal is None:
+        return _not_absolute(units, False, None, None)
+    from ..io.calibration import read_calibration
+
+    uvc, _ = read_calibration(cal)  # offline: a file without a location is not looked up by name on the internet
+    return _not_absolute(units, True, uvc.gain_scale, uvc.cal_style)
+
+
+def amplitude_checks(obs: Observation, checks: dict, mode: str = "auto") -> CheckedObservation:
+    """Whether the overall amplitude is inferred (:mod:`gcrsky.run.amplitude`): ``(obs, {"amplitude": ...})``.
+
+    The data are absolutely calibrated when their units are Jy or K str and no gain solutions were
+    applied, or the applied ones carry a ``gain_scale``.  Otherwise (``vis_units`` ``"uncalib"``, or
+    solutions without a ``gain_scale``, e.g. redundant ones) ``"auto"`` infers the amplitude, and
+    ``"uncalib"`` data are then read as Jy (the amplitude ``q`` carries the scale).
+
+    Raises:
+        ValueError: an unknown mode.
+    """
+    import dataclasses
+
+    if mode not in AMPLITUDE_MODES:
+        raise ValueError(f"amplitude must be one of {AMPLITUDE_MODES}, got {mode!r}")
+    applied = (checks.get("calibration") or {}).get("applied")
+    why = _not_absolute(obs.vis_units, applied is not None, (applied or {}).get("gain_scale"),
+                        (applied or {}).get("cal_style"))
+    infer = mode == "infer" or (mode == "auto" and why is not None)
+    rec = {"mode": "infer" if infer else "fixed", "asked": mode,
+           "why": why if infer and why else ("asked (--amplitude infer)" if infer else
+                                             "the data are taken as absolutely calibrated" if why is None else
+                                             f"asked (--amplitude fixed), although {why}")}
+    if infer and obs.vis_units == "uncalib":
+        obs = dataclasses.replace(obs, vis_units="Jy")
+        rec["units"] = "uncalib, read as Jy: the inferred amplitude carries the scale"
+    return CheckedObservation(obs, {"amplitude": rec})
 
 
 def read_checked(data, *, cal=None, pol="pI", **selection) -> CheckedObservation:
@@ -102,8 +164,10 @@ def flag_checks(obs: Observation, *, flag: bool = True, k: float = DEFAULT_K,
     return CheckedObservation(obs, {"flags": rec})
 
 
-def flux_checks(obs: Observation, beam, *, pol="pI", mode: str = "check", bounds=FLUX_BOUNDS) -> dict:
-    """``{"flux_scale": ...}``: the ratio (:func:`gcrsky.model.fluxscale.flux_scale_check`) and the decision.
+def flux_checks(obs: Observation, beam, *, pol="pI", mode: str = "check", bounds=FLUX_BOUNDS,
+                inferred: bool = False) -> dict:
+    """``{"flux_scale": ...}``: the ratio (:func:`gcrsky.model.fluxscale.flux_scale_check`) and the decision
+    (``inferred``: the amplitude is inferred with the sky: the ratio is recorded as a check, never refused).
 
     Raises:
         ValueError: ``mode == "check"`` and the ratio is outside ``bounds`` (the message names
@@ -124,19 +188,27 @@ def flux_checks(obs: Observation, beam, *, pol="pI", mode: str = "check", bounds
         log.warning("flux-scale check skipped: %s", why)
         return {"flux_scale": {"mode": mode, "skipped": why}}
     try:
-        rec = {"mode": mode, **flux_scale_check(obs, beam, prod=prods[0], bounds=bounds)}
+        rec = {"mode": "check beside the inferred amplitude" if inferred else mode,
+               **flux_scale_check(obs, beam, prod=prods[0], bounds=bounds)}
     except ImportError as err:  # the GSM map is pyradiosky's (the "sim" extra)
         log.warning("flux-scale check skipped: %s", err)
         return {"flux_scale": {"mode": mode, "skipped": str(err)}}
     ratio = rec["ratio"]
+    if inferred:
+        mode = "accept"
     if ratio is not None and not rec["within"]:
         what = (f"the data's autocorrelations are {ratio:.4g} x the GSM sky's through the beam (expected "
                 f"{bounds[0]:g}-{bounds[1]:g} for calibrated data in {rec['units']}): the flux scale is off by that "
                 "factor (calibration, units or beam normalisation)")
         if mode == "check":
             raise ValueError(what + "; fix the calibration, or accept the scale with --flux-scale accept "
-                             "(flux_scale='accept'; the posterior is then on the data's scale)")
-        log.warning("%s; accepted (flux_scale='accept')", what)
+                             "(flux_scale='accept'; the posterior is then on the data's scale), or infer the amplitude "
+                             "with the sky (--amplitude infer)")
+        if inferred:
+            log.info("flux scale: the data's autocorrelations are %.4g x the GSM sky's through the beam; the amplitude "
+                     "is inferred with the sky (this ratio is a check beside it)", ratio)
+        else:
+            log.warning("%s; accepted (flux_scale='accept')", what)
     return {"flux_scale": rec}
 
 

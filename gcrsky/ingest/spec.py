@@ -24,7 +24,7 @@ from typing import Any
 
 from ..model.bandlimit import BAND_LIMIT_MODES
 from .beamprior import PRIOR_MEANS
-from .datachecks import FLUX_SCALE_MODES
+from .datachecks import AMPLITUDE_MODES, FLUX_SCALE_MODES
 
 __all__ = ["BeamSpec", "DataChecks", "IngestSpec", "PriorSpec", "Selection"]
 
@@ -113,16 +113,22 @@ class DataChecks:
         flag_outliers: flag the noise-excess outliers (:mod:`gcrsky.model.datachecks`).
         flux_scale: ``"accept"`` (the data / GSM autos ratio recorded, a warning outside the
             bounds; the library's default), ``"check"`` (refused outside them: the CLI's default)
-            or ``"off"``.
+            or ``"off"``; where the amplitude is inferred it never refuses (the ratio is a check).
+        amplitude: ``"fixed"`` (the library's default: the data taken as calibrated, ``"uncalib"``
+            refused), ``"auto"`` (the CLI's: inferred where the data are not absolutely calibrated,
+            :func:`gcrsky.ingest.datachecks.amplitude_checks`) or ``"infer"``; a Problem whose amplitude
+            is inferred is run by :class:`gcrsky.run.Amplitude` (``checks["amplitude"]`` says which).
     """
 
     cal: Any = None
     flag_outliers: bool = True
     flux_scale: str = "accept"
+    amplitude: str = "fixed"
 
     def __post_init__(self):
         _flag("flag_outliers", self.flag_outliers)
         _one_of("flux_scale", self.flux_scale, FLUX_SCALE_MODES)
+        _one_of("amplitude", self.amplitude, AMPLITUDE_MODES)
 
 
 @dataclasses.dataclass(frozen=True)

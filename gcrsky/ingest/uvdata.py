@@ -24,6 +24,7 @@ The conventions are on the docs' ingest page (``docs/ingest.md``).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from typing import NamedTuple
 
@@ -35,7 +36,7 @@ from ..model.problem import Problem
 from ..model.skyprior import check_gsm_cl_frequencies
 from .beamprior import apply_prior_mean, feed_pol_of, with_checks
 from .beams import PreparedBeams, prepared_beams
-from .datachecks import CheckedObservation, flag_checks, flux_checks, read_checked
+from .datachecks import CheckedObservation, amplitude_checks, flag_checks, flux_checks, read_checked
 from .prior import resolve_prior
 from .spec import IngestSpec
 
@@ -89,6 +90,8 @@ def checked_observation(data, spec: IngestSpec, pol) -> CheckedObservation:
                                **read_selection(spec))
     for line in obs.notes:
         log.warning(line)
+    obs, amp = amplitude_checks(obs, checks, spec.checks.amplitude)
+    checks.update(amp)
     check_observation(obs, pol, spec.noise)  # units, products, autos, data
     prior = spec.prior.prior
     if prior is None or (isinstance(prior, str) and prior == "gsm"):
@@ -144,8 +147,11 @@ def ingest(data, spec: IngestSpec) -> Problem:
     beams: PreparedBeams = prepared_beams(b.beam, b.dish_diameter_m, obs, normalization=b.beam_normalization,
                                           freq_scaling=b.beam_freq_scaling,
                                           accept_x_orientation_mismatch=b.accept_x_orientation_mismatch)
-    checks.update(flux_checks(obs, beams.beams[0], pol=pol, mode=spec.checks.flux_scale))  # through the beam
+    infer = checks["amplitude"]["mode"] == "infer"
+    checks.update(flux_checks(obs, beams.beams[0], pol=pol, mode=spec.checks.flux_scale, inferred=infer))
     band = band_limited(obs, beams.beams, spec, pol)
+    if infer and spec.prior.prior_mean is None:  # the amplitude is anchored by a sky model: the GSM's coefficients
+        spec = dataclasses.replace(spec, prior=dataclasses.replace(spec.prior, prior_mean="gsm"))
     prior = prepared_prior(spec, obs.freqs_hz, band.lmax)
     prob = problem_from_observation(obs, beams.beams, lmax=band.lmax, nside=spec.nside, pol=pol, prior=prior.prior,
                                     noise=spec.noise, compress=spec.compress, frame_pad=spec.frame_pad,

@@ -139,7 +139,8 @@ def kelvin_sr_per_unit(obs: Observation) -> np.ndarray:
     """(Nf,) K sr per unit of the file's visibilities; uncalibrated or unknown units are refused."""
     if obs.vis_units == "uncalib":
         raise ValueError("the file's visibilities are uncalibrated (vis_units 'uncalib'): gcrsky needs Jy or K str; "
-                         "calibrate them first, or apply gain solutions with --cal FILE (cal=, a calfits/calh5 UVCal)")
+                         "calibrate them first, apply gain solutions with --cal FILE (cal=, a calfits/calh5 UVCal), or infer the "
+                         "amplitude with the sky (--amplitude infer, amplitude='infer')")
     if obs.vis_units == "Jy":
         return 1.0 / kelvin_sr_to_jy(obs.freqs_hz)
     if obs.vis_units == "K str":

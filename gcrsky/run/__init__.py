@@ -8,7 +8,7 @@ and figures through report hooks (:class:`ReportHook`; the paper's are in
 - ``spec``: :class:`RunSpec` (:class:`Draws`, :class:`Solver`, :class:`Output`), validated
   on construction; :func:`run_settings`, what identifies a run's draws;
 - ``sampling``: what a run samples, one draw stage (:class:`Joint`, :class:`Independent`,
-  :class:`JointFrequency`, :class:`Gains`): its settings block, files, draws and summary block;
+  :class:`JointFrequency`, :class:`Gains`, :class:`Amplitude`): its settings block, files, draws and summary block;
 - ``output``: the run's files, :func:`check_output` (refuse / overwrite / resume),
   :func:`remove_run_files`, :func:`open_run`;
 - ``resume``: :class:`ResumeError`, :func:`settings_differences`, the recorded solver options;
@@ -45,7 +45,17 @@ from .products import write_products
 from .report import FigureReport, ReportHook, RunView
 from .resume import ResumeError, settings_differences
 from .runner import execute
-from .sampling import DrawStage, FrequencyModel, Gains, GainSampling, Independent, Joint, JointFrequency
+from .sampling import (
+    Amplitude,
+    AmplitudeSampling,
+    DrawStage,
+    FrequencyModel,
+    Gains,
+    GainSampling,
+    Independent,
+    Joint,
+    JointFrequency,
+)
 from .spec import CHANNEL_MODES, EXISTING, METHODS, Draws, Output, RunSpec, Solver, run_settings
 from .stages import StageTimer, Watch
 from .summary import RunProducts, RunSummary, info_stats, read_summary, solver_summary, versions
@@ -65,6 +75,8 @@ __all__ = [
     "FrequencyModel",
     "GainSampling",
     "Gains",
+    "Amplitude",
+    "AmplitudeSampling",
     "Independent",
     "Joint",
     "JointFrequency",

@@ -149,19 +149,32 @@ def goodness_of_fit(prob, wiener, *, alpha: float = FIT_ALPHA, rank=None) -> dic
     return out
 
 
+#: Rejected channels named in :func:`fit_warning`'s line (the worst first; the rest counted).
+MAX_NAMED_CHANNELS = 6
+
+
 def fit_warning(gof: dict, freqs_hz) -> str | None:
-    """The warning line of a rejected fit (None when it is not rejected)."""
+    """The one WARNING line of a rejected fit (None when it is not rejected): how many channels, then each
+    rejected channel (the worst first, up to :data:`MAX_NAMED_CHANNELS`) with its frequency, chi2/dof and
+    the tail that rejects it, and what each tail means."""
     if not gof.get("rejected"):
         return None
-    chans = gof["rejected_channels"]
-    worst = min(chans, key=lambda k: min(gof["p_value"][k], gof["p_value_low"][k]))
-    low = gof["p_value_low"][worst] < gof["p_value"][worst]
-    why = ("the data vary far less than the model expects: noise or prior too large, e.g. a flux scale far below "
-           "the prior's" if low else "the data vary more than noise and prior allow")
-    return (f"WARNING: the model does not fit the data: chi2/dof rejected at p < {gof['threshold_p']:.2g} (each tail) in "
-            f"{len(chans)} of {len(gof['chi2'])} channels (worst {float(freqs_hz[worst]) / 1e6:.3f} MHz: chi2/dof "
-            f"{gof['chi2_per_dof'][worst]:.3g}, {'lower' if low else 'upper'} p = "
-            f"{gof['p_value_low' if low else 'p_value'][worst]:.2g}: {why}); see summary.json goodness_of_fit")
+    chans = sorted(gof["rejected_channels"], key=lambda k: min(gof["p_value"][k], gof["p_value_low"][k]))
+    low = {k: gof["p_value_low"][k] < gof["p_value"][k] for k in chans}
+    named = ", ".join(
+        f"{float(freqs_hz[k]) / 1e6:.3f} MHz chi2/dof {gof['chi2_per_dof'][k]:.3g} ({'lower' if low[k] else 'upper'} "
+        f"p {gof['p_value_low' if low[k] else 'p_value'][k]:.2g})" for k in chans[:MAX_NAMED_CHANNELS])
+    if len(chans) > MAX_NAMED_CHANNELS:
+        named += f" and {len(chans) - MAX_NAMED_CHANNELS} more"
+    why = []
+    if not all(low.values()):
+        why.append("upper: the data vary more than noise and prior allow")
+    if any(low.values()):
+        why.append("lower: the data vary far less than the model expects (noise or prior too large, e.g. a flux "
+                   "scale far below the prior's)")
+    return (f"WARNING: the model does not fit the data in {len(chans)} of {len(gof['chi2'])} channels (chi2/dof "
+            f"rejected at p < {gof['threshold_p']:.2g} in either tail): {named}; {'; '.join(why)}; see summary.json "
+            f"goodness_of_fit")
 
 
 def run_fit(prob, wiener, warnings: list, rank=None) -> dict | None:

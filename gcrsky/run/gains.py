@@ -65,8 +65,9 @@ from .output import GAIN_FILE, OpenRun
 from .resume import options_json
 from .stages import StageTimer, Watch
 
-__all__ = ["GAIN_DENSE_MAX_N", "GAIN_KEY_SCHEME", "GainChain", "burn_in", "gain_chain_setup", "gain_draws",
-           "gain_summary", "gained_problem", "noise_at", "read_gain_chain", "stored_gain_factor", "write_gain_products"]
+__all__ = ["DEFAULT_GAIN_BASIS", "GAIN_DENSE_MAX_N", "GAIN_KEY_SCHEME", "GainChain", "burn_in", "default_gain_modes",
+           "gain_chain_setup", "gain_draws", "gain_summary", "gained_problem", "noise_at", "read_gain_chain",
+           "stored_gain_factor", "write_gain_products"]
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +80,54 @@ GAIN_KEY_SCHEME = ("gains-v1: burn-in halves fold_in(key, 2**31-1), fold_in(key,
 _BURN = (2**31 - 1, 2**31 - 2)
 
 _GAIN_DRAWS_SHAPE = "(ndraws, nfreq, ntimes, nunits) complex: g_u = gbar_u sqrt(q(nu)) (1 + x_u(nu, t))"
+
+
+#: The gain modes' basis when none is asked for (:func:`default_gain_modes`: why Legendre).
+DEFAULT_GAIN_BASIS = "legendre"
+#: Fractional bandwidth per frequency mode beyond the linear one (:func:`default_gain_modes`).
+BAND_PER_MODE = 0.2
+#: Time span (hours) from which the default time modes add a curvature (:func:`default_gain_modes`).
+LONG_SPAN_H = 12.0
+#: The most modes per axis :func:`default_gain_modes` gives (more: ask for them).
+MAX_DEFAULT_MODES = 4
+
+
+def default_gain_modes(freqs_hz, lsts_rad) -> tuple[int, int]:
+    """``(Kf, Kt)``, the gain modes that follow a selection's channels and time span, on the
+    :data:`DEFAULT_GAIN_BASIS` (Legendre) basis: what ``gcrsky run --gains sample`` uses when
+    ``--gain-modes`` is not given.
+
+    * **Legendre polynomials**: a gain's slow drift across the band and the night is, to leading
+      order, linear, and polynomials hold a linear drift exactly with two modes, where DPSS and
+      Fourier modes leave 49 % and 61 % of it outside three modes on 12 samples
+      (``tests/test_gains_files.py``): on ``gcrsky.checks.gainsim``'s defaults (5 % / 5 deg, linear
+      in frequency and time) one constant DPSS gain per antenna is rejected by the fit (chi2/dof 62
+      in issue 38; ``tests/test_gains_defaults.py``), the linear Legendre modes pass.
+    * **frequency**: ``Kf = 2`` (constant and slope) for a band narrower than :data:`BAND_PER_MODE`
+      (20 %) of its centre, one more for each further 20 % (a bandpass is not linear over a wide
+      band: the H1C file's autos against the GSM's fall 16x from 133 to 194 MHz, 37 %, which takes a
+      curvature), at most :data:`MAX_DEFAULT_MODES` and never more than the channels (one channel: 1).
+    * **time**: ``Kt = 2`` (constant and drift), 3 for a span of :data:`LONG_SPAN_H` (12 h) or more
+      (a night's thermal drift is not linear), never more than the integrations (one: 1).
+
+    A mode the data do not need stays near its prior (``--gain-sigma``); a mode they need and the
+    model lacks is a rejected fit: the rule errs on the side of a mode too many.
+
+    Args:
+        freqs_hz: (Nf,) the selection's channel frequencies, Hz.
+        lsts_rad: (Nt,) its times as LSTs (Earth rotation angles), radians (the span is taken
+            unwrapped: sidereal hours, within 0.3 % of solar).
+
+    Returns:
+        ``(Kf, Kt)``, each between 1 and :data:`MAX_DEFAULT_MODES`.
+    """
+    f = np.atleast_1d(np.asarray(freqs_hz, np.float64))
+    t = np.unwrap(np.atleast_1d(np.asarray(lsts_rad, np.float64)))
+    band = float(np.ptp(f) / np.mean(f)) if f.size > 1 else 0.0
+    span_h = float(np.ptp(t)) * 12.0 / np.pi if t.size > 1 else 0.0
+    kf = min(f.size, MAX_DEFAULT_MODES, 2 + int(np.floor(band / BAND_PER_MODE)))
+    kt = min(t.size, MAX_DEFAULT_MODES, 2 + int(span_h >= LONG_SPAN_H))
+    return kf, kt
 
 
 class GainChain(NamedTuple):
@@ -118,7 +167,7 @@ def gain_chain_setup(prob, gains, *, tol: float | None = None, factor=None) -> G
     nf, nt, _ = prob.data.shape
     model = gain_model(prob.antpairs, nf, nt, gains.modes, basis=gains.basis, pols=prob.pols)
     lin = np.full((nf, nt, model.units.shape[0]), gains.applied, complex)
-    block = gain_setup(model, sigma=gains.sigma, gbar=lin)
+    block = gain_setup(model, sigma=gains.sigma, gbar=lin, scale_sd=gains.scale_sd)
     if prob.n <= GAIN_DENSE_MAX_N:
         options = CholeskyOptions()
     else:
@@ -314,8 +363,16 @@ def _interval(x) -> dict:
 
 def gain_summary(prob, gains, h5) -> dict:
     """``summary.json``'s ``gains`` block: the overall flux scale the crosses say (against the autos'
-    check), the phase gradients' posterior against their prior, the chain's gauge acceptance and ESS."""
+    check), the phase gradients' posterior against their prior, the chain's gauge acceptance and ESS.
+
+    ``chain`` is :func:`gcrsky.inference.chain_diagnostics` of every sampled scalar: the amplitude
+    ``q(nu)`` per channel (``flux_scale[i]``), its modes ``s`` (``scale_modes[k]``) and every gain
+    coefficient (``gain_theta[p]``), against the ESS floor (:data:`gcrsky.inference.diagnostics.ESS_FLOOR`).
+    Below it the block's ``warnings`` holds :func:`gcrsky.inference.diagnostics_warning`'s line (also
+    logged), which the run adds to the summary's warnings.
+    """
     from ..inference.collapsed import effective_sample_size
+    from ..inference.diagnostics import chain_diagnostics, diagnostics_warning
     from ..model.gains import phase_gradient_directions
 
     g = _read_gain_draws(h5)
@@ -334,8 +391,15 @@ def gain_summary(prob, gains, h5) -> dict:
         "note": ("flux_scale: the posterior of q(nu) x applied^2, the factor by which the cross-correlations exceed "
                  "the sky model (the flux-scale check's ratio is the autocorrelations' view of the same); "
                  "phase_gradients: posterior sd of the tip-tilt directions against their prior sd (ratio near 1: "
-                 "prior-dominated). The draws are a Markov chain's (flux_scale_ess: effective sample size)."),
+                 "prior-dominated). The draws are a Markov chain's (flux_scale_ess: effective sample size of the "
+                 "first channel's; chain: that of every sampled scalar against a floor; warnings: the chain's, when "
+                 "below it)."),
     }
+    out["chain"] = chain_diagnostics({"flux_scale": q, "scale_modes": g["gain_scale"], "gain_theta": g["gain_theta"]})
+    line = diagnostics_warning(out["chain"], "the gain chain")
+    out["warnings"] = [] if line is None else [line]
+    if line is not None:
+        log.warning(line.removeprefix("WARNING: "))
     if prob.antpos_enu_m is not None and nd > 1:
         nf, nt = g["basis_f"].shape[0], g["basis_t"].shape[0]
         model = gain_model(prob.antpairs, nf, nt, gains.modes, basis=gains.basis, pols=prob.pols)

@@ -55,6 +55,7 @@ from .summary import (
     TIMINGS_NOTE,
     RunProducts,
     RunSummary,
+    fixed_flux_scale,
     read_summary,
     solver_summary,
     versions,
@@ -129,10 +130,12 @@ def _after_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, stored, meth
                                                                      rank=stored.rank)
     st.start("write")
     finalized = _write(prob, spec, run, stored, view.maps, method, channels)
-    gains = None if (run.out / SUMMARY_FILE).exists() else spec.sampling.finish(prob, run.out, run.h5)
+    blocks = {} if (run.out / SUMMARY_FILE).exists() else spec.sampling.finish(prob, run.out, run.h5)
+    for block in blocks.values():  # a stage's own warnings (e.g. a chain that has not mixed)
+        warnings += (block or {}).get("warnings", [])
     st.stop()
     timings, compiled = _timings(st, stored, compile0)
-    summary = _summary(prob, spec, run, view, solver, warnings, (timings, compiled), figures, method, gof, gains,
+    summary = _summary(prob, spec, run, view, solver, warnings, (timings, compiled), figures, method, gof, blocks,
                        channels)
     written = [f for f in existing_run_files(run.out, run.files)
                if f not in run.before or (f == RESULTS_FILE and finalized)]
@@ -189,7 +192,7 @@ def _timings(st: StageTimer, stored, compile0: CompileStats) -> tuple[dict, dict
 
 def _summary(prob, spec: RunSpec, run: OpenRun, view: RunView, solver: dict, warnings: list,
              timings: tuple[dict, dict], figures: dict, method: str, gof: dict | None = None,
-             gains: dict | None = None, channels: dict | None = None) -> RunSummary:
+             blocks: dict | None = None, channels: dict | None = None) -> RunSummary:
     """The run's :class:`RunSummary`, written to ``summary.json`` (a resumed run keeps the one its run wrote)."""
     path = run.out / SUMMARY_FILE
     if path.exists():
@@ -213,8 +216,8 @@ def _summary(prob, spec: RunSpec, run: OpenRun, view: RunView, solver: dict, war
         exit_status=0 if view.finite else 1,
         data_checks=dict(getattr(cfg, "checks", None) or {}) or None,
         goodness_of_fit=gof,
-        gains=gains,
         channels=channels,
+        **{"flux_scale": fixed_flux_scale(prob), **(blocks or {})},
     )
     write_json(path, summary.to_json())
     return summary

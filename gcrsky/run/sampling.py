@@ -6,7 +6,9 @@
   ``"processes"``, :mod:`gcrsky.run.channels`);
 * :class:`JointFrequency`: one frequency-coupled prior over all channels (:class:`FrequencyModel`,
   :mod:`gcrsky.run.frequency`);
-* :class:`Gains`: per-antenna gains sampled with the sky (:class:`GainSampling`, :mod:`gcrsky.run.gains`).
+* :class:`Gains`: per-antenna gains sampled with the sky (:class:`GainSampling`, :mod:`gcrsky.run.gains`);
+* :class:`Amplitude`: the overall amplitude per channel (bandpass) inferred with the sky, anchored by a
+  sky model, with or without per-antenna gains (:class:`AmplitudeSampling`, :mod:`gcrsky.run.amplitude`).
 
 Each stage declares what the runner needs of it, so that :func:`gcrsky.run.execute` has no
 test of the kind of run: its settings block (:meth:`DrawStage.settings_block`, recorded in the
@@ -28,13 +30,15 @@ import jax
 
 from ..model.gains import BASES
 from ..parallel.channels import CHANNEL_KEY_SCHEME
+from .amplitude import amplitude_draws, amplitude_summary
+from .amplitude import fit_problem as amplitude_fit_problem
 from .channels import channel_draws, worker_channels
 from .draws import joint_draws
 from .frequency import channels_block, frequency_draws
 from .gains import gain_draws, gain_summary, gained_problem, stored_gain_factor, write_gain_products
 from .output import GAIN_FILE
 
-__all__ = ["CHANNEL_MODES", "DEFAULT_NUGGET", "FREQ_PRIORS", "DrawStage", "FrequencyModel", "GainSampling", "Gains",
+__all__ = ["AMPLITUDE_MODEL_SD", "Amplitude", "AmplitudeSampling", "CHANNEL_MODES", "FIXED_SCALE_SD", "DEFAULT_NUGGET", "FREQ_PRIORS", "DrawStage", "FrequencyModel", "GainSampling", "Gains",
            "Independent", "Joint", "JointFrequency", "STAGES", "check_choice", "check_integer", "check_positive"]
 
 #: The frequency models of a run: independent channels (each its own prior), or one prior over all of them
@@ -58,6 +62,11 @@ def check_choice(where: str, value, allowed: tuple) -> None:
         raise ValueError(f"{where} must be one of {', '.join(map(repr, allowed))}, got {value!r}")
 
 
+#: ``GainSampling.scale_sd`` of a run whose amplitude is fixed (``--amplitude fixed --gains sample``): ``q``
+#: held at 1 to 1e-6, far below any posterior spread the data give it.
+FIXED_SCALE_SD = 1e-6
+
+
 @dataclasses.dataclass(frozen=True)
 class GainSampling:
     """Per-antenna gains sampled with the sky (:mod:`gcrsky.run.gains`; the model of :mod:`gcrsky.model.gains`).
@@ -77,6 +86,9 @@ class GainSampling:
             (:func:`gcrsky.inference.gauge_step`; 0 is plain Gibbs, which barely moves along it).
         applied: the overall amplitude ``gbar`` the gains start from (e.g. the square root of
             the autocorrelations' flux-scale ratio); the sampled amplitude is relative to it.
+        scale_sd: prior sd of the amplitude ``q`` about 1 (relative to ``applied^2``): ``inf`` (the
+            library's default) flat, the amplitude sampled; :data:`FIXED_SCALE_SD` (the command line's
+            ``--amplitude fixed``, calibrated data) holds it at 1.
     """
 
     modes: tuple = (1, 1)
@@ -86,6 +98,7 @@ class GainSampling:
     thin: int = 1
     gauge_moves: int = 4
     applied: float = 1.0
+    scale_sd: float = math.inf
 
     def __post_init__(self):
         modes = tuple(self.modes)
@@ -98,13 +111,56 @@ class GainSampling:
             if isinstance(v, bool) or not isinstance(v, numbers.Real) or not (v > 0 and math.isfinite(v)):
                 raise ValueError(f"gains.{name} must be a positive finite number, got {v!r}")
             object.__setattr__(self, name, float(v))
+        v = self.scale_sd
+        if isinstance(v, bool) or not isinstance(v, numbers.Real) or not v > 0:
+            raise ValueError(f"gains.scale_sd must be a positive number (inf: flat), got {v!r}")
+        object.__setattr__(self, "scale_sd", float(v))
         check_integer(self, "burn", "gains.burn", 2)
         check_integer(self, "thin", "gains.thin", 1)
         check_integer(self, "gauge_moves", "gains.gauge_moves", 0)
 
     def to_dict(self) -> dict:
-        """The settings as a JSON-able dict (recorded with the run's settings)."""
-        return {**dataclasses.asdict(self), "modes": list(self.modes)}
+        """The settings as a JSON-able dict (recorded with the run's settings).  ``scale_sd`` only where finite: the
+        flat default records what runs recorded before it existed, so that they still resume."""
+        d = {**dataclasses.asdict(self), "modes": list(self.modes)}
+        if math.isinf(self.scale_sd):
+            del d["scale_sd"]
+        return d
+
+
+#: Default fractional uncertainty of the sky model's overall scale (``AmplitudeSampling.model_sd``): the GSM's
+#: stated accuracy, ~10 % (de Oliveira-Costa et al. 2008, MNRAS 388, 247: the model reproduces the input
+#: surveys to ~10 %); absolute comparisons at 50-200 MHz (LWA1 LFSS, Dowell et al. 2017; EDGES, Monsalve et al.
+#: 2021) find the GSM's scale off by 5-20 %: give 0.2 for that view.
+AMPLITUDE_MODEL_SD = 0.1
+
+
+@dataclasses.dataclass(frozen=True)
+class AmplitudeSampling:
+    """The overall amplitude per channel inferred with the sky (:mod:`gcrsky.run.amplitude`, DESIGN section 14).
+
+    The data are ``q_f x`` the visibilities of the sky in K (``q`` multiplies a calibrated visibility);
+    the sky is ``c (a0 + delta)`` with ``a0`` the prior's mean (a sky model: the GSM) and ``c ~ N(1,
+    model_sd^2)`` its overall scale.  ``q`` per channel is drawn from its exact marginal, the sky given it
+    exactly; with ``gains`` the per-antenna gains are a Gibbs block (a Markov chain).
+
+    Attributes:
+        model_sd: fractional uncertainty of the sky model's overall scale (:data:`AMPLITUDE_MODEL_SD`).
+        gains: the per-antenna gains (:class:`GainSampling`: modes, basis, prior sd, burn-in, thinning;
+            ``applied`` and ``gauge_moves`` are not used), or None (the amplitude alone: independent draws).
+    """
+
+    model_sd: float = AMPLITUDE_MODEL_SD
+    gains: GainSampling | None = None
+
+    def __post_init__(self):
+        check_positive(self, "model_sd", "amplitude.model_sd")
+        if self.gains is not None and not isinstance(self.gains, GainSampling):
+            raise ValueError(f"amplitude.gains must be a GainSampling or None, got {self.gains!r}")
+
+    def to_dict(self) -> dict:
+        """The settings as a JSON-able dict (recorded with the run's settings as ``amplitude``)."""
+        return {"model_sd": self.model_sd, "gains": None if self.gains is None else self.gains.to_dict()}
 
 
 def check_positive(obj, name: str, where: str, *, zero: bool = False) -> None:
@@ -216,10 +272,11 @@ class DrawStage:
         """The problem whose data the goodness of fit checks the Wiener filter against."""
         return prob
 
-    def finish(self, prob, out, h5) -> dict | None:
-        """After the draws of a run not yet summarised: this stage's ``summary.json`` block (None: none) and its
-        files (:attr:`files`) written into ``out``."""
-        return None
+    def finish(self, prob, out, h5) -> dict:
+        """After the draws of a run not yet summarised: this stage's top-level ``summary.json`` blocks
+        (``{name: block}``, names among :class:`gcrsky.run.summary.RunSummary`'s fields) and its files
+        (:attr:`files`) written into ``out``."""
+        return {}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -323,12 +380,45 @@ class Gains(DrawStage):
         return gained_problem(prob, stored_gain_factor(h5))
 
     def finish(self, prob, out, h5) -> dict:
-        """The ``gains`` block (:func:`gcrsky.run.gains.gain_summary`) with ``calibration_file``, the calh5 written
+        """``{"gains": block}``: the ``gains`` block (:func:`gcrsky.run.gains.gain_summary`) with ``calibration_file``, the calh5 written
         (:func:`gcrsky.run.gains.write_gain_products`; None if the problem cannot say where its antennas are)."""
         block = gain_summary(prob, self.gains, h5)
         block["calibration_file"] = write_gain_products(prob, self.gains, out, h5)
-        return block
+        return {"gains": block}
+
+
+@dataclasses.dataclass(frozen=True)
+class Amplitude(DrawStage):
+    """The amplitude per channel inferred with the sky (:mod:`gcrsky.run.amplitude`), gains optional.
+
+    Attributes:
+        amplitude: the :class:`AmplitudeSampling` (recorded in the settings as ``amplitude``).
+    """
+
+    name: ClassVar[str] = "amplitude"
+    files: ClassVar[tuple[str, ...]] = ()
+    amplitude: AmplitudeSampling = AmplitudeSampling()
+
+    def __post_init__(self):
+        if not isinstance(self.amplitude, AmplitudeSampling):
+            raise ValueError(f"sampling.amplitude must be an AmplitudeSampling, got {self.amplitude!r}")
+
+    def settings_block(self) -> dict:
+        """``amplitude``: the amplitude sampling's settings."""
+        return {"amplitude": self.amplitude.to_dict()}
+
+    def run_draws(self, prob, spec, run, st, watch) -> str:
+        """:func:`gcrsky.run.amplitude.amplitude_draws`."""
+        return amplitude_draws(prob, spec, run, st, watch)
+
+    def fit_problem(self, prob, h5):
+        """The problem with the set-up's amplitude and gains divided out (:func:`gcrsky.run.amplitude.fit_problem`)."""
+        return amplitude_fit_problem(prob, h5)
+
+    def finish(self, prob, out, h5) -> dict:
+        """The ``flux_scale`` and ``amplitude`` blocks (:func:`gcrsky.run.amplitude.amplitude_summary`)."""
+        return amplitude_summary(prob, self.amplitude, h5)
 
 
 #: The draw stages a run may hold (:attr:`gcrsky.run.RunSpec.sampling`).
-STAGES = (Joint, Independent, JointFrequency, Gains)
+STAGES = (Joint, Independent, JointFrequency, Gains, Amplitude)

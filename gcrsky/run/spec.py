@@ -27,6 +27,8 @@ from .output import EXISTING
 from .sampling import (
     CHANNEL_MODES,
     FREQ_PRIORS,
+    Amplitude,
+    AmplitudeSampling,
     DrawStage,
     FrequencyModel,
     Gains,
@@ -38,7 +40,7 @@ from .sampling import (
     check_integer,
 )
 
-__all__ = ["CHANNEL_MODES", "EXISTING", "FREQ_PRIORS", "METHODS", "DrawStage", "Draws", "FrequencyModel", "GainSampling",
+__all__ = ["Amplitude", "AmplitudeSampling", "CHANNEL_MODES", "EXISTING", "FREQ_PRIORS", "METHODS", "DrawStage", "Draws", "FrequencyModel", "GainSampling",
            "Gains", "Independent", "Joint", "JointFrequency", "Output", "RunSpec", "Solver", "run_settings", "sampling_of"]
 
 #: The paths a run may ask for (``"auto"``: chosen by size, :func:`gcrsky.solvers.plan.choose_path`): the
@@ -173,12 +175,19 @@ class RunSpec:
 
 
 def sampling_of(channels: str | None = None, gains: GainSampling | None = None,
-                frequency: FrequencyModel | None = None) -> DrawStage:
-    """The draw stage of at most one of an independent-channel mode, a gain sampling and a frequency prior.
+                frequency: FrequencyModel | None = None, amplitude: AmplitudeSampling | None = None) -> DrawStage:
+    """The draw stage of at most one of an independent-channel mode, a gain sampling and a frequency prior;
+    with ``amplitude`` (the amplitude inferred, :class:`Amplitude`) the gains, if any, are its own.
 
     Raises:
         ValueError: more than one is given (the message names them and what to drop).
     """
+    if amplitude is not None:
+        if channels is not None or frequency is not None:
+            raise ValueError("the amplitude is inferred jointly over the channels of a run (one sky model scale): "
+                             "drop " + ("channels (--by-channel, --devices, --num-processes)" if channels is not None
+                                        else "the frequency prior") + ", or fix the amplitude (--amplitude fixed)")
+        return Amplitude(amplitude if gains is None else dataclasses.replace(amplitude, gains=gains))
     given = [name for name, v in (("channels", channels), ("gains", gains), ("frequency", frequency)) if v is not None]
     if len(given) > 1:
         raise ValueError(f"a run samples one way: {' and '.join(given)} were both given. "

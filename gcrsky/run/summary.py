@@ -17,7 +17,7 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
-__all__ = ["RunProducts", "RunSummary", "info_stats", "read_summary", "solver_summary", "versions"]
+__all__ = ["RunProducts", "RunSummary", "fixed_flux_scale", "info_stats", "read_summary", "solver_summary", "versions"]
 
 METRICS_NOTE = (
     "metrics at the first frequency; |mean - truth|/|truth| of the posterior-mean map (sample mean of the "
@@ -79,6 +79,11 @@ class RunSummary:
         channels: the channels and their model (:func:`gcrsky.run.frequency.channels_block`): the
             frequency model, which channels are fully or partly flagged, each channel's unflagged
             fraction, where a flagged channel's posterior comes from, and a frequency prior's settings.
+        flux_scale: a run on a file: the amplitude ``q`` per channel (``data = q x`` the sky model's
+            visibilities in K): its posterior median and 95 % interval where inferred
+            (:func:`gcrsky.run.amplitude.amplitude_summary`), 1 where fixed; the autos' ratio beside it
+            and ``source`` (``"inferred"``, ``"fixed"``); None for a simulated run.
+        amplitude: a run that infers the amplitude: its settings and the ESS of every sampled scalar.
     """
 
     frac_diff_centre_median: float | None
@@ -104,6 +109,8 @@ class RunSummary:
     goodness_of_fit: dict | None = None
     gains: dict | None = None
     channels: dict | None = None
+    flux_scale: dict | None = None
+    amplitude: dict | None = None
 
     def to_json(self) -> dict:
         """The ``summary.json`` object: ``{field: value}`` in field order."""
@@ -121,6 +128,22 @@ class RunSummary:
         if unknown:
             raise ValueError(f"not keys of a run summary: {', '.join(unknown)}")
         return cls(**{k: d.get(k) for k in names})
+
+
+def fixed_flux_scale(prob) -> dict | None:
+    """The ``flux_scale`` block of a run on a file whose amplitude is fixed: ``q = 1`` per channel (the data taken
+    as calibrated), the autos' ratio beside it; None for a problem without data checks (a simulation)."""
+    checks = getattr(getattr(prob, "config", None), "checks", None)
+    if not checks:
+        return None
+    flux = checks.get("flux_scale") or {}
+    autos = flux.get("ratio_per_channel") or []
+    amp = checks.get("amplitude") or {}
+    return {"source": "fixed", "why": amp.get("why", "the data are taken as calibrated"),
+            "per_channel": [{"freq_hz": float(f), "median": 1.0, "lo95": 1.0, "hi95": 1.0,
+                             "autos_ratio": autos[i] if i < len(autos) else None}
+                            for i, f in enumerate(np.asarray(prob.freqs_hz))],
+            "autos_ratio": flux.get("ratio")}
 
 
 def read_summary(path) -> RunSummary:

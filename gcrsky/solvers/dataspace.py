@@ -323,7 +323,7 @@ def _lag_matrix(system: LinearSystem, lagst: LagStructure) -> jax.Array:
     B = 2 * nbl
     core = jnp.moveaxis(G[lagst.index], 2, 0)  # (Nf, Nt, Nt, B, B)
     core = jnp.swapaxes(core, 2, 3).reshape(nf, nt * B, nt * B)
-    sw = _sqrt_w(system)
+    sw = sqrt_weights(system)
     rows = jnp.concatenate([sw, sw], axis=-1).reshape(nf, nt * B)  # (Nf, N_d) in the row layout
     D = rows[:, :, None] * core * rows[:, None, :]
     D = 0.5 * (D + jnp.swapaxes(D, -1, -2))
@@ -384,7 +384,7 @@ def dataspace_matrix(system: LinearSystem, chunk: int | None = None, lags: LagSt
     k = -(-nt // c)  # chunks; the last one padded with zero rows
     B = c * 2 * nbl
     s = 1.0 / system.prior.inv_var  # (Nf, n)
-    sqrt_w = _sqrt_w(system)
+    sqrt_w = sqrt_weights(system)
     times = jnp.arange(k * c).reshape(k, c)
     I, J = np.triu_indices(k)
 
@@ -407,19 +407,19 @@ def dataspace_matrix(system: LinearSystem, chunk: int | None = None, lags: LagSt
 # ---------------------------------------------------------------- products with Y, Y^T
 
 
-def _sqrt_w(system: LinearSystem) -> jax.Array:
+def sqrt_weights(system: LinearSystem) -> jax.Array:
     """``W^1/2`` (Nf, Nt, Nbl), 0 on flagged samples with a zero (not NaN) derivative there."""
     w = system.inv_noise
     pos = w > 0
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, w, 1.0)), 0.0)
 
 
-def _y_apply(system: LinearSystem, sqrt_w, a):
+def whitened_apply(system: LinearSystem, sqrt_w, a):
     """``Y a = W^1/2 X a`` as rows (Nf, N_d), matrix-free."""
     return to_rows(sqrt_w * apply(system.op, a))
 
 
-def _y_adjoint(system: LinearSystem, sqrt_w, u):
+def whitened_adjoint(system: LinearSystem, sqrt_w, u):
     """``Y^T u = X^T W^1/2 u`` for rows u (Nf, N_d) -> (Nf, n), matrix-free."""
     _, nt, nbl = system.data.shape
     return adjoint(system.op, sqrt_w * from_rows(u, nt, nbl))
@@ -438,7 +438,7 @@ def _factor(system: LinearSystem, chunk: int | None = None, lags: LagStructure |
 
 def _d_matvec(system: LinearSystem, sqrt_w, u):
     """Matrix-free ``D u = u + Y S Y^T u`` for rows u (Nf, N_d)."""
-    return u + _y_apply(system, sqrt_w, _y_adjoint(system, sqrt_w, u) / system.prior.inv_var)
+    return u + whitened_apply(system, sqrt_w, whitened_adjoint(system, sqrt_w, u) / system.prior.inv_var)
 
 
 def _d_solve(system: LinearSystem, sqrt_w, D, L, b):
@@ -465,8 +465,8 @@ def _posterior_cov_apply(system: LinearSystem, sqrt_w, D, L, v):
     """``P^-1 v = S v - S Y^T D^-1 Y S v`` for v (Nf, n)."""
     s = 1.0 / system.prior.inv_var
     sv = s * v
-    x = _d_solve(system, sqrt_w, D, L, _y_apply(system, sqrt_w, sv))
-    return sv - s * _y_adjoint(system, sqrt_w, x)
+    x = _d_solve(system, sqrt_w, D, L, whitened_apply(system, sqrt_w, sv))
+    return sv - s * whitened_adjoint(system, sqrt_w, x)
 
 
 #: Largest ``Y = W^1/2 X`` (bytes, all channels) that ``materialize=None`` keeps for the draws.
@@ -492,10 +492,10 @@ def _dataspace_wiener(system: LinearSystem, D, L, options: DataSpaceOptions):
     state: :func:`_proxy_wiener`)."""
     if options.proxy:
         return _proxy_wiener(system, L, options)
-    sqrt_w = _sqrt_w(system)
+    sqrt_w = sqrt_weights(system)
     s = 1.0 / system.prior.inv_var
     x = _d_solve(system, sqrt_w, D, L, _whitened_residual(system, sqrt_w))
-    a_wf = system.prior.mean + s * _y_adjoint(system, sqrt_w, x)
+    a_wf = system.prior.mean + s * whitened_adjoint(system, sqrt_w, x)
     # how good is it: the true (matrix-free) residual of P a = b, in posterior-sigma units
     sg = jax.lax.stop_gradient
     ssys, Dc, Lc, a = sg(system), sg(D), sg(L), sg(a_wf)
@@ -533,7 +533,7 @@ def _rows_by_chunks(system: LinearSystem, chunk: int) -> jax.Array:
     k = -(-nt // chunk)
     B = 2 * nbl * chunk
     n = system.prior.mean.shape[-1]
-    sqrt_w = _sqrt_w(system)
+    sqrt_w = sqrt_weights(system)
     dtype = system.op.response.real.dtype
 
     def fill(i, Y):
@@ -639,7 +639,7 @@ def _prepare_in_place(system: LinearSystem, options: DataSpaceOptions, lags: Lag
     one host buffer, the Wiener filter through the factor."""
     check_float64(system.op.response, system.inv_noise)
     nf, nt, nbl = system.data.shape
-    sw = _sqrt_w(system)
+    sw = sqrt_weights(system)
     rows = np.asarray(jnp.concatenate([sw, sw], axis=-1).reshape(nf, nt * 2 * nbl))
     L = factor_in_place(system, lag_blocks_by_m(system, lags.lags), np.asarray(lags.index), rows)
     a_wf, info = _in_place_wiener(system, L, options)
@@ -689,9 +689,9 @@ def _proxy_solve(system: LinearSystem, sqrt_w, L, b, options: DataSpaceOptions):
 def _proxy_wiener(system: LinearSystem, L, options: DataSpaceOptions):
     """The Wiener filter ``a0 + S Y^T D^-1 r~`` by the proxy's CG; its info: CG's iterations and the rigorous
     bound ``||r||_2`` (posterior sigma) of the true data-space residual."""
-    sqrt_w = _sqrt_w(system)
+    sqrt_w = sqrt_weights(system)
     x, info = _proxy_solve(system, sqrt_w, L, _whitened_residual(system, sqrt_w), options)
-    a_wf = system.prior.mean + _y_adjoint(system, sqrt_w, x) / system.prior.inv_var
+    a_wf = system.prior.mean + whitened_adjoint(system, sqrt_w, x) / system.prior.inv_var
     finite = jnp.all(jnp.isfinite(jax.lax.stop_gradient(a_wf)), axis=-1)
     code = jnp.where(finite, info.result, Result.NONFINITE)
     info = info._replace(result=code, converged=code == Result.SUCCESS)
@@ -727,7 +727,7 @@ def _prepare_proxy(system: LinearSystem, proxy: LinearSystem, options: DataSpace
              "||r|| <= %.1e", nlags, "in place" if in_place else "jnp", options.tol)
     if in_place:
         nt, nbl = system.data.shape[1:]
-        sw = _sqrt_w(proxy)
+        sw = sqrt_weights(proxy)
         rows = np.asarray(jnp.concatenate([sw, sw], axis=-1).reshape(nf, nt * 2 * nbl))
         L = factor_in_place(proxy, lag_blocks_by_m(proxy, lags.lags), np.asarray(lags.index), rows)
     else:
@@ -757,7 +757,7 @@ def draw_dataspace(key: jax.Array, state: DataSpaceState, ndraws: int):
     system, a_wf, D, L = state.system, state.a_wf, state.gram, state.chol
     nf, n = a_wf.shape
     nd = L.shape[-1]
-    sqrt_w = _sqrt_w(system)
+    sqrt_w = sqrt_weights(system)
     s = 1.0 / system.prior.inv_var
     keep = to_rows(jnp.where(system.inv_noise > 0, 1.0 + 1.0j, 0.0)).astype(a_wf.dtype)  # 1 on unflagged rows
 
@@ -770,7 +770,7 @@ def draw_dataspace(key: jax.Array, state: DataSpaceState, ndraws: int):
     delta, z = jax.vmap(normals)(jax.random.split(key, ndraws))  # (ndraws, Nf, n), (ndraws, Nf, N_d)
     Y = state.rows
     if Y is None:  # matrix-free products, draw by draw
-        u = jax.vmap(lambda dd: _y_apply(system, sqrt_w, dd))(delta) + z
+        u = jax.vmap(lambda dd: whitened_apply(system, sqrt_w, dd))(delta) + z
     else:
         u = jnp.einsum("fak,dfk->dfa", Y, delta) + z
     base = a_wf
@@ -781,7 +781,7 @@ def draw_dataspace(key: jax.Array, state: DataSpaceState, ndraws: int):
     else:
         x = jax.vmap(lambda uu: _d_solve(system, sqrt_w, D, L, uu))(u)
     if Y is None:
-        corr = jax.vmap(lambda xx: s * _y_adjoint(system, sqrt_w, xx))(x)
+        corr = jax.vmap(lambda xx: s * whitened_adjoint(system, sqrt_w, xx))(x)
     else:
         corr = s * jnp.einsum("fak,dfa->dfk", Y, x)
     out = base[:, None, :] + jnp.moveaxis(delta - corr, 0, 1)
@@ -807,7 +807,7 @@ def dataspace_evidence_parts(system: LinearSystem, chunk: int | None = None, lag
         over the unflagged samples.  Differentiates implicitly (the solve) and by
         ``tr(D^-1 dD)`` (the log determinant), to second order.
     """
-    sqrt_w = _sqrt_w(system)
+    sqrt_w = sqrt_weights(system)
     D, L = _factor(system, chunk, lags)
     rt = _whitened_residual(system, sqrt_w)
     q = jnp.sum(rt * cholesky_solve(D, L, rt), axis=-1)
@@ -953,7 +953,7 @@ class DataSpacePath(SolverPath):
                              "(a frame map: DataSpaceOptions(proxy) None or True) has only the proxy's D0, which "
                              "differs from D by aberration; use gcrsky.inference.log_evidence_system (builds the "
                              "exact D) or prepare with DataSpaceOptions(proxy=False)")
-        sqrt_w = _sqrt_w(state.system)
+        sqrt_w = sqrt_weights(state.system)
         rt = _whitened_residual(state.system, sqrt_w)
         q = jnp.sum(rt * _d_solve(state.system, sqrt_w, state.gram, state.chol, rt), axis=-1)
         finite = _factor_finite(state.chol)
