@@ -12,7 +12,8 @@ l = 16), a bandpass 0.00345 -> 0.00255 (overall 0.003, slope -0.3) and radiomete
 * The unit-gain twin with ``--gains off`` (lmax 100, 200 independent draws): the fit not rejected, the
   true amplitude inside its interval, the truth's whitened ``z^2`` of ``q a`` near 1 along the
   data-dominated directions, and ``q = 1`` excluded.
-* Negative control: the gained twin with its gains ignored is rejected by the fit.
+* Negative controls: the gained twin with its gains ignored is rejected by the fit; the unit-gain twin read
+  as Jy (the amplitude fixed at 1) is refused by the autos' flux-scale check.
 """
 
 from __future__ import annotations
@@ -132,16 +133,28 @@ def test_ignored_gains_are_rejected(twins):
     assert rejected and np.max(chi2) > 2.0, chi2
 
 
-def test_an_amplitude_fixed_at_one_is_excluded(default_run):
-    """The amplitude fixed at 1 (the file read as Jy) is excluded by the inferred amplitude's posterior: 1 lies
-    far above every channel's 95 % interval.  The fit check alone does not reject it at this size (measured
-    with the unit-gain twin relabelled as Jy, ``--amplitude fixed --flux-scale accept --prior-mean gsm``:
-    chi2/dof 0.82, 0.96, lower-tail p 0.014, 0.3): the GSM's mean (l <= 16) is invisible to these baselines
-    (l >= 37), and the few tens of directions per channel that are sky-dominated at q = 1 (chi2 ~ 0 there) are
-    diluted by the 280 noise-dominated ones."""
+def test_an_amplitude_fixed_at_one_is_refused_and_excluded(twins, default_run, tmp_path, capsys):
+    """The amplitude fixed at 1: the unit-gain twin relabelled as Jy, run with defaults, is refused by the autos'
+    flux-scale check (ratio 0.0028, outside 0.5-2) with an error that names it; and the inferred amplitude's
+    posterior puts 1 far above every channel's 95 % interval.  (Forced through with ``--flux-scale accept
+    --prior-mean gsm``, the fit check alone does not reject it at this size -- chi2/dof 0.82, 0.96, lower-tail
+    p 0.014, 0.3: the GSM's mean (l <= 16) is invisible to these baselines (l >= 37), and the few tens of
+    directions per channel that are sky-dominated at q = 1 (chi2 ~ 0 there) are diluted by the 280
+    noise-dominated ones.)"""
+    from pyuvdata import UVData
+
+    tw0, _, _ = twins
     s, _ = default_run
     for c in s["flux_scale"]["per_channel"]:
         assert c["hi95"] < 0.01, c
+    uvd = UVData.from_file(str(tw0.path))
+    uvd.vis_units = "Jy"
+    jy = tmp_path / "twin_as_jy.uvh5"
+    uvd.write_uvh5(str(jy))
+    capsys.readouterr()
+    rc = cli.main(["run", "--data", str(jy), "--out", str(tmp_path / "fixed"), *RUN])
+    err = capsys.readouterr().err
+    assert rc != 0 and "flux" in err and "0.5" in err, (rc, err[-800:])
 
 
 def test_the_default_run_with_gains_fits_and_covers_the_true_amplitude(twins):

@@ -237,7 +237,7 @@ def test_draws_have_the_exact_posterior_covariance(partial):
 def test_negative_control_draws_without_the_noise_term_fail(partial):
     """The Hoffman-Ribak draw with z = 0 (the data's noise realisation left out) is too narrow along
     the data-dominated directions; the same test must reject it."""
-    from gcrsky.solvers.dataspace import _y_adjoint, _y_apply
+    from gcrsky.solvers.dataspace import whitened_adjoint, whitened_apply
     from gcrsky.solvers.dense import cholesky_solve
 
     st = prepare_dataspace(partial)
@@ -249,8 +249,8 @@ def test_negative_control_draws_without_the_noise_term_fail(partial):
 
         def one(k):
             delta = jnp.sqrt(s) * jax.random.normal(jax.random.split(k)[0], s.shape)
-            x = cholesky_solve(st.gram, st.chol, _y_apply(partial, sw, delta))
-            return st.a_wf + delta - s * _y_adjoint(partial, sw, x)
+            x = cholesky_solve(st.gram, st.chol, whitened_apply(partial, sw, delta))
+            return st.a_wf + delta - s * whitened_adjoint(partial, sw, x)
 
         return jnp.moveaxis(jax.vmap(one)(keys), 0, 1)
 
@@ -335,12 +335,12 @@ def icrs_long():
 def test_rows_formed_by_chunks_give_the_same_set_up(icrs_long, chunk):
     """Y materialised chunk by chunk into one buffer, D from it by row blocks: equal to the pairwise-block D
     and to Y formed for all times at once; the factor and Wiener filter equal the non-materialised path's."""
-    from gcrsky.solvers.dataspace import _chunk_rows, _sqrt_w
+    from gcrsky.solvers.dataspace import _chunk_rows, sqrt_weights
 
     ref = prepare_dataspace(icrs_long, DataSpaceOptions(materialize=False, time_chunk=6, proxy=False))
     st = prepare_dataspace(icrs_long, DataSpaceOptions(materialize=True, time_chunk=chunk, proxy=False))
     nt = icrs_long.data.shape[1]
-    rows_all = _chunk_rows(icrs_long.op, _sqrt_w(icrs_long), jnp.arange(nt))
+    rows_all = _chunk_rows(icrs_long.op, sqrt_weights(icrs_long), jnp.arange(nt))
     np.testing.assert_allclose(np.asarray(st.rows), np.asarray(rows_all), rtol=0, atol=1e-14 * float(jnp.abs(rows_all).max()))
     np.testing.assert_allclose(np.asarray(st.gram), np.asarray(ref.gram), rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(np.asarray(st.a_wf), np.asarray(ref.a_wf), rtol=1e-10, atol=1e-12)

@@ -32,14 +32,14 @@ from gcrsky.solvers import DataSpaceOptions
 from gcrsky.solvers.dataspace import (
     _condition_dataspace,
     _proxy_precond,
-    _sqrt_w,
     _whitened_residual,
-    _y_adjoint,
     data_size,
     dataspace_matrix,
     draw_dataspace,
     lag_structure,
     prepare_dataspace,
+    sqrt_weights,
+    whitened_adjoint,
 )
 from gcrsky.solvers.dataspace_proxy import anisotropy, stationary_proxy, truncation_index
 from gcrsky.solvers.registry import path_of
@@ -166,9 +166,9 @@ def test_negative_control_d0_as_if_it_were_d(system, reference):
     """The proxy's factor alone (x = D0^-1 r~, no CG) misses the Wiener filter by far more than TOL."""
     ref, P = reference
     st = prepare_dataspace(system, DataSpaceOptions(tol=TOL))
-    sw = _sqrt_w(system)
+    sw = sqrt_weights(system)
     x0 = _proxy_precond(st.chol)(_whitened_residual(system, sw))
-    a0 = system.prior.mean + _y_adjoint(system, sw, x0) / system.prior.inv_var
+    a0 = system.prior.mean + whitened_adjoint(system, sw, x0) / system.prior.inv_var
     err = _p_norm(P, np.asarray(a0 - ref.a_wf))
     log.info("D0 as D: Wiener error %s posterior sigma", err)
     assert np.all(err > 1e3 * TOL)

@@ -31,6 +31,7 @@ OLD_DEFAULTS = {
     "antennas": None, "bls": None, "compress": True, "frame_pad": 4, "memory_budget": None,
     "beam_normalization": "peak", "beam_freq_scaling": None, "accept_x_orientation_mismatch": False,
     "prior_mean": None, "band_limit": "truncate", "cal": None, "flag_outliers": True, "flux_scale": "accept",
+    "amplitude": "fixed",  # issue 38's keyword: the library keeps the old behaviour (the CLI's default is auto)
 }
 
 
@@ -121,5 +122,6 @@ def test_the_cli_builds_one_spec_for_run_and_inspect():
     assert r.selection == i.selection == Selection(pol=("xx", "yy"), freq_chans=[1, 2], freq_range_hz=(1e8, 1.2e8))
     assert r.checks == i.checks == DataChecks(flux_scale="check")  # the CLI refuses an off flux scale by default
     assert r.beam == i.beam == BeamSpec(dish_diameter_m=14.0)
-    assert (r.lmax, r.band_limit, r.compress, r.prior.prior, r.prior.prior_mean) == (5, "cut", False, "flat", "zero")
+    # prior_mean None: the prior's own mean, or the GSM's where the amplitude is inferred (issue 38)
+    assert (r.lmax, r.band_limit, r.compress, r.prior.prior, r.prior.prior_mean) == (5, "cut", False, "flat", None)
     assert (i.lmax, i.band_limit, i.compress, i.prior) == (5, "truncate", True, PriorSpec())

@@ -64,13 +64,18 @@ def amplitude_needed(data, cal=None) -> str | None:
     visibility file (or a ``UVData``) and of the gain solutions ``cal`` (a path), before anything is read."""
     from pyuvdata import UVData
 
+    from ..io.files import check_input_file, reading
+    from ..io.observation import VIS_FORMATS
+
     if isinstance(data, UVData):
         units = data.vis_units
     else:
-        try:
-            units = UVData.from_file(str(data), read_data=False).vis_units
-        except (TypeError, ValueError, NotImplementedError):  # a format without a metadata-only read
-            units = UVData.from_file(str(data)).vis_units
+        path = check_input_file(data, "visibility file", measurement_set=True)
+        with reading(path, "a visibility file", VIS_FORMATS):  # the reader's own message for a bad file
+            try:
+                units = UVData.from_file(str(path), read_data=False).vis_units
+            except (TypeError, NotImplementedError):  # a format without a metadata-only read
+                units = UVData.from_file(str(path)).vis_units
     if cal is None:
         return _not_absolute(units, False, None, None)
     from ..io.calibration import read_calibration
