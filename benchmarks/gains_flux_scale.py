@@ -47,9 +47,9 @@ from gcrsky.sphere.maps import alm_to_map  # noqa: E402
 
 def _ring(nside: int, ra_range_deg) -> np.ndarray:
     """Pixels of the ring nearest the site's latitude inside the observed RA stretch."""
-    theta = np.deg2rad(90.0 - HERA_SITE[0])
-    ring = hp.query_strip(nside, theta - 0.5 * hp.nside2resol(nside), theta + 0.5 * hp.nside2resol(nside))
-    _, ra = hp.pix2ang(nside, ring, lonlat=True)
+    ra, dec = hp.pix2ang(nside, np.arange(hp.nside2npix(nside)), lonlat=True)
+    near = np.abs(dec - HERA_SITE[0]) < 0.5 * np.rad2deg(hp.nside2resol(nside))
+    ring, ra = np.flatnonzero(near), ra[near]
     lo, hi = ra_range_deg
     inside = (ra - lo) % 360.0 <= (hi - lo) % 360.0
     return ring[inside]
@@ -59,7 +59,7 @@ def _run(path: Path, out: Path, lmax: int, extra: list[str]) -> dict:
     t0 = time.perf_counter()
     argv = ["run", "--data", str(path), "--out", str(out), "--dish-diameter", "14", "--lmax", str(lmax),
             "--nside", "32", "--band-limit", "truncate", "--nsamples", "200", "--batch", "100", "--no-plots",
-            "--no-progress", *extra]
+            "--no-progress", "--flux-scale", "accept", *extra]  # a white random sky, not the GSM
     assert cli.main(argv) == 0, argv
     s = json.loads((out / "summary.json").read_text())
     s["_seconds"] = time.perf_counter() - t0
