@@ -2,8 +2,9 @@
 
 H1C with its omnical solutions end to end (3 channels, lmax 4, nside 64 -- the quadrature must
 resolve the kept baselines' fringes, which reach l ~164 -- 10 draws): the solutions apply offline,
-the ORBCOMM channel is flagged, the flux scale (~0.004: redundant solutions leave the amplitude
-free) is refused, then accepted with ``--flux-scale accept``.
+the ORBCOMM channel is flagged, and with the amplitude held fixed (``--amplitude fixed --gains off``: the
+check's own path; by default the amplitude is inferred, tests/test_amplitude*.py) the flux scale (~0.004:
+redundant solutions leave the amplitude free) is refused, then accepted with ``--flux-scale accept``.
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ from gcrsky import cli
 pytestmark = pytest.mark.skipif(not H1C.exists(), reason="the real HERA files are not there")
 RUN = ["run", "--data", str(H1C), "--cal", str(CAL), "--dish-diameter", "14", "--chans", "20,24,30", "--lmax", "4",
        "--band-limit", "marginalise",  # every baseline reaches l > 80: the sky above lmax 4 as noise
-       "--nside", "64", "--nsamples", "10", "--batch", "5", "--no-progress", "--no-plots"]
+       "--nside", "64", "--nsamples", "10", "--batch", "5", "--no-progress", "--no-plots",
+       "--amplitude", "fixed", "--gains", "off"]
 
 
 def test_h1c_with_its_solutions_end_to_end(tmp_path, capsys):
@@ -43,9 +45,16 @@ def test_h1c_with_its_solutions_end_to_end(tmp_path, capsys):
 
 
 def test_an_uncalibrated_file_is_refused_naming_cal(tmp_path, capsys):
-    rc = cli.main(["run", "--data", str(H1C), "--dish-diameter", "14", "--chans", "20", "--lmax", "4", "--nside",
-                   "16", "--out", str(tmp_path / "x")])
+    """Held at a fixed amplitude an uncalibrated file is refused naming --cal; by default its amplitude is
+    inferred instead (said before any work; lmax 4 then reaches no baseline, refused cheaply before set-up)."""
+    args = ["run", "--data", str(H1C), "--dish-diameter", "14", "--chans", "20", "--lmax", "4", "--nside", "16",
+            "--out", str(tmp_path / "x")]
+    rc = cli.main([*args, "--amplitude", "fixed"])
     assert rc == 2 and "--cal FILE" in capsys.readouterr().err
+    rc = cli.main(args)
+    printed = capsys.readouterr()
+    assert rc == 2 and "amplitude per channel is inferred" in printed.out and "--cal FILE" not in printed.err
+    assert "reaches no baseline" in printed.err
 
 
 def test_inspect_reports_everything_then_problems(capsys):
