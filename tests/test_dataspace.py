@@ -128,6 +128,24 @@ def test_data_space_matrix_is_dense_algebra(icrs, chunk):
         assert np.max(np.abs(D[f] - ref)) < 1e-12 * np.max(np.abs(ref))
 
 
+def test_channel_groups_equal_all_channels_at_once(icrs, monkeypatch):
+    """D formed for one group of channels at a time (a lax.map over groups, the last one padded) equals D
+    formed for every channel at once: 3 channels in groups of 2 (one padding channel) and of 1."""
+    import gcrsky.solvers.dataspace as ds
+
+    three = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, a[:1]]) if a.ndim and a.shape[0] == 2 else a, icrs)
+    assert three.data.shape[0] == 3 and three.op.response.shape[0] == 3
+    whole = np.asarray(dataspace_matrix(three, 1))
+    per_channel = ds.RESPONSE_TRANSIENT * 8.0 * three.data.shape[2] * three.op.response.shape[-1]
+    for g in (2, 1):
+        monkeypatch.setattr(ds, "GROUP_BYTES", g * per_channel + 1)
+        jax.clear_caches()  # the group size is read when dataspace_matrix is traced
+        assert ds.channel_group(three, 1) == g
+        grouped = np.asarray(dataspace_matrix(three, 1))
+        np.testing.assert_allclose(grouped, whole, rtol=0, atol=1e-12 * np.max(np.abs(whole)))
+    np.testing.assert_array_equal(whole[2], whole[0])  # the copied channel
+
+
 def test_stationary_shortcut_equals_the_general_construction(partial, icrs):
     """One block per distinct lag (no frame map, S commutes with rotations about the pole) gives the D of
     the per-time blocks to rounding; it is not used with a frame map or a prior that does not commute."""

@@ -105,6 +105,7 @@ __all__ = [
     "DataSpacePath",
     "DataSpaceState",
     "CHUNK_BYTES",
+    "GROUP_BYTES",
     "LAG_TOL",
     "MATERIALIZE_MEMORY_FRACTION",
     "MAX_TIME_CHUNK",
@@ -114,6 +115,7 @@ __all__ = [
     "lag_structure",
     "materialize_rows",
     "check_proper_prior",
+    "channel_group",
     "choose_time_chunk",
     "data_size",
     "dataspace_evidence_parts",
@@ -204,7 +206,8 @@ def dataspace_memory_bytes(system: LinearSystem, ndraws: int = 1, materialize: b
 
     * D, its factor and the transient copies of its assembly: ``4 x 8 Nf N_d^2``;
     * the rows of ``chunk`` times being formed: ``RESPONSE_TRANSIENT x 8 Nf Nbl n_resp`` each (twice: the
-      block assembly forms two chunks at once; once where ``materialize`` builds ``Y`` chunk by chunk),
+      block assembly forms two chunks at once, for :func:`channel_group` channels at a time; once, for all
+      channels, where ``materialize`` builds ``Y`` chunk by chunk),
       and the frame map's Wigner blocks (``WIGNER_COPIES`` copies);
     * with ``materialize``, ``Y`` itself (``8 Nf N_d n``) twice: the process holds a second copy's worth
       while D is formed from it, outside XLA's buffers (measured +0.5 Y at lmax 100, +1.2 Y at lmax 185);
@@ -222,7 +225,8 @@ def dataspace_memory_bytes(system: LinearSystem, ndraws: int = 1, materialize: b
     chunk = max(1, min(nt, int(chunk)))
     per_time = RESPONSE_TRANSIENT * 8.0 * nf * nbl * n_resp
     build = 4.0 * 8 * nf * nd * nd + WIGNER_COPIES * _wigner_bytes(system)
-    build += (2.0 * 8 * nf * nd * n + chunk * per_time) if materialize else 2.0 * chunk * per_time
+    group = per_time * channel_group(system, chunk) / nf  # D's rows formed for one group of channels at a time
+    build += (2.0 * 8 * nf * nd * n + chunk * per_time) if materialize else 2.0 * chunk * group
     per_draw = 6.0 * 8 * nf * (nd + n) + (0.0 if materialize else 2.0 * 8 * nf * nt * n)
     return build + max(1, ndraws) * per_draw
 
@@ -362,6 +366,23 @@ def _chunk_rows(op, sqrt_w: jax.Array, times: jax.Array) -> jax.Array:
     return jnp.moveaxis(Y, 0, 1).reshape(nf, c * 2 * nbl, n)
 
 
+#: Largest transient of one group of channels while D is built: the rows of a chunk of times are
+#: formed for :func:`channel_group` channels at a time (a ``lax.map`` over the groups), so that the set-up's
+#: peak does not grow with the number of channels beyond D itself (64 H1C channels at lmax 195 formed at
+#: once held 33.8 GB of temporaries, XLA's memory analysis; in groups of 2, 1.1 GB).
+GROUP_BYTES = 2 * 2**30
+
+
+def channel_group(system: LinearSystem, chunk: int | None = None) -> int:
+    """Channels whose rows :func:`dataspace_matrix` forms at once: all of them where one chunk of times'
+    transient (``RESPONSE_TRANSIENT x 8 Nbl n_resp`` per channel and time) fits in :data:`GROUP_BYTES`,
+    else as many as do (at least one)."""
+    nf, _, nbl = (int(x) for x in system.data.shape)
+    c = time_chunk(system, chunk)
+    per_channel = RESPONSE_TRANSIENT * 8.0 * nbl * int(system.op.response.shape[-1]) * c
+    return max(1, min(nf, int(GROUP_BYTES // per_channel)))
+
+
 @partial(jax.jit, static_argnames=("chunk",))
 def dataspace_matrix(system: LinearSystem, chunk: int | None = None, lags: LagStructure | None = None) -> jax.Array:
     """``D = I + W^1/2 X S X^T W^1/2``, (Nf, N_d, N_d), from blocks of times (module docstring).
@@ -374,17 +395,39 @@ def dataspace_matrix(system: LinearSystem, chunk: int | None = None, lags: LagSt
     :data:`CHUNK_BYTES`), and a
     ``lax.map`` over the pairs of chunks ``c <= c'`` forms ``Y_c S Y_c'^T`` from the
     per-time responses (:func:`gcrsky.model.operator.response_at`), rematerialised under
-    reverse-mode differentiation; memory ``O(Nf N_d^2 + CHUNK_BYTES)``.
+    reverse-mode differentiation; the channels in groups of :func:`channel_group` (a ``lax.map`` over
+    the groups where one group is not all of them); memory ``O(Nf N_d^2 + GROUP_BYTES)``.
     """
     if lags is not None:
         return _lag_matrix(system, lags)
-    op = system.op
-    nf, nt, nbl = system.data.shape
+    nf = system.data.shape[0]
     c = time_chunk(system, chunk)
-    k = -(-nt // c)  # chunks; the last one padded with zero rows
-    B = c * 2 * nbl
+    g = channel_group(system, chunk)
     s = 1.0 / system.prior.inv_var  # (Nf, n)
     sqrt_w = sqrt_weights(system)
+    if g >= nf:
+        return _matrix_of(system.op, sqrt_w, s, c)
+    k = -(-nf // g)
+    pad = k * g - nf  # padding channels: zero weights, unit S (their D is I; dropped)
+
+    def grouped(a, fill):
+        a = jnp.concatenate([a, jnp.full((pad,) + a.shape[1:], fill, a.dtype)]) if pad else a
+        return a.reshape((k, g) + a.shape[1:])
+
+    def one(xs):
+        resp, sw, sg = xs
+        return _matrix_of(system.op._replace(response=resp), sw, sg, c)
+
+    D = jax.lax.map(one, (grouped(system.op.response, 0), grouped(sqrt_w, 0), grouped(s, 1)))
+    return D.reshape((k * g,) + D.shape[2:])[:nf]
+
+
+def _matrix_of(op, sqrt_w, s, c: int) -> jax.Array:
+    """D (Nf, N_d, N_d) of the channels of ``op`` (response (Nf, Nbl, n_resp)), ``sqrt_w`` (Nf, Nt, Nbl) and
+    ``S`` (Nf, n), the times in chunks of ``c`` (:func:`dataspace_matrix`)."""
+    nf, nt, nbl = sqrt_w.shape
+    k = -(-nt // c)  # chunks; the last one padded with zero rows
+    B = c * 2 * nbl
     times = jnp.arange(k * c).reshape(k, c)
     I, J = np.triu_indices(k)
 
