@@ -129,14 +129,16 @@ def test_data_space_matrix_is_dense_algebra(icrs, chunk):
 
 
 def test_channel_groups_equal_all_channels_at_once(icrs, monkeypatch):
-    """D formed for one group of channels at a time (a lax.map over groups, the last one padded) equals D
-    formed for every channel at once: 3 channels in groups of 2 (one padding channel) and of 1."""
+    """D formed for one group of channels at a time (a lax.map over groups, the last one padded; each group's
+    rows materialised) equals D formed for every channel at once by pairs of time chunks: 3 channels in
+    groups of 2 (one padding channel) and of 1."""
     import gcrsky.solvers.dataspace as ds
 
     three = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, a[:1]]) if a.ndim and a.shape[0] == 2 else a, icrs)
     assert three.data.shape[0] == 3 and three.op.response.shape[0] == 3
+    assert ds.channel_group(three, 1) is None  # small: every channel at once (pairs of time chunks)
     whole = np.asarray(dataspace_matrix(three, 1))
-    per_channel = ds.RESPONSE_TRANSIENT * 8.0 * three.data.shape[2] * three.op.response.shape[-1]
+    per_channel = ds._group_channel_bytes(three)
     for g in (2, 1):
         monkeypatch.setattr(ds, "GROUP_BYTES", g * per_channel + 1)
         jax.clear_caches()  # the group size is read when dataspace_matrix is traced

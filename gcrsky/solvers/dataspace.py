@@ -206,8 +206,8 @@ def dataspace_memory_bytes(system: LinearSystem, ndraws: int = 1, materialize: b
 
     * D, its factor and the transient copies of its assembly: ``4 x 8 Nf N_d^2``;
     * the rows of ``chunk`` times being formed: ``RESPONSE_TRANSIENT x 8 Nf Nbl n_resp`` each (twice: the
-      block assembly forms two chunks at once, for :func:`channel_group` channels at a time; once, for all
-      channels, where ``materialize`` builds ``Y`` chunk by chunk),
+      block assembly forms two chunks at once; once where ``materialize`` builds ``Y`` chunk by chunk; for
+      many channels (:func:`channel_group`) one group's rows and one time's transient instead),
       and the frame map's Wigner blocks (``WIGNER_COPIES`` copies);
     * with ``materialize``, ``Y`` itself (``8 Nf N_d n``) twice: the process holds a second copy's worth
       while D is formed from it, outside XLA's buffers (measured +0.5 Y at lmax 100, +1.2 Y at lmax 185);
@@ -225,8 +225,11 @@ def dataspace_memory_bytes(system: LinearSystem, ndraws: int = 1, materialize: b
     chunk = max(1, min(nt, int(chunk)))
     per_time = RESPONSE_TRANSIENT * 8.0 * nf * nbl * n_resp
     build = 4.0 * 8 * nf * nd * nd + WIGNER_COPIES * _wigner_bytes(system)
-    group = per_time * channel_group(system, chunk) / nf  # D's rows formed for one group of channels at a time
-    build += (2.0 * 8 * nf * nd * n + chunk * per_time) if materialize else 2.0 * chunk * group
+    g = None if materialize else channel_group(system, chunk)
+    if g is not None:  # D formed for one group of channels at a time from its materialised rows
+        build += g * _group_channel_bytes(system)
+    else:
+        build += (2.0 * 8 * nf * nd * n + chunk * per_time) if materialize else 2.0 * chunk * per_time
     per_draw = 6.0 * 8 * nf * (nd + n) + (0.0 if materialize else 2.0 * 8 * nf * nt * n)
     return build + max(1, ndraws) * per_draw
 
@@ -366,21 +369,32 @@ def _chunk_rows(op, sqrt_w: jax.Array, times: jax.Array) -> jax.Array:
     return jnp.moveaxis(Y, 0, 1).reshape(nf, c * 2 * nbl, n)
 
 
-#: Largest transient of one group of channels while D is built: the rows of a chunk of times are
-#: formed for :func:`channel_group` channels at a time (a ``lax.map`` over the groups), so that the set-up's
-#: peak does not grow with the number of channels beyond D itself (64 H1C channels at lmax 195 formed at
-#: once held 33.8 GB of temporaries, XLA's memory analysis; in groups of 2, 1.1 GB).
+#: Largest transient of the set-up before :func:`dataspace_matrix` forms D for groups of channels: where
+#: forming a chunk of times' rows for every channel at once would hold more (``2 x RESPONSE_TRANSIENT x 8 Nf
+#: Nbl n_resp`` per time), the rows ``Y`` of :func:`channel_group` channels are materialised at a time (each
+#: time rotated once) and D formed from them.  64 H1C channels at lmax 195 formed at once held 33.8 GB of
+#: temporaries (XLA's memory analysis) and took ~95 s per channel (the rows of every pair of chunks formed
+#: again); in groups, about 2 GB.
 GROUP_BYTES = 2 * 2**30
 
 
-def channel_group(system: LinearSystem, chunk: int | None = None) -> int:
-    """Channels whose rows :func:`dataspace_matrix` forms at once: all of them where one chunk of times'
-    transient (``RESPONSE_TRANSIENT x 8 Nbl n_resp`` per channel and time) fits in :data:`GROUP_BYTES`,
-    else as many as do (at least one)."""
+def _group_channel_bytes(system: LinearSystem) -> float:
+    """Bytes one channel of a group holds while D is formed: its rows ``Y`` (twice: D is formed from them)
+    and one time's transient."""
+    _, nt, nbl = (int(x) for x in system.data.shape)
+    n, n_resp = int(system.prior.mean.shape[-1]), int(system.op.response.shape[-1])
+    return 2.0 * 8 * 2 * nt * nbl * n + RESPONSE_TRANSIENT * 8.0 * nbl * n_resp
+
+
+def channel_group(system: LinearSystem, chunk: int | None = None) -> int | None:
+    """None where :func:`dataspace_matrix` forms every channel's D at once (pairs of time chunks: their
+    transient ``2 x RESPONSE_TRANSIENT x 8 Nf Nbl n_resp`` per time fits in :data:`GROUP_BYTES`); else the
+    channels per group whose rows are materialised at a time (at least one; :func:`_group_channel_bytes`)."""
     nf, _, nbl = (int(x) for x in system.data.shape)
     c = time_chunk(system, chunk)
-    per_channel = RESPONSE_TRANSIENT * 8.0 * nbl * int(system.op.response.shape[-1]) * c
-    return max(1, min(nf, int(GROUP_BYTES // per_channel)))
+    if 2.0 * c * RESPONSE_TRANSIENT * 8 * nf * nbl * int(system.op.response.shape[-1]) <= GROUP_BYTES:
+        return None
+    return max(1, min(nf, int(GROUP_BYTES // _group_channel_bytes(system))))
 
 
 @partial(jax.jit, static_argnames=("chunk",))
@@ -390,13 +404,14 @@ def dataspace_matrix(system: LinearSystem, chunk: int | None = None, lags: LagSt
     With ``lags`` (:func:`lag_structure` of this system) by the stationary shortcut,
     one block per distinct lag; else as follows.
 
-    Never materialises X for every time (unless it is small): the times are cut into
+    Never materialises X for every time and channel (unless it is small): the times are cut into
     chunks of ``chunk`` times (default :func:`time_chunk`: rows of at most
     :data:`CHUNK_BYTES`), and a
     ``lax.map`` over the pairs of chunks ``c <= c'`` forms ``Y_c S Y_c'^T`` from the
     per-time responses (:func:`gcrsky.model.operator.response_at`), rematerialised under
-    reverse-mode differentiation; the channels in groups of :func:`channel_group` (a ``lax.map`` over
-    the groups where one group is not all of them); memory ``O(Nf N_d^2 + GROUP_BYTES)``.
+    reverse-mode differentiation; memory ``O(Nf N_d^2 + CHUNK_BYTES)``.  Where that transient would
+    exceed :data:`GROUP_BYTES` (many channels), a ``lax.map`` over groups of :func:`channel_group`
+    channels materialises each group's rows (one rotation per time) and forms its D from them.
     """
     if lags is not None:
         return _lag_matrix(system, lags)
@@ -404,9 +419,8 @@ def dataspace_matrix(system: LinearSystem, chunk: int | None = None, lags: LagSt
     c = time_chunk(system, chunk)
     g = channel_group(system, chunk)
     s = 1.0 / system.prior.inv_var  # (Nf, n)
-    sqrt_w = sqrt_weights(system)
-    if g >= nf:
-        return _matrix_of(system.op, sqrt_w, s, c)
+    if g is None:
+        return _matrix_of(system.op, sqrt_weights(system), s, c)
     k = -(-nf // g)
     pad = k * g - nf  # padding channels: zero weights, unit S (their D is I; dropped)
 
@@ -415,10 +429,14 @@ def dataspace_matrix(system: LinearSystem, chunk: int | None = None, lags: LagSt
         return a.reshape((k, g) + a.shape[1:])
 
     def one(xs):
-        resp, sw, sg = xs
-        return _matrix_of(system.op._replace(response=resp), sw, sg, c)
+        resp, data, w, iv = xs
+        sys_g = LinearSystem(system.op._replace(response=resp), data, w, system.prior._replace(mean=iv, inv_var=iv))
+        D = _gram_from_rows(sys_g, _rows_by_chunks(sys_g, 1))
+        return 0.5 * (D + jnp.swapaxes(D, -1, -2))  # exactly symmetric, as the pairs' assembly
 
-    D = jax.lax.map(one, (grouped(system.op.response, 0), grouped(sqrt_w, 0), grouped(s, 1)))
+    xs = (grouped(system.op.response, 0), grouped(system.data, 0), grouped(system.inv_noise, 0),
+          grouped(system.prior.inv_var, 1))
+    D = jax.lax.map(one, xs)
     return D.reshape((k * g,) + D.shape[2:])[:nf]
 
 
