@@ -74,7 +74,7 @@ from __future__ import annotations
 
 import sys
 
-from .errors import EXIT_USAGE, USER_ERRORS, report_user_error
+from .errors import EXIT_USAGE, USER_ERRORS, out_of_memory, report_user_error
 from .options import EXIT_DIST
 from .parser import build_parser
 from .runs import EXIT_REFUSED, EXIT_REJECTED
@@ -110,3 +110,8 @@ def main(argv=None) -> int:
         return EXIT_DIST
     except USER_ERRORS as e:  # a bad file, option or path, a full disk, too little memory: a message, exit 2
         return report_user_error(e, getattr(args, "command", None) or "", getattr(args, "verbose", 0))
+    except Exception as e:  # XLA's out-of-memory (an allocation no estimate foresaw): a message too, not a traceback
+        oom = out_of_memory(e)
+        if oom is None:
+            raise
+        return report_user_error(oom, getattr(args, "command", None) or "", getattr(args, "verbose", 0))

@@ -232,5 +232,12 @@ def _run_data(args) -> int:
               f"{spec.gains.basis} modes per gain{how}, "
               f"prior sd {spec.gains.sigma:g}, starting amplitude {spec.gains.applied:.4g}, burn-in {spec.gains.burn}"
               f" sweeps; the draws are a Markov chain's")
+    else:
+        from ..run.memoryplan import fit_in_memory
+
+        plan = fit_in_memory(prob, spec)  # one channel at a time where all at once does not fit a direct path
+        if plan.note:
+            print(f"gcrsky: {plan.note}")
+        spec = plan.spec
     done = execute_with_bars(args, prob, spec, (PaperReport(),), build_s=build_s, compile_since=compile0)
     return done if isinstance(done, int) else report_run(*done, out, strict=args.strict)

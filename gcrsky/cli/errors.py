@@ -12,7 +12,7 @@ import errno
 import sys
 import traceback
 
-__all__ = ["EXIT_USAGE", "USER_ERRORS", "error_message", "report_user_error"]
+__all__ = ["EXIT_USAGE", "USER_ERRORS", "error_message", "out_of_memory", "report_user_error"]
 
 #: Exit status of a user error (as argparse's for bad arguments).
 EXIT_USAGE = 2
@@ -46,8 +46,28 @@ def error_message(e: BaseException) -> str:
             return f"{e.filename}: {what}"
         return str(e)
     if isinstance(e, MemoryError):
-        return str(e) or "out of memory: choose a smaller problem (--lmax, --nside, fewer channels or baselines)"
+        from ..run.memoryplan import CLI_MEMORY_OPTIONS
+
+        what = str(e) or "out of memory"
+        return what if "--" in what else f"{what}; on the command line: {CLI_MEMORY_OPTIONS}"
     return str(e)
+
+
+def out_of_memory(e: BaseException) -> MemoryError | None:
+    """XLA's out-of-memory error (``RESOURCE_EXHAUSTED`` / ``Out of memory allocating N bytes``) as a
+    :class:`MemoryError` saying so and what to change (the traceback stays under ``-v``); None for any other."""
+    text = str(e)
+    if type(e).__name__ != "JaxRuntimeError" or not ("RESOURCE_EXHAUSTED" in text or "Out of memory" in text):
+        return None
+    import re
+
+    size = re.search(r"allocating (\d+) bytes", text)
+    from ..base.memory import format_bytes
+
+    got = f" (an allocation of {format_bytes(float(size.group(1)))})" if size else ""
+    err = MemoryError(f"the device ran out of memory{got}, past gcrsky's own estimates (please report it)")
+    err.__cause__ = e
+    return err
 
 
 def report_user_error(e: BaseException, command: str, verbose: int) -> int:

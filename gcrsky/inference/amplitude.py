@@ -55,6 +55,7 @@ from ..model.system import LinearSystem
 from ..solvers.dataspace import (
     check_proper_prior,
     dataspace_matrix,
+    dataspace_memory_bytes,
     from_rows,
     sqrt_weights,
     to_rows,
@@ -72,6 +73,7 @@ __all__ = [
     "AmplitudeFixed",
     "AmplitudeState",
     "amplitude_eigen",
+    "amplitude_memory_bytes",
     "amplitude_setup",
     "amplitude_sweep",
     "draw_log_u",
@@ -131,6 +133,23 @@ class AmplitudeState(NamedTuple):
     log_u: jax.Array
     delta: jax.Array
     theta: jax.Array
+
+
+#: Copies of the per-channel ``N_d x N_d`` Gram matrix an amplitude chain holds (the matrix, the gained
+#: one, its eigenvectors and the eigendecomposition's workspace): XLA's memory analysis of a segment of
+#: sweeps on the 64 H1C channels (N_d = 1120) gives 2.8-3.0 GB of temporaries at lmax 195-246, ~4.5 copies
+#: beside the Gram matrix's own; 9 bounds it.
+GRAM_COPIES = 9.0
+
+
+def amplitude_memory_bytes(system: LinearSystem, kept: int = 1) -> float:
+    """Estimated peak bytes (float64) of an amplitude run beyond the system: the data-space set-up
+    (:func:`gcrsky.solvers.dataspace.dataspace_memory_bytes`), :data:`GRAM_COPIES` copies of the Gram
+    matrices (``8 Nf N_d^2`` each) and ``kept`` states of the sky (``8 Nf n`` each, twice: the draws and
+    the chain's copy)."""
+    nf, nt, nbl = (int(x) for x in system.data.shape)
+    nd, n = 2 * nt * nbl, int(system.prior.mean.shape[-1])
+    return dataspace_memory_bytes(system) + GRAM_COPIES * 8.0 * nf * nd * nd + 2 * 8.0 * max(1, kept) * nf * n
 
 
 def amplitude_setup(system: LinearSystem, chunk: int | None = None) -> AmplitudeFixed:

@@ -39,6 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..base.dtypes import check_float64
+from ..base.memory import check_memory
 from ..model.operator import adjoint
 from ..model.prior import prior_from_cl
 from ..model.system import LinearSystem, data_apply, fluctuation_rhs, precision_matrix, wiener_rhs
@@ -60,6 +61,7 @@ __all__ = [
     "gcr_step",
     "gibbs_init",
     "gibbs_setup",
+    "gibbs_setup_bytes",
     "gibbs_step",
     "joint_step",
     "sky_step",
@@ -223,6 +225,26 @@ def _auto_rank(lam) -> int:
     return min(k0, max(32, 16 * int(np.ceil(1.25 * count / 16))))
 
 
+def gibbs_setup_bytes(n_freqs: int, n: int, options=None, sketch_size: int | str = "auto") -> float:
+    """Estimated peak bytes of :func:`gibbs_setup`'s fixed data term (float64), beyond the system.
+
+    Cholesky path (the default): ``H``, its factor and the precision they are formed from, ``3 x 8 Nf n^2``.
+    CG path: the sketch, its eigenvectors and ``G`` (``4 x 8 Nf n k``, ``k = min(n, 512)`` for ``"auto"``)
+    and the per-degree blocks ``B`` (``8 Nf (lmax + 1) k^2``), plus ``H`` and its eigendecomposition
+    (``3 x 8 Nf n^2``) where ``options.dense``.  Other paths: 0 (their own set-up checks its memory).
+    """
+    options = CholeskyOptions() if options is None else options
+    nf, n = int(n_freqs), int(n)
+    if isinstance(options, CholeskyOptions):
+        return 3 * 8.0 * nf * n * n
+    if isinstance(options, CGOptions):
+        k = min(n, AUTO_SKETCH) if isinstance(sketch_size, str) else int(sketch_size)
+        lmax = lmax_from_nparams(n)
+        dense = 3 * 8.0 * nf * n * n if options.dense else 0.0
+        return dense + 4 * 8.0 * nf * n * k + 8.0 * nf * (lmax + 1) * k * k
+    return 0.0
+
+
 def gibbs_setup(system: LinearSystem, *, options=None, sketch_size: int | str = "auto", key=None,
                 rank: int | str | None = None) -> GibbsFixed:
     """Build the a-step's fixed data term once (pure for an integer ``sketch_size``).
@@ -245,6 +267,10 @@ def gibbs_setup(system: LinearSystem, *, options=None, sketch_size: int | str = 
             80).  Per step the preconditioner costs ``O(lmax k^2 + k^3)``.
         key: PRNG key of that sketch (default PRNGKey(0)).
         rank: deprecated name of ``sketch_size``.
+
+    Raises:
+        gcrsky.base.InsufficientMemoryError: the set-up (:func:`gibbs_setup_bytes`) would not fit in the
+            memory available, before anything is allocated; the message names the sizes.
     """
     if rank is not None:
         warnings.warn("gibbs_setup(rank=...) is deprecated: use sketch_size=", DeprecationWarning, stacklevel=2)
@@ -252,6 +278,12 @@ def gibbs_setup(system: LinearSystem, *, options=None, sketch_size: int | str = 
     options = CholeskyOptions() if options is None else options
     sky = _sky_solver(options)
     check_float64(system.op.response, system.inv_noise)
+    nf, n = (int(x) for x in system.prior.mean.shape)
+    check_memory(gibbs_setup_bytes(nf, n, options, sketch_size),
+                 f"gibbs_setup ({type(options).__name__}, Nf = {nf}, n = {n})",
+                 "use a lower lmax or fewer channels" + ("" if isinstance(options, CGOptions) and not options.dense
+                                                         else ", or the matrix-free CG path (CGOptions(dense=False))")
+                 + ("" if isinstance(options, CholeskyOptions) else ", or a smaller sketch_size"))
     data_rhs = adjoint(system.op, system.inv_noise * system.data)
     return GibbsFixed(system, data_rhs, *sky.setup(system, options, sketch_size, key), options)
 

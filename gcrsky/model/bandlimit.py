@@ -155,9 +155,11 @@ def required_lmax(reach) -> int:
 
 
 def memory_lmax(n_freqs: int, n_rows: int, budget_bytes: float, *, frame_pad: int = 4,
-                n_times: int | None = None) -> int:
+                n_times: int | None = None, channels_at_once: int | None = None) -> int:
     """The largest lmax whose large arrays fit in ``budget_bytes``: the response (Nf, Nrow,
-    (lmax + pad + 1)^2 complex128) plus, per channel, the cheapest exact path's: one dense (n, n)
+    (lmax + pad + 1)^2 complex128) plus, for ``channels_at_once`` channels (default all ``n_freqs``;
+    :func:`choose_lmax` counts one, the set-up of a run that goes one channel at a time where all at
+    once do not fit, :func:`gcrsky.run.memoryplan.fit_in_memory`), the cheapest exact path's: one dense (n, n)
     float64 precision, or (with ``n_times``) a data-space set-up (``N_d = 2 Nrow Nt`` real data
     values): the standard one's (N_d, N_d) matrix three times over and the explicit (N_d / 2, n_resp)
     complex128 operator twice, or the in-place one's
@@ -172,7 +174,8 @@ def memory_lmax(n_freqs: int, n_rows: int, budget_bytes: float, *, frame_pad: in
             standard = 3 * 8.0 * nd * nd + 2 * 16.0 * (nd / 2) * nr
             in_place = 8.0 * nd * nd + 2 * 8.0 * n_times * (2 * n_rows) ** 2 + 4 * 8.0 * 2 * n_rows * nr
             per_channel = min(per_channel, standard, in_place)
-        if 16.0 * n_freqs * n_rows * nr + n_freqs * per_channel > budget_bytes:
+        at_once = n_freqs if channels_at_once is None else min(n_freqs, channels_at_once)
+        if 16.0 * n_freqs * n_rows * nr + at_once * per_channel > budget_bytes:
             return lmax
         lmax += 1
 
@@ -194,7 +197,8 @@ def choose_lmax(reach, lmax: int | None, *, n_rows: int, budget_bytes: float | N
         from ..base.memory import available_memory_bytes
 
         budget_bytes = 0.5 * available_memory_bytes()
-    cap = memory_lmax(np.shape(reach)[0], n_rows, budget_bytes, frame_pad=frame_pad, n_times=n_times)
+    cap = memory_lmax(np.shape(reach)[0], n_rows, budget_bytes, frame_pad=frame_pad, n_times=n_times,
+                      channels_at_once=1)
     chosen = min(need, cap)
     if chosen < need:
         log.warning("band limit: the longest baselines reach l = %d, memory allows lmax %d: using %d and cutting "

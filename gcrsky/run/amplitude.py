@@ -44,9 +44,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..base.memory import check_memory
 from ..inference.amplitude import (
     AmplitudeState,
     amplitude_eigen,
+    amplitude_memory_bytes,
     amplitude_setup,
     amplitude_sweep,
     draw_log_u,
@@ -310,6 +312,12 @@ def amplitude_draws(prob, spec, run: OpenRun, st: StageTimer, watch: Watch) -> s
     key = jax.random.PRNGKey(d.seed)
     method = "amplitude+" + ("gains+" if amp.gains is not None else "") + "dataspace"
     nf, nt, nbl = prob.data.shape
+    kept = max(d.batch, -(-amp.gains.burn // RECENTRES) if amp.gains is not None else 1)
+    check_memory(amplitude_memory_bytes(prob.system(), kept),
+                 f"the amplitude run ({nf} channels, N_d = {2 * nt * nbl} data values per channel, "
+                 f"n = {prob.system().prior.mean.shape[1]})",
+                 "choose fewer channels (--freq-range, --chans), times (--lst-range) or antennas (--antennas), "
+                 "a lower --lmax, or a smaller --batch")
     st.start("wiener")
     if run.state is None:
         chain = amplitude_chain_setup(key, prob, amp)
