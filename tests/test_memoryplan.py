@@ -128,3 +128,29 @@ def test_an_amplitude_run_that_does_not_fit_is_refused_before_its_set_up(prob, t
     with pytest.raises(InsufficientMemoryError, match=r"the amplitude run \(4 channels, N_d = "):
         execute(prob, _spec(tmp_path, sampling=Amplitude()))
     assert not (tmp_path / "run" / "results.h5").exists()
+
+
+def test_products_show_the_first_channel_with_data_and_say_their_units(prob, tmp_path):
+    """Issue 39: with channel 0 fully flagged (100 MHz on H1C), the top-level metrics, RunProducts and the
+    figures use channel 1 (the first with data) and say so; the maps carry their unit in summary.json and in
+    the FITS headers.  Negative control: without the flags, channel 0 is shown."""
+    import dataclasses
+
+    import h5py
+    from astropy.io import fits
+
+    w = np.asarray(prob.weights).copy()
+    w[0] = 0.0
+    flagged = dataclasses.replace(prob, weights=w)
+    assert not np.any(np.asarray(flagged.system().inv_noise)[0] > 0)
+    summary, products = execute(flagged, _spec(tmp_path))
+    assert summary.shown_channel["index"] == 1 and "first channel with data" in summary.shown_channel["why"]
+    assert summary.metrics == summary.per_frequency[1] != summary.per_frequency[0]
+    with h5py.File(tmp_path / "run" / "results.h5") as h:
+        mean = {k: h[k][()] for k in ("maps/mean",) if k in h} or {"maps/mean": h["mean_maps"][()]}
+    np.testing.assert_array_equal(products.mean_map, mean["maps/mean"][1])
+    assert summary.units == {"maps": "K", "flux_scale": "simulation", "note": summary.units["note"]}
+    header = fits.getheader(tmp_path / "run" / "posterior_mean.fits", 1)
+    assert header["MAPUNIT"] == "K" and header["FLUXSCAL"] == "simulation"
+    control, _ = execute(prob, _spec(tmp_path / "control"))
+    assert control.shown_channel["index"] == 0 and control.metrics == control.per_frequency[0]

@@ -105,7 +105,7 @@ class PaperReport(ReportHook):
         """Figs. 3-7 with a truth, the posterior maps without one; a note when neither applies."""
         maps = view.maps
         if (view.finite and maps.truth_maps is not None and maps.centre_dec_deg is not None
-                and view.per_freq[0].get("fwhm_deg") is not None):
+                and view.per_freq[view.shown].get("fwhm_deg") is not None):
             return FigureReport(run_figures(out, view, only_missing=only_missing), [])
         if view.finite and maps.truth_maps is None and maps.centre_dec_deg is not None:
             return FigureReport(data_figures(out, view, only_missing=only_missing), [])
@@ -141,16 +141,17 @@ def run_figures(out: Path, view: RunView, *, only_missing: bool = False) -> dict
     ms = view.maps
     if ms.truth_maps is None or ms.centre_dec_deg is None:
         raise ValueError("the per-run figures compare with a truth and need the configuration's region")
-    out, prob, draws, f0 = Path(out), view.problem, view.draws, view.per_freq[0]
+    i = view.shown
+    out, prob, draws, f0 = Path(out), view.problem, view.draws, view.per_freq[i]
     modes, truth, nsamples = prob.modes, np.asarray(prob.a_true), draws.shape[1]
-    truth_map, mean_map, std_map = ms.truth_maps[0], ms.mean_maps[0], ms.std_maps[0]
+    truth_map, mean_map, std_map = ms.truth_maps[i], ms.mean_maps[i], ms.std_maps[i]
     centre_dec, ra_range = ms.centre_dec_deg, ms.ra_range_deg
     scenario = view.scenario
-    lab = (f"{scenario}: " if scenario else "") + f"{np.asarray(prob.freqs_hz)[0] / 1e6:g} MHz, {nsamples} draws"
+    lab = (f"{scenario}: " if scenario else "") + f"{np.asarray(prob.freqs_hz)[i] / 1e6:g} MHz, {nsamples} draws"
     fig = lambda key, plot: _atomic_figure(out, key, plot, only_missing)  # noqa: E731
     names = {}
     names["fig3"] = fig("fig3", lambda p: P.plot_alm_residuals(
-        ms.mode_z[0], modes.ell, modes.m, modes.is_imag, p,
+        ms.mode_z[i], modes.ell, modes.m, modes.is_imag, p,
         title=f"(posterior mean $-$ truth) / posterior std per mode, {lab}",
     ))
     names["fig4"] = fig("fig4", lambda p: P.plot_sky_maps(
@@ -171,29 +172,33 @@ def run_figures(out: Path, view: RunView, *, only_missing: bool = False) -> dict
     ))
     if nsamples >= 2:
         names["fig7_correlation"] = fig("fig7_correlation", lambda p: P.plot_correlation_matrix(
-            draws[0], modes.ell, modes.m, modes.is_imag, p, title=f"posterior correlation (real parts), {lab}"))
+            draws[i], modes.ell, modes.m, modes.is_imag, p, title=f"posterior correlation (real parts), {lab}"))
         names["fig7_corner"] = fig("fig7_corner", lambda p: P.plot_corner(
-            draws[0], truth[0], modes.ell, modes.m, modes.is_imag, p, m_value=2,
+            draws[i], truth[i], modes.ell, modes.m, modes.is_imag, p, m_value=2,
             title=f"marginal posteriors / truth at m = 2, {lab}",
         ))
     return names
 
 
 def data_figures(out: Path, view: RunView, *, only_missing: bool = False) -> dict:
-    """The figures of a run without a truth (real data), first frequency: the posterior mean and std
-    maps with the observed strip outlined (``fig4``) and the posterior correlation (``fig7_correlation``)."""
+    """The figures of a run without a truth (real data), on its shown channel (:attr:`RunView.shown`: the first
+    with data): the posterior mean and std maps with the observed strip outlined (``fig4``) and the posterior
+    correlation (``fig7_correlation``), labelled with the channel and the maps' unit."""
     from . import figures as P
 
-    out, prob, draws, ms, f0 = Path(out), view.problem, view.draws, view.maps, view.per_freq[0]
-    lab = f"{np.asarray(prob.freqs_hz)[0] / 1e6:g} MHz, {draws.shape[1]} draws"
+    i = view.shown
+    out, prob, draws, ms, f0 = Path(out), view.problem, view.draws, view.maps, view.per_freq[i]
+    unit = (view.units or {}).get("maps", "K")
+    first = " (first channel with data)" if i else ""
+    lab = f"{np.asarray(prob.freqs_hz)[i] / 1e6:g} MHz{first}, {draws.shape[1]} draws"
     region = None if f0.get("fwhm_deg") is None else (ms.centre_dec_deg, f0["fwhm_deg"], ms.ra_range_deg)
     fig = lambda key, plot: _atomic_figure(out, key, plot, only_missing)  # noqa: E731
     names = {"fig4": fig("fig4", lambda p: P.plot_posterior_maps(
-        ms.wiener_maps[0], ms.std_maps[0], p, region=region,
+        ms.wiener_maps[i], ms.std_maps[i], p, region=region, unit=unit,
         title=f"{lab}; green: $\\pm$1 FWHM band over the observed LSTs",
     ))}
     if draws.shape[1] >= 2:
         modes = prob.modes
         names["fig7_correlation"] = fig("fig7_correlation", lambda p: P.plot_correlation_matrix(
-            draws[0], modes.ell, modes.m, modes.is_imag, p, title=f"posterior correlation (real parts), {lab}"))
+            draws[i], modes.ell, modes.m, modes.is_imag, p, title=f"posterior correlation (real parts), {lab}"))
     return names

@@ -29,6 +29,7 @@ def write_products(
     method: str,
     seed: int | None = None,
     only_missing: bool = False,
+    units: dict | None = None,
 ) -> dict:
     """The standard products of a run (:data:`PRODUCT_FILES`), each written atomically into ``out``.
 
@@ -48,12 +49,14 @@ def write_products(
         freqs_hz: ``(Nf,)``; lmax: maximum degree; frame: ``"icrs"`` or ``"idealised"``.
         ndraws, method, seed: recorded in the headers / history.
         only_missing: keep products already in ``out``.
+        units: :func:`gcrsky.run.summary.map_units`'s block: its ``maps`` and ``flux_scale`` go into the FITS
+            headers (``MAPUNIT``, ``FLUXSCAL``) and the skyh5 history (default: K, unstated flux scale).
 
     Returns:
         ``{product key: file name}`` of the files written now.
     """
     out = Path(out)
-    writers = _writers(wiener_filter, wiener_maps, std_maps, freqs_hz, lmax, frame, ndraws, method, seed)
+    writers = _writers(wiener_filter, wiener_maps, std_maps, freqs_hz, lmax, frame, ndraws, method, seed, units)
     written = {}
     for key, write in writers.items():
         path = out / PRODUCT_FILES[key]
@@ -64,7 +67,7 @@ def write_products(
     return written
 
 
-def _writers(wiener_filter, wiener_maps, std_maps, freqs_hz, lmax, frame, ndraws, method, seed) -> dict:
+def _writers(wiener_filter, wiener_maps, std_maps, freqs_hz, lmax, frame, ndraws, method, seed, units=None) -> dict:
     """``{product key: write(path)}`` of :func:`write_products`."""
     from .. import __version__
 
@@ -72,6 +75,10 @@ def _writers(wiener_filter, wiener_maps, std_maps, freqs_hz, lmax, frame, ndraws
               ("ORIGIN", f"gcrsky {__version__}", "software")]
     if seed is not None:
         common.append(("SEED", int(seed), "seed of the draws"))
+    units = dict(units or {})
+    common.append(("MAPUNIT", str(units.get("maps", "K")), "map unit (K x q: on the data's own flux scale q)"))
+    if units.get("flux_scale"):
+        common.append(("FLUXSCAL", str(units["flux_scale"]), "flux scale: simulation/inferred/fixed/accepted"))
     mean_what = "posterior mean: the Wiener filter (exact)"
     wiener_card = ("MEANTYPE", "WIENER", "exact posterior mean (not the draws' mean)")
     return {
@@ -85,5 +92,6 @@ def _writers(wiener_filter, wiener_maps, std_maps, freqs_hz, lmax, frame, ndraws
         "posterior_mean_skyh5": lambda p: write_skyh5(
             p, wiener_maps, freqs_hz, frame=frame, std_maps=std_maps,
             history=f"gcrsky {__version__}: posterior mean (the Wiener filter, exact) of a GCR run ({method}, "
-            f"{ndraws} draws, lmax {lmax}); stokes_error: per-pixel posterior std over the draws (ddof 1)."),
+            f"{ndraws} draws, lmax {lmax}); stokes_error: per-pixel posterior std over the draws (ddof 1). "
+            f"Units: {units.get('maps', 'K')}" + (f" ({units['note']})" if units.get("note") else "") + "."),
     }

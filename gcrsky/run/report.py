@@ -39,6 +39,9 @@ class RunView(NamedTuple):
         per_freq: the metrics so far, one dict per channel (read only).
         finite: every draw is finite.
         scenario: the run's scenario name, or None.
+        shown: the channel the figures and the top-level metrics show (the first with data,
+            :func:`gcrsky.run.summary.first_data_channel`).
+        units: :func:`gcrsky.run.summary.map_units`'s block (None: K).
     """
 
     problem: Any
@@ -47,6 +50,8 @@ class RunView(NamedTuple):
     per_freq: Sequence[Mapping]
     finite: bool
     scenario: str | None
+    shown: int = 0
+    units: Mapping | None = None
 
 
 class FigureReport(NamedTuple):

@@ -55,8 +55,11 @@ from .summary import (
     TIMINGS_NOTE,
     RunProducts,
     RunSummary,
+    first_data_channel,
     fixed_flux_scale,
+    map_units,
     read_summary,
+    shown_channel,
     solver_summary,
     versions,
 )
@@ -129,7 +132,7 @@ def _after_draws(prob, spec: RunSpec, run: OpenRun, st: StageTimer, stored, meth
     gof = None if (run.out / SUMMARY_FILE).exists() else run_fit(fit_prob, stored.wiener_filter, warnings,
                                                                      rank=stored.rank)
     st.start("write")
-    finalized = _write(prob, spec, run, stored, view.maps, method, channels)
+    finalized = _write(prob, spec, run, stored, view.maps, method, channels, view.units)
     blocks = {} if (run.out / SUMMARY_FILE).exists() else spec.sampling.finish(prob, run.out, run.h5)
     for block in blocks.values():  # a stage's own warnings (e.g. a chain that has not mixed)
         warnings += (block or {}).get("warnings", [])
@@ -149,7 +152,9 @@ def _report(prob, spec: RunSpec, run: OpenRun, stored, hooks, st: StageTimer, wa
     st.start("maps")
     maps = run_maps(prob, stored.draws, stored.wiener_filter,
                     maps=stored_maps(run.h5) if run.already_complete else None)
-    view = RunView(prob, stored.draws, maps, [], bool(np.isfinite(stored.draws).all()), spec.scenario)
+    units = map_units(prob, {"source": "inferred"} if spec.sampling.name == "amplitude" else None)
+    view = RunView(prob, stored.draws, maps, [], bool(np.isfinite(stored.draws).all()), spec.scenario,
+                   first_data_channel(prob), units)
     view = view._replace(per_freq=collect_metrics(view, hooks))
     st.stop()
     figures = {}
@@ -161,13 +166,14 @@ def _report(prob, spec: RunSpec, run: OpenRun, stored, hooks, st: StageTimer, wa
     return view, figures
 
 
-def _write(prob, spec: RunSpec, run: OpenRun, stored, maps: RunMaps, method: str, channels: dict) -> bool:
+def _write(prob, spec: RunSpec, run: OpenRun, stored, maps: RunMaps, method: str, channels: dict,
+           units: dict | None = None) -> bool:
     """The products (those missing), and ``results.h5`` finished unless it was (with the ``channels`` block as
     its attribute ``channels_json``); True if it was finished now."""
     write_products(run.out, wiener_filter=stored.wiener_filter, wiener_maps=maps.wiener_maps,
                    std_maps=maps.std_maps, freqs_hz=np.asarray(prob.freqs_hz), lmax=prob.lmax,
                    frame=parameter_frame(prob), ndraws=stored.draws.shape[1], method=method,
-                   seed=spec.draws.seed, only_missing=True)
+                   seed=spec.draws.seed, only_missing=True, units=units)
     if read_results_state(run.h5).complete:
         return False
     arrays = {"truth": maps.truth_maps, "mean": maps.mean_maps, "std": maps.std_maps, "wiener": maps.wiener_maps}
@@ -198,7 +204,7 @@ def _summary(prob, spec: RunSpec, run: OpenRun, view: RunView, solver: dict, war
     if path.exists():
         return read_summary(path)
     per_freq, maps, cfg = view.per_freq, view.maps, prob.config
-    f0 = per_freq[0]
+    f0 = per_freq[view.shown]
     (timings, compiled), d = timings, spec.draws
     summary = RunSummary(
         frac_diff_centre_median=f0.get("frac_diff_centre_median"),
@@ -218,19 +224,21 @@ def _summary(prob, spec: RunSpec, run: OpenRun, view: RunView, solver: dict, war
         goodness_of_fit=gof,
         channels=channels,
         **{"flux_scale": fixed_flux_scale(prob), **(blocks or {})},
+        shown_channel=shown_channel(prob, view.shown), units=dict(view.units or map_units(prob)),
     )
     write_json(path, summary.to_json())
     return summary
 
 
 def _products(prob, run: OpenRun, view: RunView, draws: np.ndarray, written: list) -> RunProducts:
-    """The first channel's maps, z-scores and draws, and what this call wrote."""
-    maps = view.maps
+    """The shown channel's (:attr:`RunView.shown`: the first with data) maps, z-scores and draws, and what this
+    call wrote."""
+    maps, i = view.maps, view.shown
     return RunProducts(
-        truth_map=None if maps.truth_maps is None else maps.truth_maps[0], mean_map=maps.mean_maps[0],
-        std_map=maps.std_maps[0], z=None if maps.mode_z is None else maps.mode_z[0], draws=draws[0],
-        truth=None if prob.a_true is None else np.asarray(prob.a_true)[0], modes=prob.modes,
-        fwhm_deg=view.per_freq[0].get("fwhm_deg"), centre_dec_deg=maps.centre_dec_deg,
+        truth_map=None if maps.truth_maps is None else maps.truth_maps[i], mean_map=maps.mean_maps[i],
+        std_map=maps.std_maps[i], z=None if maps.mode_z is None else maps.mode_z[i], draws=draws[i],
+        truth=None if prob.a_true is None else np.asarray(prob.a_true)[i], modes=prob.modes,
+        fwhm_deg=view.per_freq[i].get("fwhm_deg"), centre_dec_deg=maps.centre_dec_deg,
         ra_range_deg=maps.ra_range_deg, resumed_at_batch=None if run.state is None else run.start,
         written=written, already_complete=run.already_complete,
     )

@@ -17,13 +17,14 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
-__all__ = ["RunProducts", "RunSummary", "fixed_flux_scale", "info_stats", "read_summary", "solver_summary", "versions"]
+__all__ = ["RunProducts", "RunSummary", "first_data_channel", "fixed_flux_scale", "info_stats", "map_units", "read_summary",
+           "shown_channel", "solver_summary", "versions"]
 
 METRICS_NOTE = (
-    "metrics at the first frequency; |mean - truth|/|truth| of the posterior-mean map (sample mean of the "
-    "draws) over the beam-centre ring (the HEALPix ring nearest dec = site latitude) and the +-1 FWHM band, "
+    "metrics at the shown channel (shown_channel: the first with data); |mean - truth|/|truth| of the "
+    "posterior-mean map (sample mean of the draws) over the beam-centre ring (the HEALPix ring nearest dec = site latitude) and the +-1 FWHM band, "
     "both within RA = 15 x LST range; FWHM measured from the simulated beam's power pattern; "
-    "per_frequency has every channel; the two top-level frac_diff_* keys repeat the first channel's"
+    "per_frequency has every channel; the two top-level frac_diff_* keys repeat the shown channel's"
 )
 TIMINGS_NOTE = (
     "wall-clock seconds; 'wiener' and the first draw batch include JIT compilation; "
@@ -84,6 +85,10 @@ class RunSummary:
             (:func:`gcrsky.run.amplitude.amplitude_summary`), 1 where fixed; the autos' ratio beside it
             and ``source`` (``"inferred"``, ``"fixed"``); None for a simulated run.
         amplitude: a run that infers the amplitude: its settings and the ESS of every sampled scalar.
+        shown_channel: the channel whose metrics are the top-level ones and whose maps the figures and
+            :class:`RunProducts` show (:func:`shown_channel`: the first with unflagged data).
+        units: what the maps are in (:func:`map_units`): ``maps`` (``"K"``, or ``"K x q"`` on the data's
+            own scale), ``flux_scale`` (``"simulation"``, ``"inferred"``, ``"fixed"``, ``"accepted"``) and a note.
     """
 
     frac_diff_centre_median: float | None
@@ -111,6 +116,8 @@ class RunSummary:
     channels: dict | None = None
     flux_scale: dict | None = None
     amplitude: dict | None = None
+    shown_channel: dict | None = None
+    units: dict | None = None
 
     def to_json(self) -> dict:
         """The ``summary.json`` object: ``{field: value}`` in field order."""
@@ -144,6 +151,42 @@ def fixed_flux_scale(prob) -> dict | None:
                              "autos_ratio": autos[i] if i < len(autos) else None}
                             for i, f in enumerate(np.asarray(prob.freqs_hz))],
             "autos_ratio": flux.get("ratio")}
+
+
+def first_data_channel(prob) -> int:
+    """Index of the first channel with an unflagged sample (0 where every channel is flagged)."""
+    w = np.asarray(prob.system().inv_noise)
+    has = np.any(w.reshape(w.shape[0], -1) > 0, axis=1)
+    return int(np.argmax(has)) if has.any() else 0
+
+
+def shown_channel(prob, index: int) -> dict:
+    """``summary.json``'s ``shown_channel``: the index, frequency and why that channel is shown."""
+    nf = int(np.asarray(prob.freqs_hz).size)
+    why = "the first channel" if index == 0 else f"the first channel with data (channels 0-{index - 1} are flagged)"
+    if index == 0 and nf and not np.any(np.asarray(prob.system().inv_noise)[0] > 0):
+        why = "every channel is flagged: the prior's"
+    return {"index": int(index), "freq_hz": float(np.asarray(prob.freqs_hz)[index]), "why": why}
+
+
+def map_units(prob, flux_scale: dict | None = None) -> dict:
+    """``summary.json``'s ``units``: what the maps (and FITS products) are in.
+
+    A simulation, a run that infers the amplitude (the draws are the sky in K) and a run on data calibrated
+    in Jy are in K; a run that accepted an uncalibrated flux scale (``--flux-scale accept``) is on the
+    data's own scale, ``q`` x K (``q`` the autos' ratio, the data / model autocorrelations).
+    """
+    checks = getattr(getattr(prob, "config", None), "checks", None) or {}
+    if not checks:
+        return {"maps": "K", "flux_scale": "simulation", "note": "the simulation's sky, K (Rayleigh-Jeans)"}
+    if (flux_scale or {}).get("source") == "inferred":
+        return {"maps": "K", "flux_scale": "inferred",
+                "note": "the sky a = c (a0 + delta) in K; the amplitude q (data = q x the model) is inferred"}
+    flux = checks.get("flux_scale") or {}
+    if flux.get("mode") == "accept" and flux.get("ratio") is not None and not flux.get("within", True):
+        return {"maps": "K x q", "flux_scale": "accepted",
+                "note": f"on the data's own scale: q x K with q ~ {flux['ratio']:.4g} (the autos' ratio), not K"}
+    return {"maps": "K", "flux_scale": "fixed", "note": "the data taken as calibrated (Jy): the sky in K"}
 
 
 def read_summary(path) -> RunSummary:
