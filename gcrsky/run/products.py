@@ -76,9 +76,9 @@ def _writers(wiener_filter, wiener_maps, std_maps, freqs_hz, lmax, frame, ndraws
     if seed is not None:
         common.append(("SEED", int(seed), "seed of the draws"))
     units = dict(units or {})
-    common.append(("MAPUNIT", str(units.get("maps", "K")), "map unit (K x q: on the data's own flux scale q)"))
+    common.append(("MAPUNIT", str(units.get("maps", "K")), "map unit (K x q: the data's scale)"))
     if units.get("flux_scale"):
-        common.append(("FLUXSCAL", str(units["flux_scale"]), "flux scale: simulation/inferred/fixed/accepted"))
+        common.append(("FLUXSCAL", str(units["flux_scale"]), "flux scale source"))
     mean_what = "posterior mean: the Wiener filter (exact)"
     wiener_card = ("MEANTYPE", "WIENER", "exact posterior mean (not the draws' mean)")
     return {
