@@ -217,3 +217,29 @@ def test_matvis_autos_of_the_gsm_give_a_ratio_near_one():
                           dnu_hz=1e5, noise_seed=None)
     rec = flux_checks(read_observation(sim.uvdata, pol="pI"), gaussian_beam(14.0), mode="check")["flux_scale"]
     assert rec["within"] and np.allclose(rec["ratio_per_channel"], 1.0, atol=0.15)
+
+
+@pytest.mark.filterwarnings("ignore:Selected frequencies are not evenly spaced")
+def test_solutions_that_do_not_cover_the_data_are_refused_naming_what(tmp_path):
+    """Issue 39: pyuvdata's raw 'Time ... exists on UVData but not on UVCal' named neither the file nor which
+    times; a calibration of other times or other channels is refused naming the file, the JD and LST range or
+    the frequencies not covered.  Control: the file's own solutions cover the data."""
+    from gcrsky.io.calibration import check_coverage, read_calibrated_observation, read_calibration
+    from gcrsky.io.observation import read_uvdata
+
+    uvc, _ = read_calibration(CAL)
+    later = uvc.copy()
+    later.time_array = later.time_array + 0.5  # half a day later: none of the data's times
+    if later.time_range is not None:
+        later.time_range = later.time_range + 0.5
+    later.set_lsts_from_time_array()
+    path = tmp_path / "later.calfits"
+    later.write_calfits(str(path))
+    with pytest.raises(ValueError, match=r"later\.calfits: its solutions cover JD .* but 10 of the data's 10 times "
+                                         r"are not covered \(JD .*, LST .* h\)"):
+        read_calibrated_observation(H1C, path, pol="pI", freq_chans=CHANS)
+    narrow = uvc.copy()
+    narrow.select(freq_chans=np.arange(0, 35))
+    with pytest.raises(ValueError, match=r"but 1 of the data's channels are not among them \(.* MHz\).*--freq-range"):
+        check_coverage(narrow, read_uvdata(H1C, freq_chans=CHANS)[0], "narrow.calfits")
+    check_coverage(uvc, read_uvdata(H1C, freq_chans=CHANS)[0], CAL)  # the control: covered

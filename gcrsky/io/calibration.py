@@ -34,7 +34,7 @@ import numpy as np
 from .observation import observation_of, read_uvdata, unproject
 from .visdata import Observation
 
-__all__ = ["apply_calibration", "match_antennas", "read_calibrated_observation", "read_calibration"]
+__all__ = ["apply_calibration", "check_coverage", "match_antennas", "read_calibrated_observation", "read_calibration"]
 
 log = logging.getLogger(__name__)
 
@@ -132,6 +132,40 @@ def _flagged_in_solutions(uvc) -> list[int]:
     return [int(a) for a, f in zip(uvc.ant_array, flags) if np.all(f)]
 
 
+def check_coverage(uvc, uvd, cal_path) -> None:
+    """Refuse data times or channels the solutions do not cover, naming them (pyuvdata's own error names
+    neither the file nor which): a time is covered within half a solution's integration of one, a channel
+    within half a channel width of one (a calibration with one time range covers the range)."""
+    jd = np.unique(np.asarray(uvd.time_array, float))
+    if getattr(uvc, "time_range", None) is not None and uvc.time_array is None:
+        lo, hi = np.min(uvc.time_range), np.max(uvc.time_range)
+        outside = jd[(jd < lo - 1e-7) | (jd > hi + 1e-7)]
+    else:
+        ct = np.asarray(uvc.time_array, float)
+        half = 0.5 * float(np.max(np.asarray(uvc.integration_time, float))) / 86400.0 + 1e-7
+        outside = jd[np.min(np.abs(jd[:, None] - ct[None, :]), axis=1) > half]
+    if outside.size:
+        from astropy.time import Time
+
+        lst = np.degrees(np.asarray(Time(outside, format="jd", location=uvd.telescope.location)
+                                    .sidereal_time("apparent").rad)) / 15.0
+        ct_all = np.asarray(uvc.time_array if uvc.time_array is not None else uvc.time_range, float)
+        raise ValueError(f"{cal_path}: its solutions cover JD {ct_all.min():.6f}-{ct_all.max():.6f}, but {outside.size} "
+                         f"of the data's {jd.size} times are not covered (JD {outside.min():.6f}-{outside.max():.6f}, "
+                         f"LST {lst.min():.3f}-{lst.max():.3f} h): give the solutions of those times, or select the "
+                         "covered ones (--lst-range)")
+    if getattr(uvc, "freq_array", None) is not None and np.size(uvc.freq_array) > 1:
+        cf = np.asarray(uvc.freq_array, float).ravel()
+        df = float(np.median(np.abs(np.diff(np.sort(cf))))) if cf.size > 1 else 0.0
+        f = np.asarray(uvd.freq_array, float).ravel()
+        missing = f[np.min(np.abs(f[:, None] - cf[None, :]), axis=1) > 0.5 * df + 1.0]
+        if missing.size:
+            raise ValueError(f"{cal_path}: its solutions cover {cf.min() / 1e6:.4f}-{cf.max() / 1e6:.4f} MHz "
+                             f"({cf.size} channels), but {missing.size} of the data's channels are not among them "
+                             f"({missing.min() / 1e6:.4f}-{missing.max() / 1e6:.4f} MHz): give solutions for them, or "
+                             "select the covered channels (--freq-range, --chans)")
+
+
 def apply_calibration(uvd, cal_path) -> dict:
     """Apply the solutions in ``cal_path`` to the UVData ``uvd`` in place (module docstring); what was done.
 
@@ -143,6 +177,7 @@ def apply_calibration(uvd, cal_path) -> dict:
     from pyuvdata.utils import uvcalibrate
 
     uvc, offset = read_calibration(cal_path, location=uvd.telescope.location)
+    check_coverage(uvc, uvd, cal_path)
     renamed = match_antennas(uvc, uvd)
     before = str(uvd.vis_units)
     with warnings.catch_warnings(record=True) as caught:
