@@ -330,3 +330,22 @@ def test_fit_with_no_degree_of_freedom_left_tests_nothing(cases):
     gof = goodness_of_fit(flat, np.zeros(np.shape(prob.prior.mean)), rank=n_data)
     assert gof["dof"] == [0.0, 0.0] and gof["p_value"] == [None, None] and not gof["rejected"]
     assert "chi2/dof -, -" in fit_line(gof)
+
+
+def test_fit_rows_are_labelled_by_the_file_s_antenna_numbers():
+    """Issue 39: the fit's outlying rows named antenna indices ("2-4"); a file's rows say its antenna numbers
+    (H1C: 0, 1, 11, 12, ...), a problem without them keeps the indices."""
+    from types import SimpleNamespace
+
+    from gcrsky.run.fit import _residual_groups
+
+    z2 = np.ones((1, 4, 3))
+    z2[0, :, 2] = 50.0  # row 2 (indices 1-2) is the outlier
+    count = np.full(z2.shape, 2.0)
+    prob = SimpleNamespace(antpairs=np.array([[0, 1], [0, 2], [1, 2]]), pols=None,
+                           config=SimpleNamespace(conventions={"antenna_numbers": [0, 11, 12]}))
+    got = _residual_groups(prob, z2, count, np.sqrt(z2), 0.01)["rows"]["outliers"]
+    assert [o["label"] for o in got] == ["11-12"]
+    bare = _residual_groups(SimpleNamespace(antpairs=prob.antpairs, pols=None, config=None), z2, count,
+                            np.sqrt(z2), 0.01)["rows"]["outliers"]
+    assert [o["label"] for o in bare] == ["1-2"]

@@ -101,7 +101,11 @@ def _residual_groups(prob, z2, count, zabs, alpha: float) -> dict:
     """The noise-whitened Wiener residual by row, by time and single values (module docstring)."""
     pairs = np.asarray(prob.antpairs)
     pols = prob.pols or ("",) * pairs.shape[0]
-    rows = [f"{int(i)}-{int(j)}{' ' + p if p else ''}" for (i, j), p in zip(pairs, pols)]
+    conv = getattr(getattr(prob, "config", None), "conventions", None) or {}
+    numbers = conv.get("antenna_numbers")  # a file's: rows labelled by its antenna numbers, not indices
+    name = (lambda k: str(int(numbers[int(k)]))) if numbers is not None and len(numbers) > pairs.max(initial=0) \
+        else (lambda k: str(int(k)))
+    rows = [f"{name(i)}-{name(j)}{' ' + p if p else ''}" for (i, j), p in zip(pairs, pols)]
     times = [f"t{k}" for k in range(z2.shape[1])]
     n_values = max(int(count.sum()), 1)
     z_max = float(stats.norm.isf(alpha / (2 * n_values)))
