@@ -193,7 +193,10 @@ def test_herabeam_fits_is_converted():
     with pytest.raises(ValueError, match="--beam-freq-scaling"):
         prepare_beam(str(path), [140e6, 150e6], x_orientation="east")
     b, rec = prepare_beam(str(path), [140e6, 149.951177498e6, 160e6], freq_scaling="lambda", x_orientation="east")
-    assert "SIN" in rec["kind"] and rec["x_orientation"]["check"] == "agree"
+    assert "SIN" in rec["kind"] and rec["x_orientation"]["check"].startswith("not needed")
+    # a Stokes-I image has no feed orientation: a north-x file takes it too (issue 39: it was refused)
+    _, north = prepare_beam(str(path), [150e6], freq_scaling="lambda", x_orientation="north")
+    assert north["x_orientation"]["check"].startswith("not needed") and north["x_orientation"]["file"] == "north"
     w = np.rad2deg([beam_fwhm_rad(b, f) for f in (140e6, 149.951177498e6, 160e6)])
     assert abs(w[1] - 4.8) < 0.1  # the README's FWHM ~4.8 deg
     np.testing.assert_allclose(w[[0, 2]] / w[1], [149.951 / 140, 149.951 / 160], rtol=5e-3)

@@ -270,6 +270,19 @@ def beam_x_orientation(beam) -> str | None:
     return get()
 
 
+def _same_feed_patterns(beam) -> bool:
+    """A power UVBeam whose xx and yy are the same pattern (and holds no cross products): rotating its feeds by
+    90 deg changes nothing (a Stokes-I image converted by :func:`gcrsky.instrument.beamfiles.image_beam`)."""
+    if type(beam).__name__ != "UVBeam" or getattr(beam, "beam_type", None) != "power":
+        return False
+    arr = getattr(beam, "polarization_array", None)
+    pols = [] if arr is None else [int(p) for p in np.atleast_1d(arr)]
+    if sorted(pols) not in ([-6, -5], [-8, -7]):
+        return False
+    d = np.asarray(beam.data_array)
+    return bool(np.array_equal(d[:, pols.index(max(pols))], d[:, pols.index(min(pols))]))
+
+
 def check_x_orientation(beam, file_x_orientation: str | None, *, accept_mismatch: bool = False) -> dict:
     """The feed-orientation record; ``ValueError`` when the beam's feed x and the file's differ.
 
@@ -283,6 +296,9 @@ def check_x_orientation(beam, file_x_orientation: str | None, *, accept_mismatch
                                   "check": f"not needed ({type(beam).__name__} is azimuthally symmetric)"}}
     bx = beam_x_orientation(beam)
     rec = {"file": file_x_orientation, "beam": bx}
+    if _same_feed_patterns(beam):
+        rec["check"] = "not needed (the beam's xx and yy are one pattern, e.g. a Stokes-I image: no feed orientation)"
+        return {"x_orientation": rec}
     if bx is None or file_x_orientation is None:
         rec["check"] = "not possible (unknown on one side)"
         log.warning("x_orientation: file %s, beam %s: cannot check that the feeds agree", file_x_orientation, bx)
