@@ -117,3 +117,18 @@ def test_flagging_that_leaves_nothing_is_refused_with_the_reason(tmp_path, capsy
                    "--flux-scale", "off", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert rc == 2 and "dead channels [0, 1, 2]" in err and "--no-flag-outliers" in err
+
+
+def test_inspect_separates_the_flags_and_never_prints_a_nan_noise(capsys):
+    """Issue 39: 'flagged 11 %' mixed the file's flags (0 % on H1C) with gcrsky's own; a file with nothing
+    usable printed a NaN noise; x_orientation was never shown."""
+    assert cli.main(["inspect", str(H1C), "--chans", "20,21,22,23,24,25"]) == 0
+    text = capsys.readouterr().out
+    flag = next(line for line in text.splitlines() if line.strip().startswith("flagged"))
+    assert "the file's (and its calibration's) flags 0.00%" in flag and "zero nsample 0.00%" in flag
+    assert "gcrsky's checks 0.00%" not in flag  # channel 24's noise-excess outliers and antenna 0: gcrsky's own
+    assert "feed x points east" in text and "nan" not in text.lower().replace("nanosec", "")
+    assert cli.main(["inspect", str(H2C), "--pol", "xx"]) == 0
+    text = capsys.readouterr().out
+    assert "zero nsample 100.00%" in text and "no radiometer noise estimate" in text and "nan" not in text
+    assert "x_orientation absent" in text

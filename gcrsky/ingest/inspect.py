@@ -55,12 +55,14 @@ def inspect_uvdata(path, spec: IngestSpec | None = None, *, redundancy_tol_m: fl
     prods, _ = parse_products(pol)
     obs, checks = read_checked(path, cal=spec.checks.cal, pol=pol, **read_selection(spec))
     out = describe_observation(obs, prods, redundancy_tol_m)
+    read_flags = np.asarray(obs.flags).copy()  # the file's flags (and the calibration's), before gcrsky's checks
     beams, beam_problem = inspect_beams(spec, obs)
     obs, checks, problems = inspect_checks(obs, checks, pol=pol, flag=spec.checks.flag_outliers,
                                            flux_scale=spec.checks.flux_scale,
                                            beam=None if beams is None else beams[0])
     problems = problems + ([beam_problem] if beam_problem else [])
     out["flagged_fraction"] = obs.flagged_fraction  # after the outliers are flagged, as a run would use them
+    out["flags"] = flag_sources(read_flags, np.asarray(obs.flags), np.asarray(obs.nsamples))
     try:
         to_ksr, out["noise_units"] = kelvin_sr_per_unit(obs), "K sr"
     except ValueError:
@@ -134,6 +136,18 @@ def describe_observation(obs: Observation, prods, redundancy_tol_m: float = 0.5)
         "flagged_fraction": obs.flagged_fraction,
         "has_autos": obs.has_autos,
     }
+
+
+def flag_sources(read_flags: np.ndarray, flags: np.ndarray, nsamples: np.ndarray) -> dict:
+    """Where the unusable samples come from (fractions of all samples): ``file`` (flagged in the file, or by
+    its calibration), ``zero_nsample`` (unflagged but nsample 0), ``gcrsky`` (flagged by gcrsky's checks:
+    noise-excess outliers, fully flagged antennas) and ``unusable`` (all three: what a run does not use)."""
+    total = max(int(flags.size), 1)
+    unflagged = ~flags
+    return {"file": float(read_flags.sum() / total),
+            "zero_nsample": float((unflagged & ~(nsamples > 0)).sum() / total),
+            "gcrsky": float((flags & ~read_flags).sum() / total),
+            "unusable": float((flags | ~(nsamples > 0)).sum() / total)}
 
 
 def memory_sizes(obs: Observation, nprods: int, n_unique: int, lmax: int, nside: int | None,
