@@ -18,7 +18,9 @@ from conftest import H1C  # noqa: E402
 
 from gcrsky.io.visdata import Observation
 from gcrsky.model.datachecks import (
+    MAX_DRIFT_RAD,
     dead_channels,
+    drift_phase_rad,
     find_outliers,
     flag_outliers,
     flagged_antennas,
@@ -190,3 +192,32 @@ def test_sky_drift_over_long_steps_is_not_flagged_as_a_bad_baseline():
     assert out.baselines == () and out.cells == () and len(out.not_judged_baselines) == obs.n_baselines
     assert find_outliers(drifting, max_drift_rad=np.inf).baselines == (6,)
     assert find_outliers(obs).not_judged_baselines == ()  # 10 s steps: every baseline judged
+
+
+def test_the_sky_s_drift_and_slow_gains_are_not_taken_for_noise():
+    """Issue 39: on a clean twin the first differences read the sky's drift between integrations (the fringe
+    turning by up to 0.1 rad per step, signal to noise ~150) and a slow gain drift as noise: excess 1.7-2.2 in
+    every channel and 18-65 on the shortest east-west baselines, which were flagged.  The second differences
+    cancel what changes linearly: no false flag; RFI on top of it is still found.  Control: the first
+    differences of the same data (the old statistic) put baselines far above twice the median."""
+    base = synthetic(seed=7, nt=10)
+    phi = drift_phase_rad(base)  # (Nbl,) the fringe's turn per step, as the check bounds it
+    assert 0.02 < phi.max() <= MAX_DRIFT_RAD
+    t = np.arange(base.n_times)
+    sigma = np.sqrt(100.0**2 / (2 * 10.0 * 1e5))
+    rng = np.random.default_rng(11)
+    amp = 150 * sigma * np.exp(2j * np.pi * rng.uniform(size=(2, base.n_freqs, 1, base.n_baselines)))
+    gain = (1 + 0.003 * t) * np.exp(0.003j * t)  # a slow drift of the gains: 0.3 % and 0.17 deg per step
+    sky = amp * np.exp(1j * phi[None, None, None, :] * t[None, None, :, None]) * gain[None, None, :, None]
+    obs = dataclasses.replace(base, vis=np.asarray(base.vis) + sky)  # its own constant sky cancels in differences
+    ex = noise_excess(obs)
+    out = find_outliers(obs, ex)
+    assert not out.any, out
+    # medians over 48 cells of means of 8 correlated unit exponentials: ~1 +- 0.1 (the drift's residue is
+    # second order: (0.1 rad)^2 x 150 sigma ~ 1.5 sigma at most, on the longest baseline)
+    assert np.all(np.abs(ex.per_baseline() - 1.0) < 0.5) and np.all(np.abs(ex.per_channel() - 1.0) < 0.5)
+    first = np.nanmean(ex.z, axis=2)  # (Npols, Nf, Nbl): the first-difference excess of the same data
+    per_bl = np.nanmedian(first.reshape(-1, first.shape[-1]), axis=0)
+    assert np.max(per_bl) > 2 * np.median(per_bl) and np.max(per_bl) > 5  # would have been flagged
+    rfi = with_rfi(obs, channels=(4,), power=1e3)
+    assert find_outliers(rfi).channels == (4,)

@@ -3,14 +3,21 @@
 Nothing here builds a response or fits a sky: these are checks of the file against the
 radiometer equation (:mod:`gcrsky.model.noise`) that can run before anything costly.
 
-* **Noise excess** (:func:`noise_excess`).  For adjacent integrations ``t, t+1`` of one
-  (product, channel, baseline), ``z = |V_t+1 - V_t|^2 / (2 (s_t + s_t+1))`` with ``s`` the
-  per-component radiometer variance of the autos (:func:`gcrsky.model.radiometer_variance`,
-  nsample included) is exponentially distributed with mean 1 for white radiometer noise on
-  a sky that does not change over one integration.  The excess is the mean of ``z`` over
-  the usable pairs: the time-difference variance over the radiometer variance
-  (DESIGN section 11; HERA H1C: medians over baselines 0.86-1.31 on clean channels, means
-  over baselines 3.2e3, 3.9e3 and 4.0e4 on the RFI channels 104.7, 106.3 and 137.5 MHz).
+* **Noise excess** (:func:`noise_excess`).  For three adjacent integrations ``t-1, t, t+1`` of one
+  (product, channel, baseline), ``z = |V_t+1 - 2 V_t + V_t-1|^2 / (2 (s_t-1 + 4 s_t + s_t+1))`` with
+  ``s`` the per-component radiometer variance of the autos (:func:`gcrsky.model.radiometer_variance`,
+  nsample included) is exponentially distributed with mean 1 for white radiometer noise.  The
+  second difference cancels whatever changes linearly over two integrations: the sky's drift
+  through the fringes and a slow gain drift, which a first difference ``V_t+1 - V_t`` took for
+  noise (on a clean twin of H1C at its signal to noise: excess 1.7-2.2 in every channel, 18-65 on
+  the shortest east-west baselines whenever the gains drifted; issue 39).  What is left of the
+  drift is second order in the fringe's turn per step.  With only two integrations the first
+  difference is used.  The excess is the mean of ``z`` over the usable terms: the
+  difference variance over the radiometer variance (DESIGN section 11; RFI channels stand out
+  by orders of magnitude).  Adjacent terms share samples: their mean scatters like
+  :data:`SECOND_DIFF_EFFICIENCY` times as many independent terms.  Times are judged on first
+  differences of adjacent pairs (a burst at ``t`` spoils both of its pairs; the drift is common to
+  every time and does not single one out).
 * **Outliers** (:func:`outlier_rule`, :func:`find_outliers`, :func:`flag_outliers`).  On the
   logarithm of a statistic per channel (median over products and baselines), per baseline
   (median over products and channels) and per adjacent pair of times (median of ``z``), an
@@ -52,6 +59,7 @@ __all__ = [
     "DEFAULT_MIN_FACTOR",
     "MAX_DRIFT_RAD",
     "NoiseExcess",
+    "SECOND_DIFF_EFFICIENCY",
     "Outliers",
     "dead_channels",
     "drift_phase_rad",
@@ -82,15 +90,24 @@ class NoiseExcess:
 
     Attributes:
         pol_names: (Npols,) the feed products judged (those with autocorrelations).
-        excess: (Npols, Nf, Nbl) mean of ``z`` over usable adjacent pairs (NaN without one).
-        z: (Npols, Nf, Nt-1, Nbl) ``z`` of each adjacent pair (NaN where unusable).
-        n_pairs: (Npols, Nf, Nbl) usable adjacent pairs per (product, channel, baseline).
+        excess: (Npols, Nf, Nbl) mean over the usable terms of ``z`` from second differences of three
+            adjacent integrations (first differences where the file has only two), NaN without one.
+        z: (Npols, Nf, Nt-1, Nbl) ``z`` of each adjacent pair (first differences: the times' test, where
+            the drift is common to every time), NaN where unusable.
+        n_pairs: (Npols, Nf, Nbl) usable terms of the excess per (product, channel, baseline).
+        order: 2 (the excess from second differences) or 1 (first differences: two integrations).
     """
 
     pol_names: tuple
     excess: np.ndarray
     z: np.ndarray
     n_pairs: np.ndarray
+    order: int = 1
+
+    @property
+    def efficiency(self) -> float:
+        """Effective independent terms per term (1 for first differences, :data:`SECOND_DIFF_EFFICIENCY`)."""
+        return SECOND_DIFF_EFFICIENCY if self.order == 2 else 1.0
 
     def per_channel(self) -> np.ndarray:
         """(Nf,) median excess over products and baselines (NaN where nothing is usable)."""
@@ -159,8 +176,16 @@ def _auto_var(obs: Observation, name: str) -> np.ndarray | None:
     return np.where(~obs.auto_flags[k], np.abs(obs.autos[k].real), np.nan)
 
 
-def _pair_z(obs: Observation, k: int, au_p: np.ndarray, au_q: np.ndarray) -> np.ndarray:
-    """(Nf, Nt-1, Nbl) ``z`` of product ``k`` (module docstring), NaN where either sample is unusable."""
+#: Effective number of independent terms per second-difference term: adjacent second differences share
+#: samples (their correlation is -2/3 at lag 1, 1/6 at lag 2; their squares' 4/9 and 1/36), so the mean of
+#: ``n`` of them scatters like ``n / (1 + 2 (4/9 + 1/36))`` independent ones.
+SECOND_DIFF_EFFICIENCY = 1.0 / (1.0 + 2.0 * (4.0 / 9.0 + 1.0 / 36.0))
+
+
+def _pair_z(obs: Observation, k: int, au_p: np.ndarray, au_q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``z`` of product ``k`` (module docstring) from first differences (Nf, Nt-1, Nbl) and from second
+    differences (Nf, Nt-2, Nbl; the first differences' again with two integrations), NaN where a sample is
+    unusable."""
     ai, aj = au_p[:, :, obs.antpairs[:, 0]], au_q[:, :, obs.antpairs[:, 1]]
     ok = obs.usable[k]
     ns = np.where(ok, obs.nsamples[k], 1.0)
@@ -168,7 +193,11 @@ def _pair_z(obs: Observation, k: int, au_p: np.ndarray, au_q: np.ndarray) -> np.
     var = np.where(ok & np.isfinite(var) & (var > 0), var, np.nan)
     v = np.where(ok, obs.vis[k], 0.0)
     with np.errstate(invalid="ignore"):
-        return np.abs(v[:, 1:] - v[:, :-1]) ** 2 / (2.0 * (var[:, 1:] + var[:, :-1]))
+        z1 = np.abs(v[:, 1:] - v[:, :-1]) ** 2 / (2.0 * (var[:, 1:] + var[:, :-1]))
+        if v.shape[1] < 3:
+            return z1, z1
+        d2 = v[:, 2:] - 2.0 * v[:, 1:-1] + v[:, :-2]
+        return z1, np.abs(d2) ** 2 / (2.0 * (var[:, 2:] + 4.0 * var[:, 1:-1] + var[:, :-2]))
 
 
 def noise_excess(obs: Observation) -> NoiseExcess:
@@ -186,20 +215,22 @@ def noise_excess(obs: Observation) -> NoiseExcess:
     """
     if obs.n_times < 2:
         raise ValueError("the noise excess needs at least two integrations (time-adjacent differences)")
-    names, zs = [], []
+    names, zs, z2s = [], [], []
     for k, name in enumerate(obs.pol_names):
         au_p, au_q = _auto_var(obs, name[0] * 2), _auto_var(obs, name[1] * 2)
         if au_p is None or au_q is None or not obs.has_autos:
             continue
         names.append(name)
-        zs.append(_pair_z(obs, k, au_p, au_q))
+        z1, z2 = _pair_z(obs, k, au_p, au_q)
+        zs.append(z1)
+        z2s.append(z2)
     if not zs:
         raise ValueError("the noise excess needs the autocorrelations of the feed products (none were read)")
-    z = np.stack(zs)
-    n = np.sum(np.isfinite(z), axis=2)
+    z, z2 = np.stack(zs), np.stack(z2s)
+    n = np.sum(np.isfinite(z2), axis=2)
     with np.errstate(invalid="ignore"):
-        excess = np.where(n > 0, np.nansum(z, axis=2) / np.maximum(n, 1), np.nan)
-    return NoiseExcess(pol_names=tuple(names), excess=excess, z=z, n_pairs=n)
+        excess = np.where(n > 0, np.nansum(z2, axis=2) / np.maximum(n, 1), np.nan)
+    return NoiseExcess(pol_names=tuple(names), excess=excess, z=z, n_pairs=n, order=2 if obs.n_times >= 3 else 1)
 
 
 def outlier_rule(stat: np.ndarray, n_terms: np.ndarray, *, k: float = DEFAULT_K,
@@ -263,12 +294,14 @@ def find_outliers(obs: Observation, ex: NoiseExcess | None = None, *, k: float =
     """
     ex = noise_excess(obs) if ex is None else ex
     ch_stat = ex.per_channel()
-    ch_bad, ch_cut = outlier_rule(ch_stat, _effective_terms(ex.n_pairs, (0, 2)), k=k, min_factor=min_factor)
+    eff = ex.efficiency
+    ch_bad, ch_cut = outlier_rule(ch_stat, eff * _effective_terms(ex.n_pairs, (0, 2)), k=k, min_factor=min_factor)
     dead = dead_channels(obs)
     keep = np.flatnonzero(~ch_bad & ~np.isin(np.arange(obs.n_freqs), dead))
     judged = drift_phase_rad(obs) <= max_drift_rad
     bl_stat = np.where(judged, ex.per_baseline(keep), np.nan)
-    bl_bad, bl_cut = outlier_rule(bl_stat, _effective_terms(ex.n_pairs[:, keep], (0, 1)), k=k, min_factor=min_factor)
+    bl_bad, bl_cut = outlier_rule(bl_stat, eff * _effective_terms(ex.n_pairs[:, keep], (0, 1)), k=k,
+                                  min_factor=min_factor)
     z = ex.z[:, keep][..., ~bl_bad]
     t_stat = _nanmedian(np.moveaxis(z, 2, 0).reshape(z.shape[2], -1))
     t_terms = np.sum(np.isfinite(np.moveaxis(z, 2, 0).reshape(z.shape[2], -1)), axis=1) * 2.0 / np.pi
@@ -296,8 +329,8 @@ def _cell_outliers(ex: NoiseExcess, chans, bls, *, k, min_factor):
         return [], [], float("nan")
     sub = ex.excess[:, chans][:, :, bls]
     cell = _nanmedian(np.moveaxis(sub, 0, -1).reshape(-1, sub.shape[0]))
-    bad, cut = outlier_rule(cell, np.sum(ex.n_pairs[:, chans][:, :, bls], axis=0).reshape(-1) / sub.shape[0],
-                            k=k, min_factor=min_factor)
+    terms = ex.efficiency * np.sum(ex.n_pairs[:, chans][:, :, bls], axis=0).reshape(-1) / sub.shape[0]
+    bad, cut = outlier_rule(cell, terms, k=k, min_factor=min_factor)
     idx = np.flatnonzero(bad)
     return ([(int(chans[i // len(bls)]), int(bls[i % len(bls)])) for i in idx], [float(cell[i]) for i in idx], cut)
 
@@ -319,11 +352,13 @@ def dead_channels(obs: Observation) -> list[int]:
     return out
 
 
-def _times_of_pairs(pair_bad: np.ndarray, nt: int) -> np.ndarray:
-    """Times all of whose adjacent pairs are outliers (a burst at ``t`` spoils both its pairs)."""
+def _times_of_pairs(pair_bad: np.ndarray, nt: int, span: int = 2) -> np.ndarray:
+    """Times all of whose terms are outliers (term ``p`` spans times ``p .. p + span - 1``: a burst at ``t``
+    spoils every term that holds it)."""
     bad = np.zeros(nt, bool)
+    nterms = nt - span + 1
     for t in range(nt):
-        adj = [p for p in (t - 1, t) if 0 <= p < nt - 1]
+        adj = [p for p in range(t - span + 1, t + 1) if 0 <= p < nterms]
         bad[t] = bool(adj) and all(pair_bad[p] for p in adj)
     return np.flatnonzero(bad)
 
