@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 from ..io.files import check_input_file
+from ..io.manyfiles import source_name
 from ..run.sampling import AMPLITUDE_MODEL_SD
 from ..solvers.options import DEFAULT_TOL
 from .errors import report_user_error
@@ -51,8 +52,10 @@ def _check_data_options(parser, args) -> None:
                      "Gaussian beam of that dish), one of them")
     if args.prior not in ("gsm", "flat") and not Path(args.prior).exists():
         parser.error(f"--prior {args.prior!r}: neither 'gsm', 'flat' nor an existing file")
-    files = [("--data", args.data, "visibility file", True), ("--cal", args.cal, "calibration file", False),
-             ("--beam", args.beam, "beam file", False)]
+    expand_data(parser, args)
+    files = [("--cal", c, "calibration file", False) for c in ([args.cal] if isinstance(args.cal, str) else
+                                                                 args.cal or [])]
+    files.append(("--beam", args.beam, "beam file", False))
     if args.prior not in ("gsm", "flat"):
         files.append(("--prior", args.prior, "prior file", False))
     for option, path, what, ms in files:
@@ -62,6 +65,25 @@ def _check_data_options(parser, args) -> None:
             except (OSError, ValueError) as e:
                 parser.error(f"{option}: {e}")
     check_gain_options(parser, args)
+
+
+def expand_data(parser, args, dest: str = "data", option: str = "--data") -> None:
+    """``--data`` (or inspect's files) and ``--cal`` as given (paths, globs, directories) -> the file (a str) or
+    the files (a list); a missing, empty or twice-given file, or a count of --cal files that is neither one nor
+    the data files', is a usage error naming it."""
+    from ..io.files import expand_data_paths
+
+    try:
+        files = expand_data_paths(getattr(args, dest))
+    except (OSError, ValueError) as e:
+        parser.error(f"{option}: {e}")
+    setattr(args, dest, files[0] if len(files) == 1 else files)
+    if args.cal is not None:
+        cals = list(args.cal)
+        if len(cals) not in (1, len(files)):
+            parser.error(f"--cal: {len(cals)} calibration files for {len(files)} visibility files: give one for all, "
+                         "or one per visibility file in their order")
+        args.cal = cals[0] if len(cals) == 1 else cals
 
 
 #: The gain block's options (dest, option) that mean something only with ``--gains sample``.
@@ -128,8 +150,10 @@ def _feed_products(data) -> str:
     says why later)."""
     from pyuvdata import UVData
 
+    from ..io.manyfiles import first_file
+
     try:
-        pols = set(UVData.from_file(str(data), read_data=False).get_pols())
+        pols = set(UVData.from_file(str(first_file(data)), read_data=False).get_pols())
     except Exception:  # noqa: BLE001 - any unreadable header: ingest reports it with the file's name
         return "pI"
     for pair in (("xx", "yy"), ("ee", "nn")):
@@ -148,10 +172,12 @@ def _applied_amplitude(prob) -> float:
     return math.sqrt(ratio) if ratio is not None and math.isfinite(ratio) and ratio > 0 else 1.0
 
 
-def _file_digest(path) -> str:
-    """SHA-256 of a file (what a resumed run on a file must find unchanged)."""
+def _file_digest(path):
+    """SHA-256 of a file (what a resumed run on a file must find unchanged); of several files, the list."""
     import hashlib
 
+    if isinstance(path, (list, tuple)):
+        return [_file_digest(p) for p in path]
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
@@ -163,7 +189,8 @@ def _data_settings(args, spec) -> dict:
     """The settings that identify a run on a file (``RunSpec.extra``): the file, its digest and the
     :class:`~gcrsky.ingest.IngestSpec`'s settings (beam, prior, noise, band limit, checks, selection)."""
     kw = spec.keywords()
-    return {"data_file": str(Path(args.data).resolve()), "data_sha256": _file_digest(args.data),
+    data = [str(Path(p).resolve()) for p in args.data] if isinstance(args.data, list) else str(Path(args.data).resolve())
+    return {"data_file": data, "data_sha256": _file_digest(args.data),
             "beam": kw["beam"], "dish_diameter": kw["dish_diameter_m"], "prior": kw["prior"],
             "prior_scale": kw["prior_scale"], "noise": kw["noise"], "compress": kw["compress"],
             "lmax": kw["lmax"], "nside": kw["nside"], "band_limit": kw["band_limit"],
@@ -212,7 +239,8 @@ def _run_data(args) -> int:
     prob = _read_problem(args, ingested)
     build_s = time.perf_counter() - t0
     cfg = prob.config
-    print(f"gcrsky: {args.data}: {len(cfg.conventions['antenna_numbers'])} antennas, {prob.data.shape[2]} rows "
+    print(f"gcrsky: {source_name(args.data if isinstance(args.data, list) else [args.data])}: "
+          f"{len(cfg.conventions['antenna_numbers'])} antennas, {prob.data.shape[2]} rows "
           f"({'compressed' if cfg.compressed else 'all baselines'}), {prob.data.shape[1]} times, "
           f"{prob.data.shape[0]} channels, {cfg.pol}; prior: {cfg.prior}")
     print(band_limit_line(cfg.checks.get("band_limit")))

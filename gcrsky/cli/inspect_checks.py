@@ -50,8 +50,21 @@ def _flags(rec: dict) -> list[str]:
         + f" (threshold: channel excess > {_fmt(th['channel'])}, k {th['k']:g})"
         + (f"; {out['not_judged_baselines']} baselines not judged one by one (the sky drifts > "
            f"{th['max_drift_rad']:g} rad per step)" if out.get("not_judged_baselines") else ""))
+    lines += _per_file("noise excess", ne.get("per_file"), "median_excess")
     lines.append(f"  antennas      fully flagged: {rec['fully_flagged_antennas'] or 'none'}")
     return lines
+
+
+def _per_file(what: str, rows, key: str) -> list[str]:
+    """One line per file of a many-file observation (``rows``: ``[{"file", key}]``), the extremes first named."""
+    if not rows:
+        return []
+    import os
+
+    vals = [r[key] for r in rows if r[key] is not None]
+    head = (f"  per file      {what}: {len(rows)} files, {_fmt(min(vals)) if vals else 'n/a'} - "
+            f"{_fmt(max(vals)) if vals else 'n/a'}")
+    return [head] + [f"                {os.path.basename(r['file'])}: {_fmt(r[key])}" for r in rows]
 
 
 def _flux(rec: dict) -> list[str]:
@@ -60,7 +73,8 @@ def _flux(rec: dict) -> list[str]:
     if "skipped" in rec:
         return [f"  flux scale    skipped: {rec['skipped']}"]
     return [(f"  flux scale    data / model autos (GSM through the beam) {_fmt(rec['ratio'])} ({rec['units']}; "
-             f"bounds {rec['bounds'][0]:g}-{rec['bounds'][1]:g}: {'within' if rec['within'] else 'OUTSIDE'})")]
+             f"bounds {rec['bounds'][0]:g}-{rec['bounds'][1]:g}: {'within' if rec['within'] else 'OUTSIDE'})"),
+            *_per_file("flux scale", rec.get("per_file"), "ratio")]
 
 
 def check_lines(info: dict) -> list[str]:

@@ -179,8 +179,10 @@ def check_channel_options(parser, args) -> None:
 def add_data_options(g, *, with_data: bool) -> None:
     """The options of a run on a visibility file (``run --data``) and of ``inspect``."""
     if with_data:
-        g.add_argument("--data", default=None, metavar="FILE", help="visibility file (UVH5; UVFITS, MS where "
-                       "pyuvdata's readers are installed)")
+        g.add_argument("--data", default=None, nargs="+", metavar="FILE",
+                       help="visibility file(s) (UVH5; UVFITS, MS where pyuvdata's readers are installed): one, "
+                       "several, a quoted glob ('night/zen.*.uvh5') or a directory; several files of one array and "
+                       "band are one observation (a night, several nights)")
         g.add_argument("--beam", default=None, metavar="FILE",
                        help="beam file UVBeam reads (beamfits, CST, MWA; E-field or power), the same for every antenna")
         g.add_argument("--prior", default="gsm", metavar="gsm|flat|FILE",
@@ -212,9 +214,10 @@ def add_data_options(g, *, with_data: bool) -> None:
 
 def add_check_options(g, *, with_data: bool) -> None:
     """The data checks' options (docs/ingest.md: data checks, calibration, flux scale)."""
-    g.add_argument("--cal", default=None, metavar="FILE",
+    g.add_argument("--cal", default=None, nargs="+", metavar="FILE",
                    help="gain solutions (calfits, calh5: any file UVCal reads) applied to the data first; antennas "
-                   "matched by number")
+                   "matched by number; one file for all the data files, or one per data file in their order; "
+                   "solutions at other times are interpolated linearly in time (pyuvdata)")
     g.add_argument("--flag-outliers", action=argparse.BooleanOptionalAction, default=True,
                    help="flag channels, baselines and times whose noise excess (time-difference scatter over the "
                    "autos' radiometer noise) is a robust outlier; inspect reports them either way")

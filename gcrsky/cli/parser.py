@@ -158,7 +158,8 @@ def _add_inspect_parser(sub) -> None:
         description="Read a visibility file's selection and report what the ingest would use, without building "
         "the response or solving.",
     )
-    ins.add_argument("file", help="visibility file (UVH5, or UVFITS / MS where pyuvdata's readers are installed)")
+    ins.add_argument("file", nargs="+", help="visibility file(s) (UVH5, or UVFITS / MS where pyuvdata's readers are "
+                     "installed): one, several, a quoted glob or a directory, read as one observation")
     ins.add_argument("--lmax", type=int_at_least(1, "lmax"), default=None,
                      help="maximum degree l for the sizes (default: with a beam, the lmax a run would choose, the reach "
                      f"of every used baseline; without, {d.lmax})")

@@ -36,13 +36,17 @@ def feed_pol_of(data, pol) -> tuple[object, dict | None]:
     """``(pol in feed names, record or None)``: compass names translated through the file's ``x_orientation``.
 
     Args:
-        data: a visibility file path or a ``UVData`` (only its metadata is read).
+        data: a visibility file path, a list of them (the first's metadata is read) or a ``UVData`` (only its
+            metadata is read).
         pol: the modelled product(s) as given (``"ee"``, ``"nn,ee"``, ``("ee", "nn")``, ``"pI"``, ...).
     """
     if pol is None or not _uses_compass(pol):
         return pol, None
     from pyuvdata import UVData
 
+    from ..io.manyfiles import first_file
+
+    data = first_file(data)  # several files share one array (checked when read)
     if isinstance(data, UVData):
         tel = data.telescope
     else:

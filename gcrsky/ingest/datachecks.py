@@ -61,12 +61,15 @@ def _not_absolute(units: str, cal_given: bool, gain_scale, cal_style) -> str | N
 
 def amplitude_needed(data, cal=None) -> str | None:
     """Why the amplitude must be inferred (None: the data are absolutely calibrated), from the headers of the
-    visibility file (or a ``UVData``) and of the gain solutions ``cal`` (a path), before anything is read."""
+    visibility file (or a ``UVData``, or the first of several files) and of the gain solutions ``cal`` (a path, or
+    the first of several), before anything is read."""
     from pyuvdata import UVData
 
     from ..io.files import check_input_file, reading
+    from ..io.manyfiles import first_file
     from ..io.observation import VIS_FORMATS
 
+    data, cal = first_file(data), first_file(cal)  # several files: one array and units (checked when read)
     if isinstance(data, UVData):
         units = data.vis_units
     else:
@@ -149,6 +152,8 @@ def flag_checks(obs: Observation, *, flag: bool = True, k: float = DEFAULT_K,
                             for row in np.moveaxis(ex.excess, 1, 0).reshape(obs.n_freqs, -1)],
         "products": list(ex.pol_names),
     }
+    if ex.per_file:
+        rec["noise_excess"]["per_file"] = [{"file": f, "median_excess": x} for f, x in zip(obs.files, ex.per_file)]
     had = bool(np.any(obs.usable))
     if flag:
         obs, out = flag_outliers(obs, k=k)

@@ -109,7 +109,8 @@ class DataChecks:
     """Calibration and the data checks (:mod:`gcrsky.ingest.datachecks`).
 
     Attributes:
-        cal: a gain solutions file (calfits, calh5) applied first, or None.
+        cal: a gain solutions file (calfits, calh5) applied first, a list of them (one per visibility file), or
+            None.
         flag_outliers: flag the noise-excess outliers (:mod:`gcrsky.model.datachecks`).
         flux_scale: ``"accept"`` (the data / GSM autos ratio recorded, a warning outside the
             bounds; the library's default), ``"check"`` (refused outside them: the CLI's default)

@@ -125,7 +125,10 @@ def ingest(data, spec: IngestSpec) -> Problem:
     """The inference problem of a visibility file: ICRS coefficients at ``lmax`` (module docstring).
 
     Args:
-        data: a path to any file ``UVData.from_file`` reads, or a ``UVData`` (not modified).
+        data: a path to any file ``UVData.from_file`` reads, a ``UVData`` (not modified), or a list of
+            paths, glob patterns or directories: several files of one array and band read as one
+            observation (:mod:`gcrsky.io.manyfiles`; with ``spec.checks.cal`` one solutions file for all
+            or one per file).
         spec: what to make of it (:class:`~gcrsky.ingest.IngestSpec`; ``spec.nside`` is required).
 
     Returns:
@@ -136,6 +139,10 @@ def ingest(data, spec: IngestSpec) -> Problem:
     from ..base.dtypes import require_x64
 
     require_x64("from_uvdata")
+    if isinstance(data, (list, tuple)):  # several files (globs, directories): one observation of their union
+        from ..io.files import expand_data_paths
+
+        data = expand_data_paths(data)
     if not isinstance(spec, IngestSpec):
         raise TypeError(f"spec must be an IngestSpec, got {type(spec).__name__}")
     if spec.nside is None:
@@ -164,7 +171,8 @@ def from_uvdata(data, spec: IngestSpec | None = None, **keywords) -> Problem:
     """:func:`ingest` with the settings as keywords (:meth:`IngestSpec.from_keywords`), or a spec.
 
     Args:
-        data: a path to any file ``UVData.from_file`` reads, or a ``UVData`` (not modified).
+        data: a path to any file ``UVData.from_file`` reads, a ``UVData`` (not modified), or a list of
+            paths, globs or directories (several files as one observation, :func:`ingest`).
         lmax: degree of the ICRS coefficients; None: every used baseline's reach at the highest
             frequency, capped by memory (:func:`gcrsky.model.bandlimit.observation_lmax`).
         beam: a pyuvdata beam object (``UVBeam``, ``AnalyticBeam``, ``BeamInterface``), a beam
@@ -194,7 +202,8 @@ def from_uvdata(data, spec: IngestSpec | None = None, **keywords) -> Problem:
         band_limit: rows whose reach exceeds ``lmax`` (:mod:`gcrsky.model.bandlimit`): ``"cut"``
             (the CLI's default), ``"marginalise"`` (the sky above ``lmax`` as noise) or
             ``"truncate"`` (default here, with a warning: right for data simulated at ``lmax``).
-        cal: a gain solutions file (calfits, calh5) applied first (:mod:`gcrsky.io.calibration`).
+        cal: a gain solutions file (calfits, calh5) applied first (:mod:`gcrsky.io.calibration`); with several
+            visibility files one for all or a list, one per file.
         flag_outliers: flag the noise-excess outliers (:mod:`gcrsky.model.datachecks`).
         flux_scale: ``"accept"`` (default: the data / GSM autos ratio recorded, a warning outside
             :data:`gcrsky.model.fluxscale.FLUX_BOUNDS`), ``"check"`` (refused outside them: the

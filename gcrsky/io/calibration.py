@@ -132,18 +132,39 @@ def _flagged_in_solutions(uvc) -> list[int]:
     return [int(a) for a, f in zip(uvc.ant_array, flags) if np.all(f)]
 
 
-def check_coverage(uvc, uvd, cal_path) -> None:
+#: How solutions are interpolated in time (``UVCal.interpolate_in_time`` keywords): linear in amplitude and
+#: phase, never extrapolated.
+INTERPOLATION = {"kind": "linear", "allow_extrapolation": False}
+
+#: A data time matches a solution time within this (days: 0.1 s); otherwise the solutions are interpolated.
+TIME_MATCH_DAYS = 0.1 / 86400.0
+
+
+def check_coverage(uvc, uvd, cal_path) -> bool:
     """Refuse data times or channels the solutions do not cover, naming them (pyuvdata's own error names
-    neither the file nor which): a time is covered within half a solution's integration of one, a channel
-    within half a channel width of one (a calibration with one time range covers the range)."""
+    neither the file nor which); whether the solutions must be interpolated in time.
+
+    A data time is covered by a solution at that time (within :data:`TIME_MATCH_DAYS`), or between
+    the first and last solution times (then every time is interpolated linearly in amplitude and
+    phase by pyuvdata's ``UVCal.interpolate_in_time``, no extrapolation), or by a solution's time
+    range; a channel within half a channel width of a solution's (pyuvdata does not interpolate in
+    frequency).
+
+    Returns:
+        True where the data's times are not all solution times (interpolate), else False.
+    """
     jd = np.unique(np.asarray(uvd.time_array, float))
+    interpolate = False
     if getattr(uvc, "time_range", None) is not None and uvc.time_array is None:
         lo, hi = np.min(uvc.time_range), np.max(uvc.time_range)
         outside = jd[(jd < lo - 1e-7) | (jd > hi + 1e-7)]
     else:
         ct = np.asarray(uvc.time_array, float)
-        half = 0.5 * float(np.max(np.asarray(uvc.integration_time, float))) / 86400.0 + 1e-7
-        outside = jd[np.min(np.abs(jd[:, None] - ct[None, :]), axis=1) > half]
+        exact = np.min(np.abs(jd[:, None] - ct[None, :]), axis=1) <= TIME_MATCH_DAYS
+        outside = jd[~exact & ((jd < ct.min() - TIME_MATCH_DAYS) | (jd > ct.max() + TIME_MATCH_DAYS))]
+        interpolate = bool(not np.all(exact) and ct.size > 1)
+        if ct.size == 1:
+            outside = jd[~exact]
     if outside.size:
         from astropy.time import Time
 
@@ -164,26 +185,33 @@ def check_coverage(uvc, uvd, cal_path) -> None:
                              f"({cf.size} channels), but {missing.size} of the data's channels are not among them "
                              f"({missing.min() / 1e6:.4f}-{missing.max() / 1e6:.4f} MHz): give solutions for them, or "
                              "select the covered channels (--freq-range, --chans)")
+    return interpolate
 
 
-def apply_calibration(uvd, cal_path) -> dict:
+def apply_calibration(uvd, cal_path, *, quiet: bool = False) -> dict:
     """Apply the solutions in ``cal_path`` to the UVData ``uvd`` in place (module docstring); what was done.
+
+    ``quiet``: the warnings are returned, not logged (several files' are logged once, merged).
 
     Returns:
         a JSON-friendly dict: file, cal_style, cal_type, gain_convention, gain_scale, the
         units the data now have, renamed antennas, antennas flagged in the solutions, the
-        location offset, and the warnings.
+        location offset, whether the solutions were interpolated in time, and the warnings.
     """
     from pyuvdata.utils import uvcalibrate
 
     uvc, offset = read_calibration(cal_path, location=uvd.telescope.location)
-    check_coverage(uvc, uvd, cal_path)
+    interpolate = check_coverage(uvc, uvd, cal_path)
+    if interpolate:
+        log.info("%s: the solutions (%d times) are interpolated linearly in time onto the data's %d times "
+                 "(pyuvdata's UVCal.interpolate_in_time)", cal_path, uvc.Ntimes, len(np.unique(uvd.time_array)))
     renamed = match_antennas(uvc, uvd)
     before = str(uvd.vis_units)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            uvcalibrate(uvd, uvc, inplace=True, prop_flags=True)
+            uvcalibrate(uvd, uvc, inplace=True, prop_flags=True, interpolate=interpolate,
+                        interp_kwargs=INTERPOLATION if interpolate else None)
         except ValueError as err:
             raise ValueError(f"applying {cal_path}: {err}") from None
     for w in caught:
@@ -195,26 +223,36 @@ def apply_calibration(uvd, cal_path) -> dict:
                      "Jy; the flux-scale check tests that")
     if uvc.cal_style == "redundant" and uvc.gain_scale is None:
         notes.append(REDUNDANT_WARNING)
-    for line in notes:
+    for line in () if quiet else notes:
         log.warning(line)
     return {"file": str(cal_path), "cal_style": str(uvc.cal_style), "cal_type": str(uvc.cal_type),
             "gain_convention": str(uvc.gain_convention), "gain_scale": uvc.gain_scale, "units_before": before,
             "units_after": str(uvd.vis_units), "renamed_antennas": {str(k): v for k, v in renamed.items()},
             "flagged_antennas_in_solutions": _flagged_in_solutions(uvc), "location_offset_m": offset,
-            "warnings": notes}
+            "interpolated_in_time": interpolate, "warnings": notes}
 
 
 def read_calibrated_observation(data, cal, *, pol=None, **selection) -> tuple[Observation, dict]:
     """The Observation of a file (or UVData) after applying the gain solutions in ``cal``.
 
     Args:
-        data: a visibility file's path or a ``UVData`` (not modified).
-        cal: the solutions' file (calfits, calh5: anything ``UVCal.from_file`` reads).
+        data: a visibility file's path, a list of them (:mod:`gcrsky.io.manyfiles`) or a ``UVData`` (not
+            modified).
+        cal: the solutions' file (calfits, calh5: anything ``UVCal.from_file`` reads); with several
+            visibility files one for all of them or a list, one per file in their order.
         pol, **selection: as :func:`gcrsky.io.read_observation`.
 
     Returns:
         (the :class:`~gcrsky.io.Observation`, the calibration record of :func:`apply_calibration`).
     """
+    if isinstance(data, (list, tuple)) and len(data) == 1:
+        data = data[0]
+    if isinstance(data, (list, tuple)):
+        return _calibrated_files(list(data), cal, pol=pol, **selection)
+    if isinstance(cal, (list, tuple)):
+        if len(cal) != 1:
+            raise ValueError(f"{len(cal)} calibration files for one visibility file: give one")
+        cal = cal[0]
     uvd, source, sel = read_uvdata(data, pol=pol, **selection)
     if uvd is data:
         uvd = uvd.copy()
@@ -222,3 +260,53 @@ def read_calibrated_observation(data, cal, *, pol=None, **selection) -> tuple[Ob
     phase_type, notes = unproject(uvd)
     notes = [*notes, f"calibrated with {cal} ({info['cal_style']}, gain_convention {info['gain_convention']})"]
     return observation_of(uvd, source=source, selection=sel, phase_type=phase_type, notes=notes), info
+
+
+def _calibrated_files(paths: list, cal, *, pol, **selection) -> tuple[Observation, dict]:
+    """Several files, each calibrated by its own solutions (``cal`` a list in the files' order) or all by
+    one, before they are joined (:mod:`gcrsky.io.manyfiles`)."""
+    from .manyfiles import join_parts, read_parts, source_name
+    from .observation import many_selection
+
+    cals = list(cal) if isinstance(cal, (list, tuple)) else [cal] * len(paths)
+    if len(cals) not in (1, len(paths)):
+        raise ValueError(f"{len(cals)} calibration files for {len(paths)} visibility files: give one for all, or "
+                         "one per visibility file in the same order")
+    cals = cals * len(paths) if len(cals) == 1 else cals
+    cal_of = {str(p): c for p, c in zip(paths, cals)}
+    parts, _ = read_parts(paths, pol=pol, **selection)
+    infos = [apply_calibration(part.uvd, cal_of[part.path], quiet=True) for part in parts]
+    info = _merged_records(infos, [p.path for p in parts])
+    for line in info["warnings"]:
+        log.warning(line)
+    uvd = join_parts(parts)
+    phase_type, notes = unproject(uvd)
+    used = list(dict.fromkeys(str(i["file"]) for i in infos))
+    named = used[0] if len(used) == 1 else f"{len(used)} solution files, one per visibility file"
+    notes = [*notes, f"calibrated with {named} ({info['cal_style']}, gain_convention {info['gain_convention']})"]
+    obs = observation_of(uvd, source=source_name([p.path for p in parts]), selection=many_selection(parts),
+                         phase_type=phase_type, notes=notes)
+    return obs, info
+
+
+def _merged_records(infos: list[dict], paths: list[str]) -> dict:
+    """One calibration record of several files' (:func:`apply_calibration`), refusing solutions that leave
+    the files in different units or conventions."""
+    if len(infos) == 1:
+        return infos[0]
+    for key in ("cal_style", "gain_convention", "gain_scale", "units_after"):
+        values = {str(i[key]) for i in infos}
+        if len(values) > 1:
+            raise ValueError(f"the calibration files disagree on {key} ({sorted(values)}): the calibrated files would "
+                             "not be in one convention and one unit")
+    out = dict(infos[0])
+    files = list(dict.fromkeys(str(i["file"]) for i in infos))
+    out["file"] = files[0] if len(files) == 1 else files
+    out["interpolated_in_time"] = any(i["interpolated_in_time"] for i in infos)
+    out["flagged_antennas_in_solutions"] = sorted({a for i in infos for a in i["flagged_antennas_in_solutions"]})
+    out["renamed_antennas"] = {k: v for i in infos for k, v in i["renamed_antennas"].items()}
+    out["warnings"] = list(dict.fromkeys(w for i in infos for w in i["warnings"]))
+    out["per_file"] = [{"data": p, "cal": str(i["file"]), "interpolated_in_time": i["interpolated_in_time"],
+                        "flagged_antennas_in_solutions": i["flagged_antennas_in_solutions"]}
+                       for p, i in zip(paths, infos)]
+    return out

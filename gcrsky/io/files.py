@@ -11,12 +11,13 @@ from deep inside the reader.
 
 from __future__ import annotations
 
+import glob
 import os
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-__all__ = ["READ_ERRORS", "check_input_file", "reading"]
+__all__ = ["READ_ERRORS", "VIS_SUFFIXES", "check_input_file", "expand_data_paths", "reading"]
 
 #: What readers raise on a file that is not what it claims (corrupt, truncated, another format).
 READ_ERRORS = (OSError, KeyError, AttributeError, ValueError, TypeError, IndexError, EOFError)
@@ -24,6 +25,59 @@ READ_ERRORS = (OSError, KeyError, AttributeError, ValueError, TypeError, IndexEr
 
 def _is_measurement_set(path: Path) -> bool:
     return (path / "table.dat").is_file()
+
+
+#: Suffixes of the visibility files a directory given as ``--data`` contributes (a Measurement Set is a
+#: directory holding ``table.dat``).
+VIS_SUFFIXES = (".uvh5", ".h5", ".hdf5", ".uvfits", ".fits", ".ms")
+
+
+def _has_glob(text: str) -> bool:
+    return any(c in text for c in "*?[")
+
+
+def _expand_one(item) -> list[str]:
+    path = Path(item)
+    if not path.exists() and _has_glob(str(item)):
+        found = sorted(glob.glob(str(item)))
+        if not found:
+            raise FileNotFoundError(f"no visibility file matches {item!r}")
+        return [p for f in found for p in _expand_one(f)]
+    if path.is_dir() and not _is_measurement_set(path):
+        found = sorted(str(p) for p in path.iterdir() if p.suffix.lower() in VIS_SUFFIXES
+                       and (p.is_file() or _is_measurement_set(p)))
+        if not found:
+            raise FileNotFoundError(f"the directory {path} holds no visibility file (suffixes "
+                                    f"{', '.join(VIS_SUFFIXES)})")
+        return found
+    return [str(item)]
+
+
+def expand_data_paths(data) -> list[str]:
+    """The visibility files ``data`` names, in order: a path, a glob pattern, a directory, or a list of them.
+
+    A glob (``"night/zen.*.uvh5"``) gives its matches sorted by name; a directory (not a Measurement
+    Set) gives its files whose suffix is in :data:`VIS_SUFFIXES`, sorted; a list keeps its order with
+    each entry expanded so.  Each file is then checked (:func:`check_input_file`).
+
+    Raises:
+        FileNotFoundError: a pattern or directory that matches nothing, a path that does not exist.
+        ValueError: the same file named twice (a night's file given twice would count its data twice),
+            an empty list, or an entry that is not a readable file.
+    """
+    items = [data] if isinstance(data, (str, os.PathLike)) else list(data)
+    if not items:
+        raise ValueError("no visibility file given (an empty list)")
+    paths = [p for item in items for p in _expand_one(item)]
+    seen: dict = {}
+    for p in paths:
+        key = os.path.realpath(p)
+        if key in seen:
+            raise ValueError(f"the visibility file {p} is given twice ({seen[key]} and {p}): its data would count "
+                             "twice")
+        seen[key] = p
+        check_input_file(p, "visibility file", measurement_set=True)
+    return paths
 
 
 def check_input_file(path, what: str, *, measurement_set: bool = False) -> Path:

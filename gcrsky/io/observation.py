@@ -62,21 +62,29 @@ def _channel_selection(meta, freq_chans, freq_range_hz) -> dict:
     return {"freq_chans": chans} if chans.size != freqs.size else {}
 
 
-def _time_selection(meta, times_jd, lst_range_hours) -> dict:
+def kept_times(meta, times_jd, lst_range_hours) -> tuple[np.ndarray, np.ndarray]:
+    """The file's unique times (JD, increasing) and which the selection keeps (bool); ``times_jd``
+    absent from the file are not an error here (:func:`_time_selection` and the many-file reader say)."""
     tj = np.unique(np.asarray(meta.time_array))
     keep_t = np.ones(tj.size, bool)
     if times_jd is not None:
-        want = np.atleast_1d(np.asarray(times_jd, np.float64))
-        keep_t &= np.isin(tj, want)
-        missing = want[~np.isin(want, tj)]
-        if missing.size:
-            raise ValueError(f"times {missing[:3]} (JD) are not in the file")
+        keep_t &= np.isin(tj, np.atleast_1d(np.asarray(times_jd, np.float64)))
     if lst_range_hours is not None:
         lo, hi = (float(x) % 24.0 for x in lst_range_hours)
         lst_h = np.zeros(tj.size)
         ut, idx = np.unique(np.asarray(meta.time_array), return_index=True)
         lst_h[np.searchsorted(tj, ut)] = np.rad2deg(np.asarray(meta.lst_array)[idx]) / 15.0
         keep_t &= ((lst_h >= lo) & (lst_h <= hi)) if lo <= hi else ((lst_h >= lo) | (lst_h <= hi))
+    return tj, keep_t
+
+
+def _time_selection(meta, times_jd, lst_range_hours) -> dict:
+    tj, keep_t = kept_times(meta, times_jd, lst_range_hours)
+    if times_jd is not None:
+        want = np.atleast_1d(np.asarray(times_jd, np.float64))
+        missing = want[~np.isin(want, tj)]
+        if missing.size:
+            raise ValueError(f"times {missing[:3]} (JD) are not in the file")
     if not np.any(keep_t):
         raise ValueError("the time / LST selection leaves no integration")
     return {"times": tj[keep_t]} if not np.all(keep_t) else {}
@@ -110,9 +118,12 @@ def _baseline_selection(meta, antennas, bls, autos) -> dict:
     return kw
 
 
-def _selection_kwargs(meta, *, freq_chans, freq_range_hz, times_jd, lst_range_hours, antennas, bls, raw, autos):
-    """pyuvdata ``select`` / ``read`` keywords for the selection (computed on the metadata)."""
-    return {**_channel_selection(meta, freq_chans, freq_range_hz), **_time_selection(meta, times_jd, lst_range_hours),
+def _selection_kwargs(meta, *, freq_chans, freq_range_hz, times_jd, lst_range_hours, antennas, bls, raw, autos,
+                      times=None):
+    """pyuvdata ``select`` / ``read`` keywords for the selection (computed on the metadata); ``times``: the
+    time keywords already computed (the many-file reader's, per file)."""
+    t = _time_selection(meta, times_jd, lst_range_hours) if times is None else times
+    return {**_channel_selection(meta, freq_chans, freq_range_hz), **t,
             **_pol_selection(meta, raw), **_baseline_selection(meta, antennas, bls, autos)}
 
 
@@ -170,6 +181,15 @@ def read_uvdata(data, *, pol="pI", freq_chans=None, freq_range_hz=None, times_jd
     """
     from pyuvdata import UVData
 
+    if isinstance(data, (list, tuple)) and len(data) == 1:
+        data = data[0]
+    if isinstance(data, (list, tuple)):  # several files: each read partially, then joined along time
+        from .manyfiles import join_parts, read_parts, source_name
+
+        parts, _ = read_parts(data, pol=pol, freq_chans=freq_chans,
+                              freq_range_hz=freq_range_hz, times_jd=times_jd, lst_range_hours=lst_range_hours,
+                              antennas=antennas, bls=bls, autos=autos, memory_budget=memory_budget)
+        return join_parts(parts), source_name([p.path for p in parts]), many_selection(parts)
     raw = None if pol is None else parse_products(pol)[1]
     if isinstance(data, UVData):
         meta, source = data, "<UVData object>"
@@ -191,6 +211,21 @@ def read_uvdata(data, *, pol="pI", freq_chans=None, freq_range_hz=None, times_jd
             uvd = UVData.from_file(source, **kw)
     selection = {k: (np.asarray(v).tolist() if not isinstance(v, list) else v) for k, v in kw.items()}
     return uvd, source, selection
+
+
+def many_selection(parts) -> dict:
+    """The selection record of several files' parts: the files read, each one's read keywords and
+    integrations (JD; :func:`observation_of` tells each time's file from them)."""
+    return {"files": [p.path for p in parts], "per_file": [p.selection for p in parts],
+            "file_times_jd": [p.times_jd.tolist() for p in parts]}
+
+
+def _time_files(selection: dict, times_jd) -> tuple[tuple, tuple]:
+    """(files, index of each time's file) of a many-file selection; ``((), ())`` for one file."""
+    if "file_times_jd" not in selection:
+        return (), ()
+    owner = {float(t): k for k, ts in enumerate(selection["file_times_jd"]) for t in ts}
+    return tuple(selection["files"]), tuple(int(owner[float(t)]) for t in np.asarray(times_jd, np.float64))
 
 
 # ---------------------------------------------------------------- arranging the samples
@@ -329,6 +364,7 @@ def _site_and_antennas(uvd, rows: _Rows) -> dict:
 def observation_of(uvd, *, source: str, selection: dict, phase_type: str, notes) -> Observation:
     """The Observation of an (unprojected, selected) ``UVData``."""
     rows = _row_index(uvd)
+    files, time_file = _time_files(selection, rows.times_jd)
     lsts = np.zeros(rows.times_jd.size)
     lsts[rows.tidx] = np.asarray(uvd.lst_array, np.float64)
     freqs = np.asarray(uvd.freq_array, np.float64).reshape(-1)
@@ -339,7 +375,7 @@ def observation_of(uvd, *, source: str, selection: dict, phase_type: str, notes)
         polarizations=np.asarray(uvd.polarization_array, np.int64), vis_units=str(uvd.vis_units),
         pol_convention=getattr(uvd, "pol_convention", None), phase_type=phase_type, source=source,
         history=str(uvd.history or "")[:HISTORY_CHARS], selection=selection, nblts_read=int(uvd.Nblts),
-        notes=tuple(notes),
+        notes=tuple(notes), files=files, time_file=time_file,
     )
 
 

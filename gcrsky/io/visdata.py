@@ -123,6 +123,8 @@ class Observation:
             JSON-friendly).
         nblts_read: baseline-time rows read (autocorrelations included).
         notes: what reading did that a user should know (e.g. the unprojection).
+        files: the files read when the observation joins several (``()`` for one file).
+        time_file: (Nt,) with ``files``: the index into ``files`` of each integration's file.
     """
 
     vis: np.ndarray
@@ -156,6 +158,8 @@ class Observation:
     selection: dict = dataclasses.field(default_factory=dict)
     nblts_read: int = 0
     notes: tuple = ()
+    files: tuple = ()
+    time_file: tuple = ()
 
     def __post_init__(self):
         sizes: dict = {}

@@ -52,7 +52,7 @@ import numpy as np
 from scipy.special import polygamma
 
 from ..io.visdata import Observation
-from .noise import radiometer_variance
+from .noise import adjacent_times, radiometer_variance
 
 __all__ = [
     "DEFAULT_K",
@@ -96,6 +96,8 @@ class NoiseExcess:
             the drift is common to every time), NaN where unusable.
         n_pairs: (Npols, Nf, Nbl) usable terms of the excess per (product, channel, baseline).
         order: 2 (the excess from second differences) or 1 (first differences: two integrations).
+        per_file: with several files (``Observation.files``), each file's median excess over products,
+            channels and baselines from the terms centred on its integrations (None without one).
     """
 
     pol_names: tuple
@@ -103,6 +105,7 @@ class NoiseExcess:
     z: np.ndarray
     n_pairs: np.ndarray
     order: int = 1
+    per_file: tuple = ()
 
     @property
     def efficiency(self) -> float:
@@ -192,12 +195,15 @@ def _pair_z(obs: Observation, k: int, au_p: np.ndarray, au_q: np.ndarray) -> tup
     var = radiometer_variance(ai, aj, obs.integration_time_s[None], obs.channel_width_hz[:, None, None], ns)
     var = np.where(ok & np.isfinite(var) & (var > 0), var, np.nan)
     v = np.where(ok, obs.vis[k], 0.0)
+    adj = adjacent_times(obs.times_jd, obs.integration_time_s)  # no difference spans a gap between files / nights
     with np.errstate(invalid="ignore"):
-        z1 = np.abs(v[:, 1:] - v[:, :-1]) ** 2 / (2.0 * (var[:, 1:] + var[:, :-1]))
+        z1 = np.where(adj[None, :, None], np.abs(v[:, 1:] - v[:, :-1]) ** 2 / (2.0 * (var[:, 1:] + var[:, :-1])),
+                      np.nan)
         if v.shape[1] < 3:
             return z1, z1
         d2 = v[:, 2:] - 2.0 * v[:, 1:-1] + v[:, :-2]
-        return z1, np.abs(d2) ** 2 / (2.0 * (var[:, 2:] + 4.0 * var[:, 1:-1] + var[:, :-2]))
+        z2 = np.abs(d2) ** 2 / (2.0 * (var[:, 2:] + 4.0 * var[:, 1:-1] + var[:, :-2]))
+        return z1, np.where((adj[1:] & adj[:-1])[None, :, None], z2, np.nan)
 
 
 def noise_excess(obs: Observation) -> NoiseExcess:
@@ -230,7 +236,25 @@ def noise_excess(obs: Observation) -> NoiseExcess:
     n = np.sum(np.isfinite(z2), axis=2)
     with np.errstate(invalid="ignore"):
         excess = np.where(n > 0, np.nansum(z2, axis=2) / np.maximum(n, 1), np.nan)
-    return NoiseExcess(pol_names=tuple(names), excess=excess, z=z, n_pairs=n, order=2 if obs.n_times >= 3 else 1)
+    return NoiseExcess(pol_names=tuple(names), excess=excess, z=z, n_pairs=n, order=2 if obs.n_times >= 3 else 1,
+                       per_file=_per_file_excess(obs, z2))
+
+
+def _per_file_excess(obs: Observation, z2: np.ndarray) -> tuple:
+    """Each file's median excess (:attr:`NoiseExcess.per_file`) from the terms ``z2`` (Npols, Nf, Nterms, Nbl)
+    centred on its integrations; ``()`` for one file."""
+    if not obs.files:
+        return ()
+    tf = np.asarray(obs.time_file)
+    centre = tf[1:-1] if z2.shape[2] == obs.n_times - 2 else tf[:-1]  # second differences, or first
+    out = []
+    for k in range(len(obs.files)):
+        sel = z2[:, :, centre == k]
+        cnt = np.sum(np.isfinite(sel), axis=2)
+        with np.errstate(invalid="ignore"):
+            ex = np.where(cnt > 0, np.nansum(sel, axis=2) / np.maximum(cnt, 1), np.nan)
+        out.append(float(np.nanmedian(ex)) if np.any(np.isfinite(ex)) else None)
+    return tuple(out)
 
 
 def outlier_rule(stat: np.ndarray, n_terms: np.ndarray, *, k: float = DEFAULT_K,

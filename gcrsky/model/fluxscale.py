@@ -221,6 +221,12 @@ def _data_autos(obs: Observation, prod: str) -> tuple[np.ndarray, str]:
     return c * sum(parts) * to_ksr[:, None, None], units
 
 
+def _median_ratio(r: np.ndarray) -> float | None:
+    """Median over channels of each channel's median positive finite ratio (``r`` (Nf, ...)); None without one."""
+    per = [np.median(x[np.isfinite(x) & (x > 0)]) for x in r.reshape(r.shape[0], -1) if np.any(np.isfinite(x) & (x > 0))]
+    return float(np.median(per)) if per else None
+
+
 def flux_scale_check(obs: Observation, beam, *, prod: str = "pI", bounds=FLUX_BOUNDS,
                      nside: int = NSIDE_QUAD, sky=None) -> dict:
     """The ratio of the data's autos to the GSM's model autos (module docstring), JSON-friendly.
@@ -230,7 +236,8 @@ def flux_scale_check(obs: Observation, beam, *, prod: str = "pI", bounds=FLUX_BO
 
     Returns:
         ``{"ratio", "ratio_per_channel", "freqs_mhz", "bounds", "within", "units", "model_k_sr", "method",
-        "model_rel_sd", "model_rel_sd_per_channel"}``; ``ratio`` None (with ``"reason"``) when no
+        "model_rel_sd", "model_rel_sd_per_channel"}`` (and ``"per_file"``, each file's ratio, where the
+        observation joins several files); ``ratio`` None (with ``"reason"``) when no
         channel has an unflagged auto.  ``model_rel_sd``: the relative spread of one time's ratio
         from the sky structure the GSM lacks (:func:`unresolved_variance` over the model autos at
         the median time; per channel, and their median), None with a given ``sky``.
@@ -254,6 +261,9 @@ def flux_scale_check(obs: Observation, beam, *, prod: str = "pI", bounds=FLUX_BO
            "model_k_sr_median": float(np.median(model)),
            "method": f"median over channels of median(data auto / int P T_GSM dOmega) over times and antennas; "
                      f"beam feed-x power, {'GSM (pyradiosky)' if sky is None else 'the given sky'} at nside {nside}"}
+    if obs.files:  # several files: each one's ratio from its own integrations
+        tf = np.asarray(obs.time_file)
+        out["per_file"] = [{"file": f, "ratio": _median_ratio(r[:, tf == k])} for k, f in enumerate(obs.files)]
     out["model_rel_sd_per_channel"] = None
     out["model_rel_sd"] = None
     if sky is None:

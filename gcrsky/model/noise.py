@@ -27,6 +27,7 @@ __all__ = [
     "radiometer_sigma",
     "radiometer_variance",
     "time_difference_variance",
+    "adjacent_times",
     "inverse_variance",
     "draw_noise",
     "clean_data",
@@ -80,7 +81,32 @@ def radiometer_sigma(
     return np.sqrt(var) if convention == "per_component" else np.sqrt(2.0 * var)
 
 
-def time_difference_variance(vis, usable, nsamples) -> np.ndarray:
+#: Integrations further apart than this many integration times are not adjacent (a gap between files or
+#: nights): no time difference spans them.
+ADJACENT_GAP = 1.5
+
+
+def adjacent_times(times_jd, integration_time_s) -> np.ndarray:
+    """(Nt-1,) bool: whether integrations ``t`` and ``t+1`` are adjacent (their separation at most
+    :data:`ADJACENT_GAP` integration times), so that a time difference between them sees only noise and
+    the sky's drift over one step; files of a night abut, nights do not.
+
+    Args:
+        times_jd: (Nt,) increasing Julian dates.
+        integration_time_s: (Nt, Nbl) or (Nt,) seconds (0 where absent); the longest per time is used, and
+            a time without one takes the median step.
+    """
+    t = np.asarray(times_jd, np.float64)
+    if t.size < 2:
+        return np.zeros(0, bool)
+    step = np.diff(t) * 86400.0
+    it = np.asarray(integration_time_s, np.float64)
+    it = it.max(axis=tuple(range(1, it.ndim))) if it.ndim > 1 else it
+    it = np.where(it > 0, it, np.median(step))
+    return step <= ADJACENT_GAP * np.maximum(it[1:], it[:-1])
+
+
+def time_difference_variance(vis, usable, nsamples, adjacent=None) -> np.ndarray:
     """Per-component noise variance from time-adjacent differences, one level per channel and baseline.
 
     ``E|V_t+1 - V_t|^2 = 2 sigma_1^2 (1/N_t + 1/N_t+1)`` for white noise of variance
@@ -93,6 +119,8 @@ def time_difference_variance(vis, usable, nsamples) -> np.ndarray:
         vis: (Nf, Nt, Nbl) complex visibilities (time on axis 1).
         usable: (Nf, Nt, Nbl) bool, True where a sample is unflagged with a positive nsample.
         nsamples: (Nf, Nt, Nbl) nsample ``N`` of each sample.
+        adjacent: (Nt-1,) bool, which consecutive integrations are adjacent (:func:`adjacent_times`);
+            None: all.
 
     Returns:
         (Nf, Nt, Nbl) variance ``sigma_1^2 / N_t``; NaN for unusable samples and for a
@@ -103,6 +131,8 @@ def time_difference_variance(vis, usable, nsamples) -> np.ndarray:
     ok = usable
     inv_n = np.where(ok, 1.0 / np.where(ok, nsamples, 1.0), 0.0)
     pair_ok = ok[:, 1:] & ok[:, :-1]
+    if adjacent is not None:
+        pair_ok = pair_ok & np.asarray(adjacent, bool)[None, :, None]
     d2 = np.abs(vis[:, 1:] - vis[:, :-1]) ** 2 / (2.0 * (inv_n[:, 1:] + inv_n[:, :-1]) + ~pair_ok)
     cnt = pair_ok.sum(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):

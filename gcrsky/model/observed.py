@@ -45,7 +45,7 @@ from ..instrument.response import response_matrix
 from ..io.visdata import POLS, Observation, parse_products
 from .compress import COMPRESS_TOL_M
 from .datachecks import refuse_empty
-from .noise import radiometer_variance, time_difference_variance
+from .noise import adjacent_times, radiometer_variance, time_difference_variance
 from .prior import Prior
 from .problem import Problem, assemble_problem, observation_geometry
 from .skyprior import gsm_cl_source, gsm_prior
@@ -202,7 +202,8 @@ def raw_variance(obs: Observation, raw: str, noise="autos") -> np.ndarray:
         return radiometer_variance(ai, aj, obs.integration_time_s[None], obs.channel_width_hz[:, None, None],
                                    obs.nsamples[k])
     if kind == "diff":
-        return time_difference_variance(obs.vis[k], obs.usable[k], obs.nsamples[k])
+        return time_difference_variance(obs.vis[k], obs.usable[k], obs.nsamples[k],
+                                        adjacent_times(obs.times_jd, obs.integration_time_s))
     ns = obs.nsamples[k]
     s = np.broadcast_to(np.asarray(noise, np.float64), ns.shape)
     with np.errstate(divide="ignore"):
