@@ -52,7 +52,7 @@ def _check_data_options(parser, args) -> None:
                      "Gaussian beam of that dish), one of them")
     if args.prior not in ("gsm", "flat") and not Path(args.prior).exists():
         parser.error(f"--prior {args.prior!r}: neither 'gsm', 'flat' nor an existing file")
-    expand_data(parser, args)
+    _expand_data(parser, args)
     files = [("--cal", c, "calibration file", False) for c in ([args.cal] if isinstance(args.cal, str) else
                                                                  args.cal or [])]
     files.append(("--beam", args.beam, "beam file", False))
@@ -67,23 +67,32 @@ def _check_data_options(parser, args) -> None:
     check_gain_options(parser, args)
 
 
-def expand_data(parser, args, dest: str = "data", option: str = "--data") -> None:
+def expand_inputs(args, dest: str = "data") -> None:
     """``--data`` (or inspect's files) and ``--cal`` as given (paths, globs, directories) -> the file (a str) or
-    the files (a list); a missing, empty or twice-given file, or a count of --cal files that is neither one nor
-    the data files', is a usage error naming it."""
+    the files (a list).
+
+    Raises:
+        FileNotFoundError, ValueError: a missing, empty or twice-given file, or a count of --cal files that is
+            neither one nor the data files' (the message names it).
+    """
     from ..io.files import expand_data_paths
 
-    try:
-        files = expand_data_paths(getattr(args, dest))
-    except (OSError, ValueError) as e:
-        parser.error(f"{option}: {e}")
+    files = expand_data_paths(getattr(args, dest))
     setattr(args, dest, files[0] if len(files) == 1 else files)
     if args.cal is not None:
-        cals = list(args.cal)
+        cals = list(args.cal) if isinstance(args.cal, (list, tuple)) else [args.cal]
         if len(cals) not in (1, len(files)):
-            parser.error(f"--cal: {len(cals)} calibration files for {len(files)} visibility files: give one for all, "
-                         "or one per visibility file in their order")
+            raise ValueError(f"--cal: {len(cals)} calibration files for {len(files)} visibility files: give one for "
+                             "all, or one per visibility file in their order")
         args.cal = cals[0] if len(cals) == 1 else cals
+
+
+def _expand_data(parser, args) -> None:
+    """:func:`expand_inputs` for ``run --data``: a bad input is a usage error (exit 2)."""
+    try:
+        expand_inputs(args)
+    except (OSError, ValueError) as e:
+        parser.error(str(e) if str(e).startswith("--cal") else f"--data: {e}")
 
 
 #: The gain block's options (dest, option) that mean something only with ``--gains sample``.

@@ -29,10 +29,10 @@ def _noise_line(info: dict) -> str:
 
 def inspect_command(args, parser) -> int:
     """Print the report (or ``--json``); a file that cannot be used: a message, exit 2."""
-    from .cmd_data import expand_data
+    from .cmd_data import expand_inputs
 
-    expand_data(parser, args, "file", "inspect")
     try:
+        expand_inputs(args, "file")
         return _inspect(args)
     except (ValueError, FileNotFoundError) as e:  # a message, not a traceback (-v adds it)
         return report_user_error(e, "inspect", getattr(args, "verbose", 0))

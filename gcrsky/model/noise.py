@@ -81,15 +81,17 @@ def radiometer_sigma(
     return np.sqrt(var) if convention == "per_component" else np.sqrt(2.0 * var)
 
 
-#: Integrations further apart than this many integration times are not adjacent (a gap between files or
-#: nights): no time difference spans them.
+#: Integrations further apart than this many steps are not adjacent (a gap between files or nights): no
+#: time difference spans them.  The step is the longer of the integration time and the median
+#: separation (a sparse simulation's uniform steps stay adjacent).
 ADJACENT_GAP = 1.5
 
 
 def adjacent_times(times_jd, integration_time_s) -> np.ndarray:
     """(Nt-1,) bool: whether integrations ``t`` and ``t+1`` are adjacent (their separation at most
-    :data:`ADJACENT_GAP` integration times), so that a time difference between them sees only noise and
-    the sky's drift over one step; files of a night abut, nights do not.
+    :data:`ADJACENT_GAP` steps, a step the longer of the integration time and the median separation),
+    so that a time difference between them sees only noise and the sky's drift over one step; files
+    of a night abut, nights (and snapshots hours apart in a night of 10-second integrations) do not.
 
     Args:
         times_jd: (Nt,) increasing Julian dates.
@@ -102,7 +104,8 @@ def adjacent_times(times_jd, integration_time_s) -> np.ndarray:
     step = np.diff(t) * 86400.0
     it = np.asarray(integration_time_s, np.float64)
     it = it.max(axis=tuple(range(1, it.ndim))) if it.ndim > 1 else it
-    it = np.where(it > 0, it, np.median(step))
+    med = float(np.median(step))
+    it = np.maximum(np.where(it > 0, it, med), med)
     return step <= ADJACENT_GAP * np.maximum(it[1:], it[:-1])
 
 
