@@ -233,3 +233,20 @@ def test_an_observation_checks_its_fields(sim_file):
     with pytest.raises(ValueError, match="holds products"):
         obs.pol_index("xx")
     assert "3 antennas, 3 baselines" in repr(obs)
+
+
+def test_malformed_antenna_positions_and_site_are_named(h1c, tmp_path):
+    """A NaN position of a used antenna, or a site off the Earth, is refused naming the file, the antennas and
+    the header field (astropy's own message names neither)."""
+    import warnings
+
+    bad = h1c.copy()
+    bad.telescope.antenna_positions = bad.telescope.antenna_positions.copy()
+    bad.telescope.antenna_positions[list(bad.telescope.antenna_numbers).index(12)] = np.nan
+    path = tmp_path / "nanpos.uvh5"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # pyuvdata: the uvws no longer match the positions
+        bad.write_uvh5(str(path), run_check=False)
+    with pytest.raises(ValueError, match=r"nanpos.uvh5: the positions of antennas \[12\] are not finite"):
+        read_observation(path, pol="pI", freq_chans=[30])
+    read_observation(path, pol="pI", freq_chans=[30], antennas=[1, 11, 13])  # the control: antenna 12 left out

@@ -340,15 +340,24 @@ def _auto_grids(uvd, rows: _Rows) -> dict:
     return {"autos": autos, "auto_flags": flags, "auto_nsamples": nsamp, "auto_present": present}
 
 
-def _site_and_antennas(uvd, rows: _Rows) -> dict:
+def _site_and_antennas(uvd, rows: _Rows, source: str = "the file") -> dict:
     from astropy.coordinates import EarthLocation
 
     tel = uvd.telescope
     loc = tel.location
     if not isinstance(loc, EarthLocation):
         raise ValueError(f"the telescope's location is a {type(loc).__name__}: gcrsky models observations from Earth")
+    xyz = np.array([loc.x.to_value("m"), loc.y.to_value("m"), loc.z.to_value("m")], np.float64)
+    if not np.all(np.isfinite(xyz)) or np.linalg.norm(xyz) < 6.0e6:
+        raise ValueError(f"{source}: the telescope's location (telescope_location, ECEF {xyz.tolist()} m) is not a "
+                         "place on the Earth's surface: fix the file's header")
     nums_all = [int(a) for a in tel.antenna_numbers]
     sel = [nums_all.index(int(a)) for a in rows.antnums]
+    rel = np.asarray(tel.antenna_positions, np.float64)[sel]
+    bad = ~np.all(np.isfinite(rel), axis=1)
+    if np.any(bad):
+        raise ValueError(f"{source}: the positions of antennas {rows.antnums[bad].tolist()} are not finite (the "
+                         "telescope's antenna_positions): fix them, or leave those antennas out (--antennas)")
     return {
         "antenna_numbers": rows.antnums,
         "antenna_names": np.asarray(tel.antenna_names)[sel],
@@ -369,7 +378,7 @@ def observation_of(uvd, *, source: str, selection: dict, phase_type: str, notes)
     lsts[rows.tidx] = np.asarray(uvd.lst_array, np.float64)
     freqs = np.asarray(uvd.freq_array, np.float64).reshape(-1)
     return Observation(
-        **_cross_grids(uvd, rows), **_auto_grids(uvd, rows), **_site_and_antennas(uvd, rows),
+        **_cross_grids(uvd, rows), **_auto_grids(uvd, rows), **_site_and_antennas(uvd, rows, source),
         antpairs=rows.pairs, times_jd=rows.times_jd, lsts_rad=lsts, freqs_hz=freqs,
         channel_width_hz=np.broadcast_to(np.asarray(uvd.channel_width, np.float64).reshape(-1), freqs.shape),
         polarizations=np.asarray(uvd.polarization_array, np.int64), vis_units=str(uvd.vis_units),
