@@ -111,6 +111,7 @@ def inspect_beams(spec: IngestSpec, obs: Observation) -> tuple[list | None, str 
 def describe_observation(obs: Observation, prods, redundancy_tol_m: float = 0.5) -> dict:
     """The part of :func:`inspect_uvdata`'s report that describes the file (in the report's key order)."""
     from ..instrument.redundancy import redundant_groups
+    from ..model.observed import COMPRESS_TOL_M
 
     groups = redundant_groups(obs.antpos_enu_m, obs.antpairs, tol_m=redundancy_tol_m)
     return {
@@ -122,7 +123,8 @@ def describe_observation(obs: Observation, prods, redundancy_tol_m: float = 0.5)
         "n_unique_baselines": groups.n_groups,
         "redundancy_tol_m": float(redundancy_tol_m),
         "redundancy_max_offset_m": float(np.max(groups.max_offset_m)),
-        "n_rows_exact": redundant_groups(obs.antpos_enu_m, obs.antpairs).n_groups,  # what the run's compression keeps
+        # what the run's compression keeps (its grouping tolerance: positions read back through ECEF are ~1e-9 m off)
+        "n_rows_exact": redundant_groups(obs.antpos_enu_m, obs.antpairs, tol_m=COMPRESS_TOL_M).n_groups,
         "n_times": obs.n_times,
         "time_range_jd": [float(obs.times_jd.min()), float(obs.times_jd.max())],
         "lst_range_hours": [float(np.rad2deg(obs.lsts_rad.min()) / 15), float(np.rad2deg(obs.lsts_rad.max()) / 15)],
