@@ -223,3 +223,37 @@ def test_inspect_reports_each_file(night, capsys):
     assert "per file      noise excess: 3 files" in out and "per file      flux scale: 3 files" in out
     for p in night:
         assert p.rsplit("/", 1)[1] in out
+
+
+def test_a_run_on_several_files_records_them_and_resumes(night, tmp_path, capsys):
+    """``gcrsky run --data DIR``: the files and their digests in the run's settings; a finished run resumes
+    (nothing to do), overlapping files are refused, and so is a resume after one file's content changed."""
+    import json
+    import shutil
+
+    from gcrsky.cli import main
+
+    d = tmp_path / "night"
+    d.mkdir()
+    for p in night:
+        shutil.copy(p, d)
+    out = tmp_path / "run"
+    args = ["run", "--data", str(d), "--cal", str(CAL), "--dish-diameter", "14", "--chans", "30", "--lmax", "20",
+            "--nside", "64", "--band-limit", "truncate", "--gains", "off", "--nsamples", "4", "--batch", "4",
+            "--no-progress", "--out", str(out)]
+    assert main(args) in (0, 6)  # 6: a rejected fit (a run on 1 channel of real data at lmax 20 may be)
+    s = json.loads((out / "summary.json").read_text())
+    assert s["config"]["source"].endswith("and 2 more file(s)")
+    assert "and 2 more file(s): 8 antennas" in capsys.readouterr().out
+    assert main([*args, "--resume"]) in (0, 6)
+    capsys.readouterr()
+    shutil.copy(night[0], d / "zen.part1.uvh5")  # two files now hold the same integrations
+    assert main([*args, "--resume"]) == 2
+    assert "both hold the integration at JD" in capsys.readouterr().err
+    from pyuvdata import UVData
+
+    changed = UVData.from_file(night[1])
+    changed.data_array = changed.data_array * 1.001  # one file's content changes
+    changed.write_uvh5(str(d / "zen.part1.uvh5"), clobber=True)
+    assert main([*args, "--resume"]) == 3  # refused: the recorded digests differ
+    assert "data_sha256" in capsys.readouterr().err
