@@ -250,3 +250,12 @@ def test_malformed_antenna_positions_and_site_are_named(h1c, tmp_path):
     with pytest.raises(ValueError, match=r"nanpos.uvh5: the positions of antennas \[12\] are not finite"):
         read_observation(path, pol="pI", freq_chans=[30])
     read_observation(path, pol="pI", freq_chans=[30], antennas=[1, 11, 13])  # the control: antenna 12 left out
+
+
+def test_a_channel_named_twice_is_refused_not_read_as_every_channel(sim_file):
+    """``freq_chans=[0, 0]`` on a two-channel file selected every channel (the count matched); now refused."""
+    path, _ = sim_file
+    with pytest.raises(ValueError, match="names a channel more than once"):
+        read_observation(path, freq_chans=[0, 0])
+    assert read_observation(path, freq_chans=[1, 0]).n_freqs == 2  # the control: both, in the file's order
+    assert read_observation(path, freq_chans=[1]).freqs_hz.tolist() == [FREQS[1]]

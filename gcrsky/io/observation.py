@@ -53,13 +53,16 @@ def _channel_selection(meta, freq_chans, freq_range_hz) -> dict:
         chans = np.asarray(freq_chans, np.int64).reshape(-1)
         if chans.size == 0 or chans.min() < 0 or chans.max() >= freqs.size:
             raise ValueError(f"freq_chans must index the file's {freqs.size} channels, got {freq_chans!r}")
+        if np.unique(chans).size != chans.size:
+            raise ValueError(f"freq_chans names a channel more than once ({freq_chans!r}): each channel is read once")
+        chans = np.sort(chans)
     if freq_range_hz is not None:
         lo, hi = (float(x) for x in freq_range_hz)
         chans = chans[(freqs[chans] >= lo) & (freqs[chans] <= hi)]
         if chans.size == 0:
             raise ValueError(f"no channel in {lo / 1e6:g}-{hi / 1e6:g} MHz (the file has "
                              f"{freqs.min() / 1e6:g}-{freqs.max() / 1e6:g} MHz)")
-    return {"freq_chans": chans} if chans.size != freqs.size else {}
+    return {"freq_chans": chans} if not np.array_equal(chans, np.arange(freqs.size)) else {}
 
 
 def kept_times(meta, times_jd, lst_range_hours) -> tuple[np.ndarray, np.ndarray]:
