@@ -240,3 +240,14 @@ def test_disk_full_mid_run_then_resume(tmp_path, capsys, monkeypatch):
     assert cli.main([*argv, "--out", str(out), "--resume"]) == 0
     a, b = read_draws(out / "results.h5").draws, read_draws(tmp_path / "ref" / "results.h5").draws
     assert a.tobytes() == b.tobytes()
+
+
+def test_hdf5_s_runtime_error_is_a_read_error_naming_the_file(tmp_path):
+    """HDF5 raises RuntimeError for a damaged symbol table (a held-out bit-flipped UVH5 ended ``run`` and
+    ``inspect`` in a traceback): the reader's context turns it into a ValueError naming the file."""
+    from gcrsky.io.files import reading
+
+    with pytest.raises(ValueError, match=r"x\.uvh5 cannot be read as a visibility file \(RuntimeError: Unable to get "
+                                         r"group info \(bad symbol table node signature\)\)"):
+        with reading(tmp_path / "x.uvh5", "a visibility file", "UVH5"):
+            raise RuntimeError("Unable to get group info (bad symbol table node signature)")

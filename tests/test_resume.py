@@ -397,3 +397,17 @@ def test_append_batch_checks_order(tmp_path):
     st = read_results_state(h5)
     assert (st.ndraws_complete, st.draws_done, st.settings) == (5, True, {"x": 1})
     np.testing.assert_array_equal(read_draws(h5).draws[0, :, 0], [0, 0, 1, 1, 2])
+
+
+def test_ctrl_c_is_a_line_not_a_traceback(tmp_path, capsys, monkeypatch):
+    """Ctrl-C during a run: exit 130 and one line saying where the completed batches are (no traceback)."""
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("gcrsky.cli.cmd_run.execute_with_bars", interrupted)
+    out = tmp_path / "run"
+    assert cli.main(["run", "--out", str(out), *SMALL]) == cli.EXIT_INTERRUPTED == 130
+    err = capsys.readouterr().err
+    assert "interrupted (Ctrl-C)" in err and f"{out}/results.h5" in err and "--resume" in err
+    assert "Traceback" not in err

@@ -67,7 +67,8 @@ the timeout, with no traceback (:func:`gcrsky.parallel.init_distributed`); 5 whe
 ``results.h5`` and ``--resume`` redoes the rest from them; 6 with ``--strict`` when the run completed
 (everything written) but the goodness of fit (``summary.json``'s ``goodness_of_fit``,
 :mod:`gcrsky.run.fit`) rejects the model in some channel.  Without ``--strict`` a rejected fit exits 0
-and the terminal says in one WARNING line which channels were rejected, their chi^2/dof and tail.
+and the terminal says in one WARNING line which channels were rejected, their chi^2/dof and tail; 130
+after Ctrl-C (one line: the completed batches' draws are kept in ``results.h5``, ``--resume`` continues).
 """
 
 from __future__ import annotations
@@ -79,7 +80,10 @@ from .options import EXIT_DIST
 from .parser import build_parser
 from .runs import EXIT_REFUSED, EXIT_REJECTED
 
-__all__ = ["EXIT_DIST", "EXIT_REFUSED", "EXIT_REJECTED", "EXIT_USAGE", "build_parser", "main"]
+__all__ = ["EXIT_DIST", "EXIT_INTERRUPTED", "EXIT_REFUSED", "EXIT_REJECTED", "EXIT_USAGE", "build_parser", "main"]
+
+#: Exit status after Ctrl-C (128 + SIGINT, the shell's): a line says what was kept, no traceback.
+EXIT_INTERRUPTED = 130
 
 #  One module per command, the parser and what they share:
 #  - ``parser``: :func:`build_parser`, one builder per command (``set_defaults(func=...)``);
@@ -104,6 +108,12 @@ def main(argv=None) -> int:
 
     try:
         return args.func(args, parser)
+    except KeyboardInterrupt:  # Ctrl-C: what was kept and how to go on, not a traceback
+        out = getattr(args, "out", None)
+        kept = (f"the draws of every completed batch are in {out}/results.h5; the same command with --resume "
+                "continues it" if out else "nothing was written")
+        print(f"\ngcrsky: interrupted (Ctrl-C): {kept}", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except DistributedInitError as e:  # the processes did not start together: a message, not a traceback
         hint = "; --dist-timeout SECONDS sets how long to wait" if isinstance(e, TimeoutError) else ""
         print(f"gcrsky: jax.distributed: {e}{hint}", file=sys.stderr)

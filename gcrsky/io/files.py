@@ -19,8 +19,9 @@ from typing import Iterator
 
 __all__ = ["READ_ERRORS", "VIS_SUFFIXES", "check_input_file", "expand_data_paths", "reading"]
 
-#: What readers raise on a file that is not what it claims (corrupt, truncated, another format).
-READ_ERRORS = (OSError, KeyError, AttributeError, ValueError, TypeError, IndexError, EOFError)
+#: What readers raise on a file that is not what it claims (corrupt, truncated, another format); HDF5 raises
+#: ``RuntimeError`` for a damaged symbol table ("Unable to get group info (bad symbol table node signature)").
+READ_ERRORS = (OSError, KeyError, AttributeError, ValueError, TypeError, IndexError, EOFError, RuntimeError)
 
 
 def _is_measurement_set(path: Path) -> bool:
