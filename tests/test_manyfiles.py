@@ -205,6 +205,20 @@ def test_calibration_per_file_and_interpolated_in_time_as_pyuvdata_does(h1c, nig
     want = read_observation(ref, pol="pI")
     np.testing.assert_array_equal(got.flags, want.flags)
     np.testing.assert_allclose(got.vis, want.vis, rtol=1e-12, atol=0)
+    # solutions at one time (a bandpass) apply to every data time (pyuvdata's time_check=False)
+    one = uvc.select(times=t[:1], inplace=False)
+    path = str(tmp_path / "one.calh5")
+    one.write_calh5(path)
+    got, rec = read_calibrated_observation(H1C, path, pol="pI", freq_chans=CHANS)
+    assert rec["one_time_for_all"] and not rec["interpolated_in_time"]
+    ref = h1c.select(freq_chans=CHANS, polarizations=["ee", "nn"], inplace=False)
+    one.telescope.antenna_names = ref.telescope.antenna_names[
+        [list(ref.telescope.antenna_numbers).index(a) for a in one.telescope.antenna_numbers]]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        uvcalibrate(ref, one, inplace=True, prop_flags=True, time_check=False)
+    ref.vis_units = "Jy"
+    np.testing.assert_allclose(got.vis, read_observation(ref, pol="pI").vis, rtol=1e-12, atol=0)
     # the control: solutions that do not reach the last times are refused, naming them
     short = uvc.select(times=t[:6], inplace=False)
     path = str(tmp_path / "short.calh5")

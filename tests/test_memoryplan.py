@@ -154,3 +154,14 @@ def test_products_show_the_first_channel_with_data_and_say_their_units(prob, tmp
     assert header["MAPUNIT"] == "K" and header["FLUXSCAL"] == "simulation"
     control, _ = execute(prob, _spec(tmp_path / "control"))
     assert control.shown_channel["index"] == 0 and control.metrics == control.per_frequency[0]
+
+
+@pytest.mark.parametrize("value", ["-1", "0", "nan", "inf"])
+def test_a_memory_budget_that_is_not_a_positive_number_is_refused(value, monkeypatch):
+    from gcrsky.base.memory import available_memory_bytes
+
+    monkeypatch.setenv("GCRSKY_MEMORY_BUDGET_GB", value)
+    with pytest.raises(ValueError, match="positive, finite number of GiB"):
+        available_memory_bytes()
+    monkeypatch.setenv("GCRSKY_MEMORY_BUDGET_GB", "1.5")  # the control
+    assert available_memory_bytes() == 1.5 * 2**30

@@ -8,6 +8,7 @@ the size and the alternative that would fit.
 
 from __future__ import annotations
 
+import math
 import os
 
 import jax
@@ -38,9 +39,12 @@ def available_memory_bytes(device=None) -> float:
     env = os.environ.get("GCRSKY_MEMORY_BUDGET_GB")
     if env:
         try:
-            return float(env) * 2**30
+            gib = float(env)
         except ValueError as e:
             raise ValueError(f"GCRSKY_MEMORY_BUDGET_GB must be a number of GiB, got {env!r}") from e
+        if not (math.isfinite(gib) and gib > 0):
+            raise ValueError(f"GCRSKY_MEMORY_BUDGET_GB must be a positive, finite number of GiB, got {env!r}")
+        return gib * 2**30
     dev = device if device is not None else jax.devices()[0]
     if dev.platform != "cpu":
         stats = dev.memory_stats() or {}

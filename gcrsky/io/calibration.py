@@ -140,21 +140,22 @@ INTERPOLATION = {"kind": "linear", "allow_extrapolation": False}
 TIME_MATCH_DAYS = 0.1 / 86400.0
 
 
-def check_coverage(uvc, uvd, cal_path) -> bool:
+def check_coverage(uvc, uvd, cal_path) -> str:
     """Refuse data times or channels the solutions do not cover, naming them (pyuvdata's own error names
     neither the file nor which); whether the solutions must be interpolated in time.
 
     A data time is covered by a solution at that time (within :data:`TIME_MATCH_DAYS`), or between
     the first and last solution times (then every time is interpolated linearly in amplitude and
     phase by pyuvdata's ``UVCal.interpolate_in_time``, no extrapolation), or by a solution's time
-    range; a channel within half a channel width of a solution's (pyuvdata does not interpolate in
-    frequency).
+    range; solutions at one time only (a bandpass) apply to every data time; a channel within half a
+    channel width of a solution's (pyuvdata does not interpolate in frequency).
 
     Returns:
-        True where the data's times are not all solution times (interpolate), else False.
+        ``"exact"`` (every data time is a solution time, or in a time range), ``"interpolate"`` or
+        ``"one time"`` (one solution time for all).
     """
     jd = np.unique(np.asarray(uvd.time_array, float))
-    interpolate = False
+    mode = "exact"
     if getattr(uvc, "time_range", None) is not None and uvc.time_array is None:
         lo, hi = np.min(uvc.time_range), np.max(uvc.time_range)
         outside = jd[(jd < lo - 1e-7) | (jd > hi + 1e-7)]
@@ -162,9 +163,10 @@ def check_coverage(uvc, uvd, cal_path) -> bool:
         ct = np.asarray(uvc.time_array, float)
         exact = np.min(np.abs(jd[:, None] - ct[None, :]), axis=1) <= TIME_MATCH_DAYS
         outside = jd[~exact & ((jd < ct.min() - TIME_MATCH_DAYS) | (jd > ct.max() + TIME_MATCH_DAYS))]
-        interpolate = bool(not np.all(exact) and ct.size > 1)
         if ct.size == 1:
-            outside = jd[~exact]
+            outside, mode = jd[:0], "exact" if np.all(exact) else "one time"
+        elif not np.all(exact):
+            mode = "interpolate"
     if outside.size:
         from astropy.time import Time
 
@@ -185,7 +187,7 @@ def check_coverage(uvc, uvd, cal_path) -> bool:
                              f"({cf.size} channels), but {missing.size} of the data's channels are not among them "
                              f"({missing.min() / 1e6:.4f}-{missing.max() / 1e6:.4f} MHz): give solutions for them, or "
                              "select the covered channels (--freq-range, --chans)")
-    return interpolate
+    return mode
 
 
 def apply_calibration(uvd, cal_path, *, quiet: bool = False) -> dict:
@@ -201,7 +203,11 @@ def apply_calibration(uvd, cal_path, *, quiet: bool = False) -> dict:
     from pyuvdata.utils import uvcalibrate
 
     uvc, offset = read_calibration(cal_path, location=uvd.telescope.location)
-    interpolate = check_coverage(uvc, uvd, cal_path)
+    mode = check_coverage(uvc, uvd, cal_path)
+    interpolate = mode == "interpolate"
+    if mode == "one time":
+        log.info("%s: solutions at one time (JD %.6f) applied to every data time", cal_path,
+                 float(np.asarray(uvc.time_array).ravel()[0]))
     if interpolate:
         log.info("%s: the solutions (%d times) are interpolated linearly in time onto the data's %d times "
                  "(pyuvdata's UVCal.interpolate_in_time)", cal_path, uvc.Ntimes, len(np.unique(uvd.time_array)))
@@ -210,7 +216,7 @@ def apply_calibration(uvd, cal_path, *, quiet: bool = False) -> dict:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            uvcalibrate(uvd, uvc, inplace=True, prop_flags=True, interpolate=interpolate,
+            uvcalibrate(uvd, uvc, inplace=True, prop_flags=True, interpolate=interpolate, time_check=mode != "one time",
                         interp_kwargs=INTERPOLATION if interpolate else None)
         except ValueError as err:
             raise ValueError(f"applying {cal_path}: {err}") from None
@@ -229,7 +235,7 @@ def apply_calibration(uvd, cal_path, *, quiet: bool = False) -> dict:
             "gain_convention": str(uvc.gain_convention), "gain_scale": uvc.gain_scale, "units_before": before,
             "units_after": str(uvd.vis_units), "renamed_antennas": {str(k): v for k, v in renamed.items()},
             "flagged_antennas_in_solutions": _flagged_in_solutions(uvc), "location_offset_m": offset,
-            "interpolated_in_time": interpolate, "warnings": notes}
+            "interpolated_in_time": interpolate, "one_time_for_all": mode == "one time", "warnings": notes}
 
 
 def read_calibrated_observation(data, cal, *, pol=None, **selection) -> tuple[Observation, dict]:
