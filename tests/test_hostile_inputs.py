@@ -251,3 +251,15 @@ def test_hdf5_s_runtime_error_is_a_read_error_naming_the_file(tmp_path):
                                          r"group info \(bad symbol table node signature\)\)"):
         with reading(tmp_path / "x.uvh5", "a visibility file", "UVH5"):
             raise RuntimeError("Unable to get group info (bad symbol table node signature)")
+
+
+def test_a_nan_in_a_prior_cl_file_names_the_file_and_l(tmp_path):
+    from gcrsky.ingest.prior import read_cl_file
+
+    cl = np.column_stack([np.arange(11), 1.0 / (1.0 + np.arange(11)) ** 2])
+    cl[7, 1] = np.nan
+    path = tmp_path / "cl.txt"
+    np.savetxt(path, cl)
+    with pytest.raises(ValueError, match=r"cl\.txt: C_l must be finite and >= 0; spectrum 0 holds nan at l = 7"):
+        read_cl_file(path, 1, 10)
+    assert read_cl_file(path, 1, 6).shape == (1, 7)  # the control: the NaN above lmax is not read

@@ -33,6 +33,11 @@ def read_cl_file(path: Path, nf: int, lmax: int) -> np.ndarray:
     arr = arr[..., : lmax + 1]
     if arr.shape[0] not in (1, nf):
         raise ValueError(f"{path}: {arr.shape[0]} spectra for {nf} frequencies")
+    bad = ~np.isfinite(arr) | (arr < 0)
+    if np.any(bad):
+        k, ell = (int(x[0]) for x in np.nonzero(bad))
+        raise ValueError(f"{path}: C_l must be finite and >= 0; spectrum {k} holds {float(arr[k, ell])} at l = {ell} "
+                         f"({int(bad.sum())} such value(s) up to lmax {lmax})")
     return np.broadcast_to(arr, (nf, lmax + 1))
 
 
