@@ -271,3 +271,19 @@ def test_a_run_on_several_files_records_them_and_resumes(night, tmp_path, capsys
     changed.write_uvh5(str(d / "zen.part1.uvh5"), clobber=True)
     assert main([*args, "--resume"]) == 3  # refused: the recorded digests differ
     assert "data_sha256" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("what", ["flagged", "zero"])
+def test_solutions_that_flag_or_zero_everything_are_named(h1c, tmp_path, what):
+    from gcrsky.io.calibration import read_calibrated_observation, read_calibration
+
+    uvc, _ = read_calibration(CAL, location=h1c.telescope.location)
+    if what == "flagged":
+        uvc.flag_array[:] = True
+    else:
+        uvc.gain_array[:] = 0.0  # pyuvdata flags the samples of zero gains
+    match = "its solutions flag every one of the 1120 unflagged cross-correlation samples"
+    path = str(tmp_path / "bad.calh5")
+    uvc.write_calh5(path)
+    with pytest.raises(ValueError, match=r"bad\.calh5: " + match):
+        read_calibrated_observation(H1C, path, pol="pI", freq_chans=CHANS)

@@ -190,6 +190,19 @@ def check_coverage(uvc, uvd, cal_path) -> str:
     return mode
 
 
+def _check_calibrated(uvd, cross, usable_before: int, cal_path) -> None:
+    """Refuse solutions that flag every cross-correlation the data had, or that make unflagged data non-finite
+    (zero or non-finite gains), naming the file (the data checks would blame the data)."""
+    flags = np.asarray(uvd.flag_array, bool)[cross]
+    if usable_before and not np.any(~flags):
+        raise ValueError(f"{cal_path}: its solutions flag every one of the {usable_before} unflagged cross-correlation "
+                         "samples of the data (every gain flagged at these times and channels): check the solutions")
+    bad = ~flags & ~np.isfinite(np.asarray(uvd.data_array)[cross])
+    if np.any(bad):
+        raise ValueError(f"{cal_path}: applying its solutions made {int(bad.sum())} unflagged samples non-finite "
+                         "(zero or non-finite gains that are not flagged): flag them in the solutions")
+
+
 def apply_calibration(uvd, cal_path, *, quiet: bool = False) -> dict:
     """Apply the solutions in ``cal_path`` to the UVData ``uvd`` in place (module docstring); what was done.
 
@@ -213,6 +226,8 @@ def apply_calibration(uvd, cal_path, *, quiet: bool = False) -> dict:
                  "(pyuvdata's UVCal.interpolate_in_time)", cal_path, uvc.Ntimes, len(np.unique(uvd.time_array)))
     renamed = match_antennas(uvc, uvd)
     before = str(uvd.vis_units)
+    cross = np.asarray(uvd.ant_1_array) != np.asarray(uvd.ant_2_array)
+    usable_before = int(np.sum(~np.asarray(uvd.flag_array, bool)[cross]))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -222,6 +237,7 @@ def apply_calibration(uvd, cal_path, *, quiet: bool = False) -> dict:
             raise ValueError(f"applying {cal_path}: {err}") from None
     for w in caught:
         log.info("uvcalibrate: %s", w.message)
+    _check_calibrated(uvd, cross, usable_before, cal_path)
     notes = []
     if uvc.gain_scale is None:
         uvd.vis_units = "Jy"
