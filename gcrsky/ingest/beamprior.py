@@ -51,7 +51,7 @@ def feed_pol_of(data, pol) -> tuple[object, dict | None]:
         tel = data.telescope
     else:
         from ..io.files import check_input_file, reading
-        from ..io.observation import VIS_FORMATS
+        from ..io.selection import VIS_FORMATS
 
         path = check_input_file(data, "visibility file", measurement_set=True)
         with reading(path, "a visibility file", VIS_FORMATS):

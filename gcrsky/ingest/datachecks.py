@@ -67,7 +67,7 @@ def amplitude_needed(data, cal=None) -> str | None:
 
     from ..io.files import check_input_file, reading
     from ..io.manyfiles import first_file
-    from ..io.observation import VIS_FORMATS
+    from ..io.selection import VIS_FORMATS
 
     data, cal = first_file(data), first_file(cal)  # several files: one array and units (checked when read)
     if isinstance(data, UVData):

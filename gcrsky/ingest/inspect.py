@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..io.observation import read_bytes
+from ..io.selection import read_bytes
 from ..io.visdata import POLS, Observation, parse_products
 from ..model.bandlimit import observation_lmax
 from ..model.observed import conventions, kelvin_sr_per_unit, modelled_product, raw_variance

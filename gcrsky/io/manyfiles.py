@@ -29,6 +29,7 @@ import numpy as np
 
 from ..base.memory import check_memory, format_bytes
 from .files import check_input_file, reading
+from .selection import VIS_FORMATS, estimate_bytes, kept_times, selection_kwargs
 
 __all__ = ["ARRAY_TOL_M", "FREQ_TOL_HZ", "FilePart", "check_same_array", "first_file", "is_many", "join_parts",
            "read_parts",
@@ -78,8 +79,6 @@ def source_name(paths) -> str:
 
 def _metadata(path: str):
     from pyuvdata import UVData
-
-    from .observation import VIS_FORMATS
 
     p = check_input_file(path, "visibility file", measurement_set=True)
     with reading(p, "a visibility file", VIS_FORMATS):
@@ -168,7 +167,6 @@ def read_parts(paths, *, pol="pI", freq_chans=None, freq_range_hz=None, times_jd
     """
     from pyuvdata import UVData
 
-    from .observation import VIS_FORMATS, _estimate_bytes, _selection_kwargs, kept_times
     from .visdata import parse_products
 
     paths = [str(p) for p in paths]
@@ -189,12 +187,12 @@ def read_parts(paths, *, pol="pI", freq_chans=None, freq_range_hz=None, times_jd
             continue
         times = {} if np.all(keep) else {"times": tj[keep]}
         try:
-            kw = _selection_kwargs(meta, freq_chans=freq_chans, freq_range_hz=freq_range_hz, times_jd=None,
+            kw = selection_kwargs(meta, freq_chans=freq_chans, freq_range_hz=freq_range_hz, times_jd=None,
                                    lst_range_hours=None, antennas=antennas, bls=bls, raw=raw, autos=autos,
                                    times=times)
         except ValueError as e:
             raise ValueError(f"{path}: {e}") from None
-        n, nbytes = _estimate_bytes(meta, kw)
+        n, nbytes = estimate_bytes(meta, kw)
         samples, total = samples + n, total + nbytes
         plans.append((path, kw, tj[keep]))
     if not plans:
