@@ -88,6 +88,22 @@ CASES = {
 }
 
 
+@pytest.mark.parametrize("case", ["complex-inv-noise", "real-data", "complex-prior-inv-var"])
+def test_a_complex_weight_or_real_data_is_refused(clean, case):
+    """A complex ``inv_noise`` was accepted (draws 2.8 K off, a complex evidence) and real ``data`` read as complex
+    with SUCCESS (issue 40): refused naming the input and its dtype; the control: the clean system passes."""
+    if case == "complex-inv-noise":
+        bad, match = clean._replace(inv_noise=clean.inv_noise.astype(jnp.complex128)), "inv_noise is complex128"
+    elif case == "real-data":
+        bad, match = clean._replace(data=clean.data.real), "data is float64; it must be complex"
+    else:
+        prior = clean.prior._replace(inv_var=clean.prior.inv_var.astype(jnp.complex128))
+        bad, match = clean._replace(prior=prior), "prior.inv_var is complex128"
+    with pytest.raises(ValueError, match=match):
+        wiener_filter_system(bad, options=OPTIONS["cholesky"])
+    gcrsky.model.check_system(clean)
+
+
 # ---------------------------------------------------------------- concrete: refused, naming the input
 
 

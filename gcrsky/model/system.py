@@ -228,7 +228,8 @@ def data_apply(system: LinearSystem, a: jax.Array) -> jax.Array:
 def check_system(system: LinearSystem) -> LinearSystem:
     """Check a (possibly hand-edited) system on the host; raise ``ValueError`` naming what is wrong.
 
-    Checks: every floating leaf is float64 / complex128; the shapes agree (response
+    Checks: every floating leaf is float64 / complex128; the data complex, the noise, prior and angles
+    real; the shapes agree (response
     (Nf, Nbl, n_resp), angles (Nt,), data and inv_noise (Nf, Nt, Nbl), prior (Nf, n)
     with ``n`` what the operator takes); ``inv_noise`` is finite and ``>= 0``; the data
     are finite wherever ``inv_noise > 0`` (flagged samples may hold anything only if
@@ -251,6 +252,16 @@ def check_system(system: LinearSystem) -> LinearSystem:
         if dt.kind in "fc" and dt not in (np.float64, np.complex128):
             raise ValueError(f"system{jax.tree_util.keystr(path)} is {dt}: gcrsky's solves need float64 / "
                              "complex128 (enable jax_enable_x64 before creating arrays)")
+    kinds = {"data": ("c", "complex: the visibilities (a real array would drop their imaginary parts' constraint)"),
+             "inv_noise": ("f", "real: an inverse variance"), "prior.mean": ("f", "real: realified coefficients"),
+             "prior.inv_var": ("f", "real: an inverse variance"), "op.angles": ("f", "real: rotation angles")}
+    for name, (kind, why) in kinds.items():
+        x = system
+        for part in name.split("."):
+            x = getattr(x, part)
+        dt = np.dtype(x.dtype) if hasattr(x, "dtype") else np.asarray(x).dtype
+        if dt.kind != kind:
+            raise ValueError(f"{name} is {dt}; it must be {why}")
     op = system.op
     nf, nbl = op.response.shape[:2]
     nt = np.shape(op.angles)[0] if np.ndim(op.angles) == 1 else None
