@@ -244,3 +244,13 @@ def test_gradient_of_the_evidence_is_finite_through_the_check(clean):
 
     g = jax.grad(f)(1.0)
     assert np.isfinite(float(g)) and float(g) != 0.0
+
+
+def test_a_prior_only_system_converges_on_every_path(clean):
+    """Every sample flagged (inv_noise 0): the Wiener filter is the prior mean, reported SUCCESS (the Nystrom
+    sketch of a zero data term made CG report NONFINITE for a valid system: issue 40)."""
+    prior_only = clean._replace(inv_noise=jnp.zeros_like(clean.inv_noise))
+    for name, opts in OPTIONS.items():
+        a, info = wiener_filter_system(prior_only, options=opts)
+        assert result_names(info) == {"success": 2}, name
+        np.testing.assert_allclose(np.asarray(a), np.asarray(prior_only.prior.mean), rtol=0, atol=1e-10)

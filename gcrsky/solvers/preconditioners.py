@@ -182,7 +182,9 @@ def nystrom_preconditioner(system: LinearSystem, sketch_size: int = 128, key: ja
         cols = jnp.moveaxis(jax.lax.map(lambda v: data_apply(system, sh * v), jnp.moveaxis(om, 2, 0),
                                         batch_size=min(SKETCH_BATCH, k)), 0, 2)
         Y = cols * sh[..., None]
-    nu = jnp.finfo(sh.dtype).eps * jnp.linalg.norm(Y, axis=(1, 2), keepdims=True)
+    # the shift: eps x the sketch's size, at least eps (a channel without data has Y = 0: Cholesky of 0 was NaN and
+    # a valid prior-only system was reported NONFINITE); eigenvalues below eps of P's unit floor do not matter
+    nu = jnp.finfo(sh.dtype).eps * jnp.maximum(jnp.linalg.norm(Y, axis=(1, 2), keepdims=True), 1.0)
     Yn = Y + nu * om
     C = jnp.linalg.cholesky(jnp.einsum("fik,fil->fkl", om, Yn))
     B = jax.vmap(lambda c, y: jax.scipy.linalg.solve_triangular(c, y.T, lower=True).T)(C, Yn)
