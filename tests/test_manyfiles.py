@@ -287,3 +287,18 @@ def test_solutions_that_flag_or_zero_everything_are_named(h1c, tmp_path, what):
     uvc.write_calh5(path)
     with pytest.raises(ValueError, match=r"bad\.calh5: " + match):
         read_calibrated_observation(H1C, path, pol="pI", freq_chans=CHANS)
+
+
+def test_inspect_names_unflagged_non_finite_visibilities(h1c, tmp_path):
+    """A run refuses unflagged NaN visibilities; inspect said nothing (issue 40): now a PROBLEM naming where."""
+    from gcrsky.ingest import inspect_uvdata
+
+    bad = h1c.copy()
+    rows = np.flatnonzero((bad.ant_1_array == 11) & (bad.ant_2_array == 12))
+    bad.data_array[rows[2], 30, 0] = np.nan
+    path = _write(bad, tmp_path / "nan.uvh5")
+    problems = inspect_uvdata(path, freq_chans=CHANS, pol="pI")["problems"]
+    assert any("1 unflagged visibilities are not finite (1 NaN, 0 Inf), first xx at channel 0" in p and
+               "baseline 11-12" in p for p in problems), problems
+    clean = inspect_uvdata(str(H1C), freq_chans=CHANS, pol="pI")["problems"]  # the control
+    assert not any("not finite" in p for p in clean)
