@@ -77,6 +77,10 @@ def _nan_flagged_datum(s):
 
 
 #: case -> (make the bad system, what check_system says, what throw=True says)
+def _nan_response(s):
+    return s._replace(op=s.op._replace(response=_set(s.op.response, (0, 3, 5), jnp.inf)))
+
+
 CASES = {
     "nan-datum": (_nan_datum, r"data has 1 non-finite samples, first an unflagged one", "bad input: data"),
     "negative-noise": (_negative_noise, r"inv_noise must be finite and >= 0", "bad input: inv_noise"),
@@ -85,6 +89,8 @@ CASES = {
                                "bad input: prior.inv_var"),
     "nan-flagged-datum": (_nan_flagged_datum, r"data has 1 non-finite samples, first a flagged one",
                           "bad input: data"),
+    "inf-response": (_nan_response, r"op.response has non-finite entries in channel\(s\) \[0\]",
+                     "bad input: op.response"),
 }
 
 

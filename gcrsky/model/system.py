@@ -302,7 +302,17 @@ def check_system(system: LinearSystem) -> LinearSystem:
                              f"{int(bad.sum())} entries are not, first at (freq {f}, parameter {k}): {x[f, k]!r}")
     if not np.all(np.isfinite(np.asarray(op.angles))):
         raise ValueError("op.angles must be finite")
+    bad = np.asarray(_response_faults(op.response))  # reduced where it lives (no host copy of the response)
+    if bad.any():
+        raise ValueError(f"op.response has non-finite entries in channel(s) {np.flatnonzero(bad).tolist()} (a NaN or "
+                         "Inf beam value or frequency): rebuild the response")
     return system
+
+
+@jax.jit
+def _response_faults(response) -> jax.Array:
+    """(Nf,) True where a channel's response holds a NaN or Inf."""
+    return ~jnp.all(jnp.isfinite(response), axis=tuple(range(1, response.ndim)))
 
 
 #: The inputs :func:`input_faults` judges (the keys of its result), with what is wrong when one is bad.
@@ -313,6 +323,7 @@ INPUT_FAULTS = {
     "prior.mean": "prior.mean is non-finite",
     "prior.inv_var": "prior.inv_var is non-finite or negative",
     "op.angles": "op.angles are non-finite",
+    "op.response": "op.response has non-finite entries",
 }
 
 
@@ -324,7 +335,7 @@ def input_faults(system: LinearSystem) -> dict[str, jax.Array]:
         f's input is bad: ``data`` not finite (anywhere, flagged samples included, as
         :func:`check_system` refuses them: ``0 * NaN`` poisons the Wiener right-hand side),
         ``inv_noise`` non-finite or ``< 0``, ``prior.mean`` non-finite, ``prior.inv_var``
-        non-finite or ``< 0``, ``op.angles`` non-finite (every channel).  Elementwise
+        non-finite or ``< 0``, ``op.angles`` non-finite (every channel), ``op.response`` non-finite.  Elementwise
         reductions only (no host callback, no gradient: the flags are booleans).
     """
     w, iv = system.inv_noise, system.prior.inv_var
@@ -335,4 +346,5 @@ def input_faults(system: LinearSystem) -> dict[str, jax.Array]:
         "prior.mean": ~jnp.all(jnp.isfinite(system.prior.mean), axis=-1),
         "prior.inv_var": ~jnp.all(jnp.isfinite(iv) & (iv >= 0), axis=-1),
         "op.angles": jnp.broadcast_to(~jnp.all(jnp.isfinite(system.op.angles)), (nf,)),
+        "op.response": _response_faults(system.op.response),
     }
