@@ -302,14 +302,14 @@ def check_system(system: LinearSystem) -> LinearSystem:
                              f"{int(bad.sum())} entries are not, first at (freq {f}, parameter {k}): {x[f, k]!r}")
     if not np.all(np.isfinite(np.asarray(op.angles))):
         raise ValueError("op.angles must be finite")
-    bad = np.asarray(_response_faults(op.response))  # reduced where it lives (no host copy of the response)
+    with jax.ensure_compile_time_eval():  # concrete here, even when called inside another function's trace
+        bad = np.asarray(_response_faults(op.response))  # reduced where it lives (no host copy of the response)
     if bad.any():
         raise ValueError(f"op.response has non-finite entries in channel(s) {np.flatnonzero(bad).tolist()} (a NaN or "
                          "Inf beam value or frequency): rebuild the response")
     return system
 
 
-@jax.jit
 def _response_faults(response) -> jax.Array:
     """(Nf,) True where a channel's response holds a NaN or Inf."""
     return ~jnp.all(jnp.isfinite(response), axis=tuple(range(1, response.ndim)))
