@@ -31,8 +31,7 @@ from ..base.memory import check_memory, format_bytes
 from .files import check_input_file, reading
 from .selection import VIS_FORMATS, estimate_bytes, kept_times, selection_kwargs
 
-__all__ = ["ARRAY_TOL_M", "FREQ_TOL_HZ", "FilePart", "check_same_array", "first_file", "is_many", "join_parts",
-           "read_parts",
+__all__ = ["ARRAY_TOL_M", "FREQ_TOL_HZ", "FilePart", "check_same_array", "first_file", "join_parts", "read_parts",
            "source_name"]
 
 log = logging.getLogger(__name__)
@@ -64,11 +63,6 @@ class FilePart(NamedTuple):
 def first_file(data):
     """The first of several files (whose header stands for all: :func:`check_same_array`), else ``data``."""
     return data[0] if isinstance(data, (list, tuple)) and data else data
-
-
-def is_many(data) -> bool:
-    """Whether ``data`` is several files (a list or tuple of more than one path)."""
-    return isinstance(data, (list, tuple)) and len(data) > 1
 
 
 def source_name(paths) -> str:
