@@ -239,9 +239,113 @@ def test_resume_with_other_settings_is_refused(problem, reference, tmp_path, cap
     assert read_results_state(out / "results.h5").complete  # nothing was touched
     # inputs rebuilt with other rounding (a simulation rebuilt in another process differs by ~1 ulp): resumed
     rounded = dataclasses.replace(problem, data=problem.data * (1 + 4e-16))
-    with caplog.at_level("WARNING", logger="gcrsky.run.resume"):
+    with caplog.at_level("INFO", logger="gcrsky.run.resume"):
         run(rounded, out, existing="resume")
     assert "floating-point rounding only" in caplog.text
+
+
+def _nudged(prob, rel, *, geometry=False):
+    """``prob`` with its data, noise and prior inverse variance (and, with ``geometry``, LSTs) changed by ``rel``."""
+    out = dataclasses.replace(prob, data=prob.data * (1 + rel), sigma=prob.sigma * (1 - rel),
+                              prior=prob.prior._replace(inv_var=prob.prior.inv_var * (1 + rel)))
+    return dataclasses.replace(out, lsts_rad=prob.lsts_rad * (1 + rel)) if geometry else out
+
+
+@pytest.mark.slow
+def test_resume_continues_from_the_recorded_inputs(problem, reference, tmp_path, caplog):
+    """Rebuilt inputs that differ by rounding: the resumed batches are drawn from the *recorded* inputs, so the run
+    ends with the uninterrupted run's draws bit for bit (drawn from the rebuilt ones they differ in the last bits:
+    the control). Inputs that differ by more: refused, naming ``--trust-recorded``, which then continues from the
+    recorded ones (bit for bit again); a geometry difference (the LSTs) is refused even then."""
+    from gcrsky.run.resume import recorded_inputs
+
+    ref = read_draws(reference / "results.h5").draws
+    out = tmp_path / "a"
+    with pytest.raises(Interrupt):
+        run(problem, out, progress=stop_after(1))
+    kept = tmp_path / "kept"
+    shutil.copytree(out, kept)
+    rounded = _nudged(problem, 3e-16)
+    assert not same_bits(rounded.data, problem.data)
+    run(rounded, out, existing="resume")
+    assert same_bits(read_draws(out / "results.h5").draws, ref)
+    # control: the rebuilt (rounded) inputs themselves give other bits in the batches after the first
+    run(rounded, tmp_path / "control")
+    fresh = read_draws(tmp_path / "control" / "results.h5").draws
+    assert not same_bits(fresh[:, 8:], ref[:, 8:]) and np.allclose(fresh, ref, rtol=0, atol=1e-9 * np.abs(ref).max())
+    # recorded_inputs restores the recorded arrays exactly (dtype and bits)
+    back = recorded_inputs(kept / "results.h5", rounded)
+    for a, b in ((back.data, problem.data), (back.sigma, problem.sigma), (back.lsts_rad, problem.lsts_rad),
+                 (back.prior.inv_var, problem.prior.inv_var), (back.weights, problem.weights)):
+        assert same_bits(a, b)
+    # more than rounding: refused, the remedy named; with trust_recorded: continued from the recorded inputs
+    other = tmp_path / "b"
+    shutil.copytree(kept, other)
+    with pytest.raises(ResumeError, match=r"data by 1e-0?6.*--resume --trust-recorded"):
+        run(_nudged(problem, 1e-6), other, existing="resume")
+    spec = RunSpec(Draws(NSAMPLES, 0, BATCH), Output(other, "resume", plots=False, trust_recorded=True))
+    with caplog.at_level("WARNING", logger="gcrsky.run.resume"):
+        execute(_nudged(problem, 1e-6), spec)
+    assert "--trust-recorded" in caplog.text and "data by 1e-06" in caplog.text
+    assert same_bits(read_draws(other / "results.h5").draws, ref)
+    # the geometry must match even with trust_recorded (the response is rebuilt from the settings)
+    third = tmp_path / "c"
+    shutil.copytree(kept, third)
+    spec = RunSpec(Draws(NSAMPLES, 0, BATCH), Output(third, "resume", plots=False, trust_recorded=True))
+    with pytest.raises(ResumeError, match=r"lsts_rad by 1e-0?6") as e:
+        execute(_nudged(problem, 1e-6, geometry=True), spec)
+    assert "--trust-recorded continues" not in str(e.value)
+    with pytest.raises(ValueError, match="existing='resume'"):
+        Output(third, "refuse", trust_recorded=True)
+
+
+def test_trust_recorded_needs_resume(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(["run", "--out", str(tmp_path), "--trust-recorded", *SMALL])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "--trust-recorded continues a recorded run" in err and "with --resume" in err
+
+
+SWEEP_BATCH = 4  # 20 draws in 5 batches: kills after 1 to 4 of them
+
+
+@pytest.fixture(scope="module")
+def reference_small_batches(problem, tmp_path_factory):
+    out = tmp_path_factory.mktemp("reference4")
+    run(problem, out, batch=SWEEP_BATCH)
+    return read_draws(out / "results.h5").draws
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig,at,cache,resume_apart", [("KILL", 1, False, False), ("TERM", 2, True, False),
+                                                       ("INT", 3, True, True), ("KILL", 4, True, True),
+                                                       ("INT", 1, False, False)])
+def test_kill_resume_sweep(reference_small_batches, tmp_path, sig, at, cache, resume_apart):
+    """SIGKILL, SIGTERM (a batch system) and SIGINT (Ctrl-C) after several batches, with and without the persistent
+    compile cache (the resumed process then reads the programs the killed one wrote), resumed in-process or in a
+    process of its own: every time the uninterrupted run's draws, bit for bit. SIGTERM and SIGINT end with a line
+    (exit 143 / 130), no traceback."""
+    out = tmp_path / "run"
+    argv = ["run", "--out", str(out), *SMALL, "--batch", str(SWEEP_BATCH)]
+    env = dict(os.environ, GCRSKY_TEST_KILL_AFTER_BATCH=f"{at}:{sig}", PYTHONPATH=str(REPO),
+               GCRSKY_COMPILE_CACHE=str(tmp_path / "cache") if cache else "off")
+    proc = subprocess.run([sys.executable, "-m", "gcrsky", *argv], env=env, capture_output=True, text=True,
+                          timeout=600)
+    expect = {"KILL": -signal.SIGKILL, "TERM": cli.EXIT_TERMINATED, "INT": cli.EXIT_INTERRUPTED}[sig]
+    assert proc.returncode == expect, proc.stderr[-2000:]
+    if sig != "KILL":
+        line = "terminated (SIGTERM)" if sig == "TERM" else "interrupted (Ctrl-C)"
+        assert line in proc.stderr and "--resume" in proc.stderr and "Traceback" not in proc.stderr
+    state = read_results_state(out / "results.h5")
+    assert state.batches_complete == at and not state.complete
+    if resume_apart:
+        env.pop("GCRSKY_TEST_KILL_AFTER_BATCH")
+        proc = subprocess.run([sys.executable, "-m", "gcrsky", *argv, "--resume"], env=env, capture_output=True,
+                              text=True, timeout=600)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+    else:
+        assert cli.main([*argv, "--resume"]) == 0
+    assert same_bits(read_draws(out / "results.h5").draws, reference_small_batches)
 
 
 def test_check_output(tmp_path):

@@ -80,10 +80,30 @@ from .options import EXIT_DIST
 from .parser import build_parser
 from .runs import EXIT_REFUSED, EXIT_REJECTED
 
-__all__ = ["EXIT_DIST", "EXIT_INTERRUPTED", "EXIT_REFUSED", "EXIT_REJECTED", "EXIT_USAGE", "build_parser", "main"]
+__all__ = ["EXIT_DIST", "EXIT_INTERRUPTED", "EXIT_REFUSED", "EXIT_TERMINATED", "EXIT_REJECTED", "EXIT_USAGE", "build_parser", "main"]
 
 #: Exit status after Ctrl-C (128 + SIGINT, the shell's): a line says what was kept, no traceback.
 EXIT_INTERRUPTED = 130
+#: Exit status after SIGTERM (128 + 15; e.g. a batch system's time limit): the same line.
+EXIT_TERMINATED = 143
+
+
+class Terminated(BaseException):
+    """SIGTERM arrived (raised by the handler :func:`main` installs, so that it ends as Ctrl-C does)."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated
+
+
+def _catch_sigterm():
+    """Install :func:`_on_sigterm` for SIGTERM (main thread only); returns the previous handler, or None."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _on_sigterm)
 
 #  One module per command, the parser and what they share:
 #  - ``parser``: :func:`build_parser`, one builder per command (``set_defaults(func=...)``);
@@ -106,14 +126,16 @@ def main(argv=None) -> int:
     setup_logging(args.verbose)
     from ..parallel.rendezvous import DistributedInitError
 
+    previous = _catch_sigterm()
     try:
         return args.func(args, parser)
-    except KeyboardInterrupt:  # Ctrl-C: what was kept and how to go on, not a traceback
+    except (KeyboardInterrupt, Terminated) as e:  # Ctrl-C, SIGTERM: what was kept and how to go on, no traceback
         out = getattr(args, "out", None)
         kept = (f"the draws of every completed batch are in {out}/results.h5; the same command with --resume "
                 "continues it" if out else "nothing was written")
-        print(f"\ngcrsky: interrupted (Ctrl-C): {kept}", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        why = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted (Ctrl-C)"
+        print(f"\ngcrsky: {why}: {kept}", file=sys.stderr)
+        return EXIT_TERMINATED if isinstance(e, Terminated) else EXIT_INTERRUPTED
     except DistributedInitError as e:  # the processes did not start together: a message, not a traceback
         hint = "; --dist-timeout SECONDS sets how long to wait" if isinstance(e, TimeoutError) else ""
         print(f"gcrsky: jax.distributed: {e}{hint}", file=sys.stderr)
@@ -125,3 +147,8 @@ def main(argv=None) -> int:
         if oom is None:
             raise
         return report_user_error(oom, getattr(args, "command", None) or "", getattr(args, "verbose", 0))
+    finally:
+        if previous is not None:
+            import signal
+
+            signal.signal(signal.SIGTERM, previous)

@@ -23,6 +23,8 @@ def run_command(args, parser) -> int:
 
     check_channel_options(parser, args)
     check_frequency_options(parser, args)
+    if args.trust_recorded and not args.resume:
+        parser.error("--trust-recorded continues a recorded run from its recorded inputs: give it with --resume")
     if args.data is not None:
         from .cmd_data import data_command
 

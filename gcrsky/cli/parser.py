@@ -114,6 +114,10 @@ def _add_run_parser(sub) -> None:
     ex.add_argument("--overwrite", action="store_true",
                     help="delete the run files already in --out (results.h5, summary.json, products, figures) and "
                     "start again")
+    r.add_argument("--trust-recorded", action="store_true",
+                   help="with --resume: continue from the inputs recorded in results.h5 (data, noise, weights, "
+                   "prior) even where the rebuilt ones differ by more than rounding (e.g. another sky model on "
+                   "disk now); the draws are kept. Rounding differences never need it")
 
 
 def _add_simulation_options(r, d) -> None:

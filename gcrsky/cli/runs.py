@@ -31,7 +31,8 @@ def run_spec(args, *, nsamples: int, method: str, tol: float, scenario: str | No
     from ..run import Draws, Output, RunSpec, Solver
     from ..run.spec import sampling_of
 
-    return RunSpec(Draws(nsamples, args.seed, args.batch), Output(args.out, existing_mode(args), not args.no_plots),
+    return RunSpec(Draws(nsamples, args.seed, args.batch), Output(args.out, existing_mode(args), not args.no_plots,
+                                                                   bool(getattr(args, "trust_recorded", False))),
                    Solver(method, tol), sampling_of(channel_mode(args), gains, frequency_model(args),
                                                        amplitude),
                    scenario=scenario, argv=getattr(args, "_argv", None), extra=extra)

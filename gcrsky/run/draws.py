@@ -8,10 +8,11 @@ each batch appended to ``results.h5`` (:func:`gcrsky.io.append_batch`) as soon a
 drawn; a resumed run starts at the first missing batch and so ends with exactly the
 draws of an uninterrupted one.
 
-Test hook: when the environment variable ``GCRSKY_TEST_KILL_AFTER_BATCH`` is ``k``,
-the process kills itself with SIGKILL as soon as ``results.h5`` records ``k``
-complete batches (an abrupt death, as a killed job; ``tests/test_resume.py`` uses
-it).  It is meant for tests only.
+Test hook: when the environment variable ``GCRSKY_TEST_KILL_AFTER_BATCH`` is ``k``
+(or ``k:KILL``, ``k:TERM``, ``k:INT``), the process sends itself that signal (SIGKILL by
+default) as soon as ``results.h5`` records ``k`` complete batches (an abrupt death, as a
+killed job; a batch system's SIGTERM; Ctrl-C; ``tests/test_resume.py`` uses it).  It is
+meant for tests only.
 """
 
 from __future__ import annotations
@@ -60,10 +61,13 @@ def draw_batch(key: jax.Array, prepared, b: int, batch: int, nsamples: int):
 
 
 def kill_hook(complete: int) -> None:
-    """The test hook of the module doc: SIGKILL this process once ``complete`` batches are in results.h5."""
-    at = os.environ.get(KILL_HOOK)
-    if at is not None and at.strip() and int(at) == complete:
-        os.kill(os.getpid(), getattr(signal, "SIGKILL", signal.SIGTERM))
+    """The test hook of the module doc: signal this process once ``complete`` batches are in results.h5."""
+    at = (os.environ.get(KILL_HOOK) or "").strip()
+    if not at:
+        return
+    batches, _, name = at.partition(":")
+    if int(batches) == complete:
+        os.kill(os.getpid(), getattr(signal, f"SIG{name.strip().upper() or 'KILL'}", signal.SIGTERM))
 
 
 def _results_attrs(prob, spec, settings, *, method, options, key_scheme) -> dict:

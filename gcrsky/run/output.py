@@ -21,7 +21,7 @@ import numpy as np
 from ..base.memory import format_bytes
 from ..io.atomic import is_temporary
 from ..io.results import file_size_limit, read_results_state
-from .resume import ResumeError, check_resumable, settings_differences
+from .resume import ResumeError, resumed_problem, settings_differences
 from .summary import versions
 
 __all__ = [
@@ -274,6 +274,7 @@ class OpenRun(NamedTuple):
         already_complete: a resumed run with every batch drawn and ``results.h5`` finished.
         before: the run files present before this run wrote anything.
         files: the report hooks' files (:meth:`gcrsky.run.ReportHook.files`), run files too.
+        prob: the problem the run draws from: the caller's, or, resuming, the one with the recorded inputs.
     """
 
     out: Path
@@ -284,6 +285,7 @@ class OpenRun(NamedTuple):
     already_complete: bool
     before: frozenset
     files: tuple = ()
+    prob: Any = None
 
 
 def open_run(prob, spec, files: Sequence[str] = ()) -> OpenRun:
@@ -291,10 +293,11 @@ def open_run(prob, spec, files: Sequence[str] = ()) -> OpenRun:
 
     The directory is created; a run in it is refused, cleared or continued as
     ``spec.output.existing`` says (:func:`check_output`; ``files``: the report hooks' files); a
-    resumed run must have the same inputs (:func:`~gcrsky.run.resume.check_resumable`).
+    resumed run must have the same inputs and continues from the recorded ones
+    (:func:`~gcrsky.run.resume.resumed_problem`: ``OpenRun.prob``).
 
     Raises:
-        RunExistsError, ResumeError: as :func:`check_output` and ``check_resumable``.
+        RunExistsError, ResumeError: as :func:`check_output` and ``resumed_problem``.
     """
     out = spec.output.out
     out.mkdir(parents=True, exist_ok=True)
@@ -303,8 +306,8 @@ def open_run(prob, spec, files: Sequence[str] = ()) -> OpenRun:
     check_disk_space(out, draws_bytes(prob, spec.draws.nsamples))
     clear_output(out, spec.output.existing, files)
     if state is not None:
-        check_resumable(out, state, prob, versions()["gcrsky"])
+        prob = resumed_problem(out, state, prob, versions()["gcrsky"], trust_recorded=spec.output.trust_recorded)
     start = 0 if state is None else state.batches_complete
     already_complete = state is not None and state.draws_done and state.complete
     return OpenRun(out, out / RESULTS_FILE, settings, state, start, already_complete,
-                   frozenset(existing_run_files(out, files)), tuple(files))
+                   frozenset(existing_run_files(out, files)), tuple(files), prob)

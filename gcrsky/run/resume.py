@@ -6,8 +6,14 @@ problem's inputs are the same (:func:`check_resumable`): bit for bit, or, where 
 input differs by floating-point rounding (a simulation rebuilt in another process differs by
 ~1 ulp; so does one with and without the compile cache), within :data:`RESUME_RTOL` of each
 recorded array's largest magnitude (a warning names the largest difference).  The resumed
-run then uses the exact solver options the first one chose (:func:`options_from_json`), so
-that it ends with the draws of an uninterrupted run (bit for bit where the inputs are).
+run then continues from the inputs *recorded* in ``results.h5`` (:func:`resumed_problem`:
+the data, noise, weights, prior, frequencies and LSTs the first batches were drawn with, not
+the rebuilt ones) with the exact solver options the first one chose
+(:func:`options_from_json`), so that it ends with the draws of an uninterrupted run, bit for
+bit.  Inputs that differ by more than rounding (another sky model on disk, another
+simulator version) are refused unless ``trust_recorded`` (``--resume --trust-recorded``)
+says to continue from the recorded ones anyway; the geometry (pairs, shapes) must match
+either way, since the response is rebuilt from the settings.
 """
 
 from __future__ import annotations
@@ -22,7 +28,8 @@ import numpy as np
 from ..io.results import inputs_fingerprint, json_default
 from ..solvers.registry import method_of, options_for
 
-__all__ = ["RESUME_RTOL", "ResumeError", "check_resumable", "input_differences", "options_from_json", "options_json", "settings_differences"]
+__all__ = ["RESUME_RTOL", "ResumeError", "input_differences", "options_from_json", "options_json",
+           "recorded_inputs", "resumed_problem", "settings_differences"]
 
 log = logging.getLogger(__name__)
 
@@ -112,29 +119,70 @@ def options_from_json(text: str):
     return type(options_for(d["method"]))(**d["fields"])
 
 
-def check_resumable(out, state, prob, version: str) -> None:
-    """Raise :class:`ResumeError` unless the recorded run (``state``) can be continued with ``prob``.
+#: The stored inputs that fix the operator's geometry: they may differ by rounding only, even with ``trust_recorded``.
+_GEOMETRY = ("freqs_hz", "lsts_rad", "antpairs")
 
-    The file must record its solver options, and ``prob``'s inputs must equal the
-    recorded ones bit for bit (:func:`gcrsky.io.inputs_fingerprint`) or within
-    :data:`RESUME_RTOL` (:func:`input_differences`: rounding; logged); another gcrsky
-    ``version`` than the recorded one is only logged.
+
+def recorded_inputs(h5_path, prob):
+    """``prob`` with the inputs recorded in ``results.h5`` in place of its own (each cast to ``prob``'s dtype).
+
+    The frequencies, LSTs, data, noise, weights and prior mean and inverse variance are replaced; the
+    response, frame and everything else are ``prob``'s.  The shapes must agree (:func:`input_differences`
+    is not inf for shape reasons; checked by the caller).
+    """
+    import h5py
+    import jax.numpy as jnp
+
+    with h5py.File(h5_path, "r") as h:
+        rec = {name: np.asarray(h[name][()]) for name, _ in _STORED}
+
+    def like(name, current):
+        return jnp.asarray(rec[name], dtype=jnp.asarray(current).dtype)
+
+    prior = prob.prior._replace(mean=like("prior_mean", prob.prior.mean),
+                                inv_var=like("prior_inv_var", prob.prior.inv_var))
+    return dataclasses.replace(prob, freqs_hz=like("freqs_hz", prob.freqs_hz), lsts_rad=like("lsts_rad", prob.lsts_rad),
+                               data=like("data", prob.data), sigma=like("sigma", prob.sigma),
+                               weights=like("weights", prob.weights), prior=prior)
+
+
+def _described(off: dict) -> str:
+    return ", ".join(f"{k} by {v:.3g}" if np.isfinite(v) else f"{k} (other shape or non-finite values)"
+                     for k, v in off.items())
+
+
+def resumed_problem(out, state, prob, version: str, *, trust_recorded: bool = False):
+    """The problem a resumed run continues with: ``prob`` with the recorded inputs (:func:`recorded_inputs`).
+
+    Raises :class:`ResumeError` unless the recorded run (``state``) can be continued: the file must record
+    its solver options and its inputs; ``prob``'s inputs must equal the recorded ones bit for bit
+    (:func:`gcrsky.io.inputs_fingerprint`) or within :data:`RESUME_RTOL` (:func:`input_differences`:
+    rounding; logged), or, with ``trust_recorded``, differ only in values (data, noise, weights, prior:
+    logged as a warning), never in geometry (:data:`_GEOMETRY`, shapes).  Another gcrsky ``version`` than
+    the recorded one is only logged.  Where the fingerprints agree, ``prob`` itself is returned.
     """
     if "solver_options_json" not in state.attrs:
         raise ResumeError(out, f"cannot resume: {state.path} does not record its solver options (not written by "
                                "gcrsky.run)")
-    if state.attrs.get("inputs_sha256") != inputs_fingerprint(prob):
-        diffs = input_differences(state.path, prob)
-        off = {k: v for k, v in diffs.items() if v > RESUME_RTOL}
-        if off:
-            what = ", ".join(f"{k} by {v:.3g}" if np.isfinite(v) else f"{k} (other shape or non-finite values)"
-                             for k, v in off.items())
-            raise ResumeError(out, f"cannot resume the run in {out}: the problem's inputs differ from those recorded "
-                                   f"({what}, relative to their largest magnitude; more than rounding, "
-                                   f"{RESUME_RTOL:g}), e.g. another sky model is on disk now, or another file")
-        worst = max(diffs, key=diffs.get)
-        log.warning("resuming %s: the rebuilt inputs differ from the recorded ones by floating-point rounding only "
-                    "(at most %.2g of %s's largest magnitude; tolerance %g): the remaining draws are of the same "
-                    "posterior to that accuracy", out, diffs[worst], worst, RESUME_RTOL)
     if state.attrs.get("gcrsky_version") != version:
         log.warning("resuming a run of gcrsky %s with gcrsky %s", state.attrs.get("gcrsky_version"), version)
+    if state.attrs.get("inputs_sha256") == inputs_fingerprint(prob):
+        return prob
+    diffs = input_differences(state.path, prob)
+    off = {k: v for k, v in diffs.items() if v > RESUME_RTOL}
+    geometry = {k: v for k, v in off.items() if k in _GEOMETRY or not np.isfinite(v)}
+    if geometry or (off and not trust_recorded):
+        keep = ("" if geometry else "; --resume --trust-recorded continues from the recorded inputs (the draws "
+                "kept, the rebuilt inputs ignored)")
+        raise ResumeError(out, f"cannot resume the run in {out}: the problem's inputs differ from those recorded "
+                               f"({_described(off)}, relative to their largest magnitude; more than rounding, "
+                               f"{RESUME_RTOL:g}), e.g. another sky model is on disk now, or another file{keep}")
+    if off:
+        log.warning("resuming %s from its recorded inputs (--trust-recorded): the rebuilt ones differ (%s); the "
+                    "remaining draws are of the recorded problem", out, _described(off))
+    else:
+        worst = max(diffs, key=diffs.get)
+        log.info("resuming %s from its recorded inputs: the rebuilt ones differ by floating-point rounding only "
+                 "(at most %.2g of %s's largest magnitude; tolerance %g)", out, diffs[worst], worst, RESUME_RTOL)
+    return recorded_inputs(state.path, prob)
+

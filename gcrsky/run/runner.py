@@ -108,6 +108,7 @@ def _execute_locked(prob, spec: RunSpec, hooks, watch: Watch, build_s: float, co
                     ) -> tuple[RunSummary, RunProducts]:
     """:func:`execute` in process 0, holding the output directory's lock."""
     run = open_run(prob, spec, hook_files(hooks))
+    prob = run.prob  # resuming: the recorded inputs (bit for bit the first batches' problem)
     st = StageTimer(watch.on_stage)
     st.times["build"] = build_s
     method = spec.sampling.run_draws(prob, spec, run, st, watch)  # leaves the "draws" stage running

@@ -89,11 +89,15 @@ class Solver:
 @dataclasses.dataclass(frozen=True)
 class Output:
     """Where the run writes (``out``, created if needed), what it does with a directory that
-    holds a run's files (``existing``, :data:`EXISTING`), and whether report hooks draw figures."""
+    holds a run's files (``existing``, :data:`EXISTING`), and whether report hooks draw figures.
+    ``trust_recorded`` (with ``existing="resume"`` only): continue from the inputs recorded in
+    ``results.h5`` even where the rebuilt ones differ by more than rounding
+    (:func:`gcrsky.run.resume.resumed_problem`)."""
 
     out: Path
     existing: str = "refuse"
     plots: bool = True
+    trust_recorded: bool = False
 
     def __post_init__(self):
         if not isinstance(self.out, (str, os.PathLike)) or not os.fspath(self.out):
@@ -102,6 +106,10 @@ class Output:
         check_choice("output.existing", self.existing, EXISTING)
         if not isinstance(self.plots, bool):
             raise ValueError(f"output.plots must be True or False, got {self.plots!r}")
+        if not isinstance(self.trust_recorded, bool):
+            raise ValueError(f"output.trust_recorded must be True or False, got {self.trust_recorded!r}")
+        if self.trust_recorded and self.existing != "resume":
+            raise ValueError("output.trust_recorded continues a recorded run: it needs existing='resume' (--resume)")
 
 
 @dataclasses.dataclass(frozen=True)
