@@ -210,6 +210,34 @@ def test_file_size_limit_refused_up_front(tmp_path):
     assert not (out / "results.h5").exists()
 
 
+def test_a_tight_address_space_limit_is_the_memory_message(tmp_path, monkeypatch):
+    """``ulimit -v 1000000`` aborted the run in XLA's thread creation (SIGABRT, rc -6: no Python handler runs);
+    at ~2 GB (here) a shared library failed to load later ("Could not find/load shared object file").  Now a
+    child process tries XLA's start-up first, and a load or allocation failure under a limit names it: one
+    message naming the limit and the remedy, exit 2.  The controls: no limit is every other run of the suite,
+    and the same OSError without a limit keeps its own message."""
+    from gcrsky.cli import errors
+
+    limit = 2**30
+
+    def tight():
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+
+    out = tmp_path / "run"
+    p = subprocess.run([sys.executable, "-m", "gcrsky", "run", "--out", str(out), *SIM_OPTS],
+                       env=dict(os.environ, PYTHONPATH=str(REPO)), capture_output=True, text=True, timeout=600,
+                       preexec_fn=tight)
+    assert p.returncode == cli.EXIT_USAGE, (p.returncode, p.stderr[-3000:])
+    assert re.search(r"address-space limit \(ulimit -v \d+ KiB = 1\.\d GiB\).*raise the limit", p.stderr), p.stderr[-3000:]
+    assert "Traceback" not in p.stderr and "Check failure stack trace" not in p.stderr
+    # the later failure (the limit set by the shell, ~2 GB), and the control without a limit
+    lib = OSError("Could not find/load shared object file")
+    assert errors.error_message(lib) == "Could not find/load shared object file"
+    monkeypatch.setattr(errors, "address_space_limit", lambda: 2 * 10**9)
+    assert re.match(r"OSError: Could not find/load shared object file under this shell's address-space limit "
+                    r"\(ulimit -v 1953125 KiB = 1\.9 GiB\).*ulimit -v unlimited", errors.error_message(lib))
+
+
 def test_disk_full_mid_run_then_resume(tmp_path, capsys, monkeypatch):
     """The disk fills after two batches (the free space the next append sees is 1 kB): exit 2 with a message,
     the two batches kept; with space again, ``--resume`` ends with exactly an uninterrupted run's draws."""

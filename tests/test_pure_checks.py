@@ -94,19 +94,41 @@ CASES = {
 }
 
 
-@pytest.mark.parametrize("case", ["complex-inv-noise", "real-data", "complex-prior-inv-var"])
-def test_a_complex_weight_or_real_data_is_refused(clean, case):
-    """A complex ``inv_noise`` was accepted (draws 2.8 K off, a complex evidence) and real ``data`` read as complex
-    with SUCCESS (issue 40): refused naming the input and its dtype; the control: the clean system passes."""
+def _mistyped(clean, case):
+    """A system with one input of the wrong type or shape, and the message that must name it."""
     if case == "complex-inv-noise":
-        bad, match = clean._replace(inv_noise=clean.inv_noise.astype(jnp.complex128)), "inv_noise is complex128"
-    elif case == "real-data":
-        bad, match = clean._replace(data=clean.data.real), "data is float64; it must be complex"
-    else:
+        return clean._replace(inv_noise=clean.inv_noise.astype(jnp.complex128)), "inv_noise is complex128"
+    if case == "real-data":
+        return clean._replace(data=clean.data.real), "data is float64; it must be complex"
+    if case == "complex-prior-inv-var":
         prior = clean.prior._replace(inv_var=clean.prior.inv_var.astype(jnp.complex128))
-        bad, match = clean._replace(prior=prior), "prior.inv_var is complex128"
-    with pytest.raises(ValueError, match=match):
-        wiener_filter_system(bad, options=OPTIONS["cholesky"])
+        return clean._replace(prior=prior), "prior.inv_var is complex128"
+    if case == "short-inv-noise":
+        return clean._replace(inv_noise=clean.inv_noise[:, :-1]), r"inv_noise has shape .*expected \(Nf, Nt, Nbl\)"
+    if case == "short-data":
+        return clean._replace(data=clean.data[:, :, :-1]), r"data has shape .*expected \(Nf, Nt, Nbl\)"
+    prior = clean.prior._replace(mean=clean.prior.mean[:, :-2])
+    return clean._replace(prior=prior), r"prior.mean has shape .*expected \(Nf, n\)"
+
+
+@pytest.mark.parametrize("traced", [False, True], ids=["eager", "jit"])
+@pytest.mark.parametrize("case", ["complex-inv-noise", "real-data", "complex-prior-inv-var", "short-inv-noise",
+                                  "short-data", "short-prior-mean"])
+def test_a_mistyped_or_misshapen_input_is_refused_naming_it(clean, case, traced, getkey):
+    """A complex ``inv_noise`` was accepted (draws 2.8 K off, a complex evidence), real ``data`` read as complex
+    with SUCCESS, a complex ``inv_var`` a ``while_loop`` carry-type error on CG, and under ``jit`` a shape
+    mismatch ``mul got incompatible shapes`` (issue 40): types and shapes are static, so they are refused naming
+    the input under a trace too, on the Wiener filter, the draws (CG) and the evidence; the control: the clean
+    system passes."""
+    bad, match = _mistyped(clean, case)
+    key = getkey()
+    calls = (lambda s: wiener_filter_system(s, options=OPTIONS["cholesky"])[0],
+             lambda s: sample_system(key, s, 2, options=OPTIONS["cg"])[0],
+             lambda s: log_evidence_system(s, options=OPTIONS["cholesky"])[0])
+    for call in calls:
+        with pytest.raises(ValueError, match=match):
+            jax.block_until_ready(jax.jit(call)(bad) if traced else call(bad))
+        assert np.all(np.isfinite(np.asarray(jax.jit(call)(clean) if traced else call(clean))))
     gcrsky.model.check_system(clean)
 
 

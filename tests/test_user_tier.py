@@ -166,6 +166,20 @@ def test_log_evidence_never_a_silent_nan(partial):
     value, info = jax.jit(lambda s: gcrsky.log_evidence(s, method="cholesky", return_info=True))(big)
     assert not np.all(np.isfinite(np.asarray(value)))
     assert np.all(np.asarray(info.solve.result)[~np.isfinite(np.asarray(value))] == Result.NONFINITE)
+    # with throw=True the NaN is an error from inside the computation, under jit and under grad (issue 40)
+    with pytest.raises(Exception, match="gcrsky log_evidence \\(cholesky\\).*ill-conditioned"):
+        jax.block_until_ready(jax.jit(lambda s: gcrsky.log_evidence(s, options=CholeskyOptions(throw=True)))(big))
+    scale = lambda t: big._replace(inv_noise=big.inv_noise * jnp.exp(t))  # noqa: E731
+    with pytest.raises(Exception, match="gcrsky log_evidence"):
+        jax.block_until_ready(jax.grad(lambda t: gcrsky.log_evidence(scale(t), options=CholeskyOptions(
+            throw=True)).sum())(0.0))
+    # the control: the same call on the well-posed system raises nothing
+    assert np.all(np.isfinite(np.asarray(jax.jit(lambda s: gcrsky.log_evidence(
+        s, options=CholeskyOptions(throw=True)))(system))))
+    # the eager Wiener filter (and prepare) refuse the NaN map with a reason, not a logged warning
+    for call in (lambda: gcrsky.wiener_filter(big, method="cholesky"), lambda: gcrsky.prepare(big, method="cholesky")):
+        with pytest.raises(ValueError, match=r"Wiener filter.* is not finite in channels \[.*nonfinite.*condition"):
+            call()
 
     mod = system._replace(prior=system.prior._replace(inv_var=system.prior.inv_var / 1e4))
     X = np.asarray(gcrsky.dense_matrix(mod.op))  # (Nf, Nt, Nbl, n) complex
@@ -178,6 +192,24 @@ def test_log_evidence_never_a_silent_nan(partial):
         ref = stats.multivariate_normal(Xr @ np.asarray(mod.prior.mean)[f], C).logpdf(dr)
         got = float(np.asarray(gcrsky.log_evidence(mod, method="cholesky"))[f])
         assert abs(got - ref) < 1e-6 * abs(ref), (got, ref)
+
+
+def test_the_evidence_reports_the_accuracy_of_its_solve(partial):
+    """The evidence rests on a solve (the Wiener filter's; D^-1 r~ in data space) and reports its error from
+    the true residual, as the Wiener filter does.  Noise variances / 1e10 on this problem put the precision's
+    condition number near 1e15: every exact path's Wiener filter then misses its tol (measured 0.03-0.7
+    posterior sigma) and the evidence, which reported SUCCESS with error 0 before issue 40, must say
+    INACCURATE in the same channels.  The control: the unscaled system is SUCCESS with error < 1e-12."""
+    system = partial.system()
+    tight = system._replace(inv_noise=system.inv_noise * 1e10)
+    for options in (CholeskyOptions(), EighOptions(), DataSpaceOptions()):
+        _, ok = gcrsky.log_evidence(system, options=options, return_info=True)
+        assert np.all(np.asarray(ok.solve.result) == Result.SUCCESS) and np.max(np.asarray(ok.solve.err_sigma)) < 1e-12
+        _, info = gcrsky.log_evidence(tight, options=options, return_info=True)
+        _, winfo = gcrsky.wiener_filter(tight, options=options, return_info=True)
+        assert np.all(np.asarray(winfo.result) == Result.INACCURATE), winfo  # the premise
+        assert np.all(np.asarray(info.solve.result) == Result.INACCURATE), (options, info.solve)
+        assert np.all(np.asarray(info.solve.err_sigma) > options.tol)
 
 
 @pytest.mark.parametrize("name", ["cholesky", "eigh", "dataspace", "mmode", "cg"])

@@ -12,7 +12,8 @@ import errno
 import sys
 import traceback
 
-__all__ = ["EXIT_USAGE", "USER_ERRORS", "error_message", "out_of_memory", "report_user_error"]
+__all__ = ["EXIT_USAGE", "USER_ERRORS", "address_space_limit", "error_message", "out_of_memory", "report_user_error",
+           "under_address_limit"]
 
 #: Exit status of a user error (as argparse's for bad arguments).
 EXIT_USAGE = 2
@@ -30,8 +31,38 @@ def _full_disk(e: BaseException) -> bool:
         "Disk quota" in text)
 
 
+def address_space_limit() -> int | None:
+    """The process's address-space limit (``ulimit -v``) in bytes, or None where there is none."""
+    import resource
+
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    return None if soft == resource.RLIM_INFINITY else int(soft)
+
+
+def under_address_limit(what: str) -> MemoryError:
+    """The message of a failure caused by a tight ``ulimit -v`` (``what`` failed): the limit and the remedy."""
+    soft = address_space_limit() or 0
+    return MemoryError(
+        f"{what} under this shell's address-space limit (ulimit -v {soft // 1024} KiB = {soft / 2**30:.1f} GiB): "
+        "XLA's thread pools and the shared libraries gcrsky loads need more virtual memory than that; raise the "
+        "limit (ulimit -v unlimited, or at least ~4 GiB), or bound resident memory instead (e.g. systemd-run "
+        "--user -p MemoryMax=8G gcrsky ..., and GCRSKY_MEMORY_BUDGET_GB)")
+
+
+def _blames_address_limit(e: BaseException) -> bool:
+    """A failure to load a library or map memory, while a ``ulimit -v`` is set: the limit is the likely cause."""
+    if address_space_limit() is None:
+        return False
+    text = str(e)
+    return isinstance(e, MemoryError) and "ulimit" not in text or getattr(e, "errno", None) == errno.ENOMEM or (
+        isinstance(e, OSError) and ("shared object" in text or "failed to map" in text or "cannot allocate" in
+                                    text.lower()))
+
+
 def error_message(e: BaseException) -> str:
     """The one-paragraph message of a user error (:data:`USER_ERRORS`): the cause, the path, what to do."""
+    if _blames_address_limit(e):
+        return f"{under_address_limit(type(e).__name__ + ': ' + str(e))}"
     if isinstance(e, OSError):
         where = f" {e.filename}" if getattr(e, "filename", None) else ""
         what = e.strerror or str(e)

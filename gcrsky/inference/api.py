@@ -28,7 +28,7 @@ import numpy as np
 
 from ..model.problem import Problem
 from ..model.system import LinearSystem, check_system
-from ..solvers.info import SolveInfo
+from ..solvers.info import Result, SolveInfo
 from ..solvers.path import is_traced
 from ..solvers.plan import choose_path
 from ..solvers.registry import SolverOptions, options_for, path_of
@@ -56,12 +56,15 @@ def wiener_filter(
     dense factorisation where they apply, else preconditioned CG to ``tol`` posterior
     sigma, the P-norm of the error).  With ``return_info`` also returns the
     :class:`~gcrsky.solvers.SolveInfo`.  A solve that did not converge logs a warning
-    and is flagged in the info.
+    and is flagged in the info; a non-finite answer on concrete arrays is a ``ValueError``
+    (never a silent NaN map; under a trace the info's ``NONFINITE`` says it, and a path's
+    ``throw=True`` raises).
     """
     system = as_system(problem)
     opts = fixed_path(system, method, options=options, tol=tol, memory_budget=memory_budget)
     a, info = wiener_filter_system(system, options=opts, check=False)  # as_system checked it
     warn_unconverged(info, "Wiener filter")
+    refuse_nonfinite(a, info, "Wiener filter")
     return (a, info) if return_info else a
 
 
@@ -138,6 +141,7 @@ def prepare(
     opts = fixed_path(system, method, options=options, tol=tol, ndraws=int(ndraws), memory_budget=memory_budget)
     prepared = prepare_system(system, options=opts, check=False)  # as_system checked it
     warn_unconverged(prepared.wiener, "Wiener filter")
+    refuse_nonfinite(prepared.a_wf, prepared.wiener, "Wiener filter (prepare)")
     return prepared
 
 
@@ -192,6 +196,26 @@ def warn_unconverged(info: SolveInfo, what: str) -> None:
                            info.err_sigma)
     else:
         _log_unconverged(np.asarray(info.converged), np.asarray(info.err_sigma), what)
+
+
+def refuse_nonfinite(a: jax.Array, info: SolveInfo, what: str) -> None:
+    """On concrete arrays: a ``ValueError`` naming the channels where ``a`` (Nf, ...) is not finite.
+
+    The inputs were checked before (:func:`gcrsky.model.check_system`), so a non-finite answer
+    means the factorisation or the iteration broke down in float64; under a trace nothing is
+    raised (``info.result`` is ``NONFINITE``; ``throw=True`` raises from inside).
+    """
+    if is_traced(a):
+        return
+    arr = np.asarray(a)
+    bad = ~np.all(np.isfinite(arr.reshape(arr.shape[0], -1)), axis=1)
+    if bad.any():
+        codes = sorted({Result.NAMES[int(c)] for c in np.asarray(info.result)[bad].ravel()})
+        raise ValueError(
+            f"{what} is not finite in channels {np.flatnonzero(bad).tolist()} (result: {', '.join(codes)}): the "
+            "solve broke down in float64 although the inputs are finite. Usually the prior's variances are so large, "
+            "or the noise so small, that the posterior precision's condition number is beyond ~1e16: rescale the "
+            "prior (prior_scale) or the noise, or use method='eigh' to see its spectrum")
 
 
 def _log_unconverged(converged: np.ndarray, err: np.ndarray, what: str) -> None:

@@ -71,6 +71,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -99,9 +100,11 @@ class EvidenceInfo(NamedTuple):
             the data-space path).
         quadratic: ``b'^T P^-1 b'`` with ``b' = X^T W (d - X a0)`` (on the data-space
             path ``r^T W r - r~^T D^-1 r~``, for information: the value does not use it).
-        solve: :class:`~gcrsky.solvers.SolveInfo` of the Wiener solve (of the
-            factorisation of D on the data-space path: no Wiener filter is formed);
-            ``NONFINITE`` where the factorisation failed and the value is NaN.
+        solve: :class:`~gcrsky.solvers.SolveInfo` of the solve the value rests on (the
+            Wiener solve; ``D^-1 r~`` on the data-space path), its ``err_sigma`` measured from
+            the true residual: ``NONFINITE`` where the factorisation failed and the value is
+            NaN, ``INACCURATE`` where the solve misses the path's ``tol`` (the quadratic term
+            is then off by up to ``sqrt(quadratic) * err_sigma``).
         chi2: ``(d - X a0)^T C^-1 (d - X a0)`` with ``C = N + X S X^T``: exactly
             chi-square with ``n_data`` degrees of freedom under the model (a goodness of fit).
         n_data: the number of real data values (twice the unflagged samples).
@@ -146,6 +149,19 @@ def _fold_bad_input(value, info: EvidenceInfo, bad):
     return jnp.where(bad, jnp.nan, value), info._replace(solve=fold_bad_input(info.solve, bad))
 
 
+def _throw_unless_converged(value, info: EvidenceInfo, options, method: str):
+    """With ``options.throw``: an error from inside the computation (works under ``jit`` and ``grad``)
+    wherever the solve the value rests on did not converge (``NONFINITE``: the value is NaN;
+    ``INACCURATE``: its quadratic term misses the path's ``tol``; ``BAD_INPUT`` is raised earlier, naming
+    the input).  Without it, the value is returned and ``info.solve`` says so."""
+    if not getattr(options, "throw", False):
+        return value
+    return eqx.error_if(value, ~info.solve.converged,
+                        f"gcrsky log_evidence ({method}): the solve it rests on failed (a non-finite factor: the "
+                        "value is NaN) or missed the path's tol (INACCURATE): the whitened precision I + H is too "
+                        "ill-conditioned for float64; rescale the prior or the noise")
+
+
 def log_evidence_system(
     system: LinearSystem,
     *,
@@ -176,8 +192,10 @@ def log_evidence_system(
         check_system(system)
     system, bad = guard_inputs(system, options)
     terms = evidence_terms(system)
-    parts = path_of(options).evidence_parts(system, options, terms, slq=slq, key=key)
-    return _fold_bad_input(*_assemble(terms, parts), bad)
+    path = path_of(options)
+    parts = path.evidence_parts(system, options, terms, slq=slq, key=key)
+    value, info = _fold_bad_input(*_assemble(terms, parts), bad)
+    return _throw_unless_converged(value, info, options, path.name), info
 
 
 def _check_proper(system: LinearSystem) -> None:
@@ -248,6 +266,7 @@ def log_evidence(
         terms = evidence_terms(problem.system)
         value, info = _assemble(terms, path.state_evidence_parts(problem, terms, slq=slq, key=key))
         value, info = _fold_bad_input(value, info, bad_channels(problem.system))
+        value = _throw_unless_converged(value, info, getattr(problem, "options", None), path.name)
         _refuse_nonfinite(value, info, path.name)
         return (value, info) if return_info else value
     system = as_system(problem)

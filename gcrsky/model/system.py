@@ -235,7 +235,8 @@ def check_system(system: LinearSystem) -> LinearSystem:
     are finite wherever ``inv_noise > 0`` (flagged samples may hold anything only if
     they were cleaned, i.e. are finite: NaN times a zero weight is NaN); the prior's
     mean is finite and its inverse variance finite and ``>= 0``; angles finite.
-    Traced systems are passed through unchecked (call it outside ``jit``), and the values of a
+    Under a trace (``jit``, ``vmap``, ``grad``) the types and shapes are checked (they are static) and the
+    values are not (call it outside ``jit`` for those), and the values of a
     system spread over processes (arrays not fully addressable here) are not read; the value checks
     have a traceable twin, :func:`input_faults`, which the system tier folds into its result
     codes there (:data:`gcrsky.solvers.Result.BAD_INPUT`).  Cheap: host NumPy on the data,
@@ -244,9 +245,6 @@ def check_system(system: LinearSystem) -> LinearSystem:
     Returns:
         the system, unchanged.
     """
-    leaves = jax.tree_util.tree_leaves(system)
-    if any(isinstance(x, jax.core.Tracer) for x in leaves):
-        return system
     for path, x in jax.tree_util.tree_flatten_with_path(system)[0]:
         dt = np.dtype(x.dtype) if hasattr(x, "dtype") else np.asarray(x).dtype
         if dt.kind in "fc" and dt not in (np.float64, np.complex128):
@@ -276,6 +274,8 @@ def check_system(system: LinearSystem) -> LinearSystem:
         if tuple(np.shape(getattr(system.prior, name))) != (nf, n):
             raise ValueError(f"prior.{name} has shape {np.shape(getattr(system.prior, name))}, expected (Nf, n) = "
                              f"{(nf, n)}")
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(system)):
+        return system  # under a trace: types and shapes were checked above; the values are judged in the computation
     values = (system.data, system.inv_noise, system.prior.mean, system.prior.inv_var, op.angles)
     if not all(getattr(x, "is_fully_addressable", True) for x in values):
         return system  # spread over processes (multi-host sharding): the values are judged in the computation

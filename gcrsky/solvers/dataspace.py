@@ -94,7 +94,7 @@ from .dataspace_large import (
     logdet_no_grad,
 )
 from .dataspace_proxy import PROXY_ITERATIONS, pcg_solve, proxy_applies, proxy_memory_bytes, stationary_proxy
-from .dense import cholesky_logdet, cholesky_solve
+from .dense import cholesky_logdet, cholesky_solve, solve_accuracy
 from .info import DrawInfo, Result, SolveInfo, direct_info, exact_info
 from .options import DataSpaceOptions
 from .path import AUTO_MEMORY_FRACTION, EvidenceParts, SolverPath, is_traced
@@ -861,7 +861,7 @@ def dataspace_evidence_parts(system: LinearSystem, chunk: int | None = None, lag
     """The data-space terms of the log evidence, per channel (Nf,) each.
 
     Returns:
-        ``(q, logdet, finite)``: ``q = r~^T D^-1 r~`` with ``r~ = W^1/2 (d - X a0)``
+        ``(q, logdet, finite, (D, L, r~, D^-1 r~))``: ``q = r~^T D^-1 r~`` with ``r~ = W^1/2 (d - X a0)``
         (equal to ``r^T W r - b'^T P^-1 b'`` by Woodbury), ``logdet = log det D``
         (``= log det(I + H)``, the prior-whitened precision's, by Sylvester) and whether
         the factor is finite (``chunk``, ``lags``: as :func:`dataspace_matrix`).  ``log p(d) = -1/2 [q + logdet - log det W + N_d log 2 pi]``
@@ -871,9 +871,10 @@ def dataspace_evidence_parts(system: LinearSystem, chunk: int | None = None, lag
     sqrt_w = sqrt_weights(system)
     D, L = _factor(system, chunk, lags)
     rt = _whitened_residual(system, sqrt_w)
-    q = jnp.sum(rt * cholesky_solve(D, L, rt), axis=-1)
+    y = cholesky_solve(D, L, rt)
+    q = jnp.sum(rt * y, axis=-1)
     finite = jnp.all(jnp.isfinite(jax.lax.stop_gradient(L)), axis=(1, 2))
-    return q, cholesky_logdet(D, L), finite
+    return q, cholesky_logdet(D, L), finite, (D, L, rt, y)
 
 
 # ---------------------------------------------------------------- the path
@@ -886,9 +887,18 @@ DATASPACE_MAX_ND = 12000
 DATASPACE_IN_PLACE_MAX_ND = 50000
 
 
-def _parts(system: LinearSystem, options: DataSpaceOptions, terms, q, logdet, finite) -> EvidenceParts:
+def _parts(system: LinearSystem, options: DataSpaceOptions, terms, q, logdet, finite, solved=None) -> EvidenceParts:
+    """The evidence's parts; ``solved = (D, L, r~, D^-1 r~)`` gives the solve's accuracy from its true residual
+    (:func:`gcrsky.solvers.dense.solve_accuracy`, in D's norm: ``q`` is within ``sqrt(q) err_sigma``), else
+    (a prepared state's) the factor's finiteness alone."""
     zeros = jnp.zeros(q.shape)
-    info = direct_info(zeros, zeros, finite, options.tol)
+    if solved is None:
+        info = direct_info(zeros, zeros, finite, options.tol)
+    else:
+        D, L, rt, y = solved
+        Lc = jax.lax.stop_gradient(L)
+        info = solve_accuracy(D, lambda r: jax.vmap(lambda l, v: jax.scipy.linalg.cho_solve((l, True), v))(Lc, r),
+                              rt, y, finite, options.tol)
     if options.throw:
         q = eqx.error_if(q, ~finite, "gcrsky data space: D is not positive definite (a flat prior direction?)")
     return EvidenceParts(q, logdet, zeros, info)
@@ -1005,8 +1015,8 @@ class DataSpacePath(SolverPath):
 
     def evidence_parts(self, system, options, terms, *, slq=None, key=None):
         lags = lag_structure(system) if options.stationary else None  # None under a trace
-        q, logdet, finite = dataspace_evidence_parts(system, options.time_chunk, lags)
-        return _parts(system, options, terms, q, logdet, finite)
+        q, logdet, finite, solved = dataspace_evidence_parts(system, options.time_chunk, lags)
+        return _parts(system, options, terms, q, logdet, finite, solved)
 
     def state_evidence_parts(self, state, terms, *, slq=None, key=None):
         if state.options.proxy:
