@@ -302,3 +302,32 @@ def test_inspect_names_unflagged_non_finite_visibilities(h1c, tmp_path):
                "baseline 11-12" in p for p in problems), problems
     clean = inspect_uvdata(str(H1C), freq_chans=CHANS, pol="pI")["problems"]  # the control
     assert not any("not finite" in p for p in clean)
+
+
+@pytest.mark.parametrize("where", ["cross", "auto"])
+def test_an_inf_visibility_is_named_as_inf_by_run_and_inspect(h1c, tmp_path, where, capsys):
+    """An unflagged Inf visibility was reported by ``run`` as "1 NaN ... (nan+nanj)" (pseudo-Stokes I had made it
+    NaN), and an unflagged Inf autocorrelation was accepted without a word (it made that antenna's noise
+    infinite, dropping its baselines silently) (issue 40).  Now one check, on the file's values: run refuses
+    and inspect reports the same message; the control, the file itself, passes both (test above)."""
+    from gcrsky.cli import main
+    from gcrsky.ingest import inspect_uvdata
+
+    bad = h1c.copy()
+    ants = (11, 12) if where == "cross" else (11, 11)
+    rows = np.flatnonzero((bad.ant_1_array == ants[0]) & (bad.ant_2_array == ants[1]))
+    bad.data_array[rows[2], 30, 0] = np.inf
+    bad.flag_array[rows[2], 30, 0] = False
+    path = _write(bad, tmp_path / "inf.uvh5")
+    what = "visibilities" if where == "cross" else "autocorrelations"
+    want = (f"1 unflagged {what} are not finite (0 NaN, 1 Inf), first xx at channel 0 (146.8750 MHz), time 2, "
+            f"baseline {ants[0]}-{ants[1]} (value (inf+0j))")
+    problems = inspect_uvdata(path, freq_chans=CHANS, pol="pI")["problems"]
+    assert any(want in p for p in problems), problems
+    out = tmp_path / "run"
+    assert main(["run", "--data", path, "--chans", ",".join(map(str, CHANS)), "--dish-diameter", "14", "--lmax", "8",
+                 "--nside", "64", "--nsamples", "2", "--no-plots", "--no-progress", "--band-limit", "truncate",
+                 "--flux-scale", "accept", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert want in err and "a run refuses them; flag them in the file" in err, err[-2000:]
+    assert not (out / "results.h5").exists()

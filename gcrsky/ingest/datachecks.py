@@ -222,18 +222,6 @@ def flux_checks(obs: Observation, beam, *, pol="pI", mode: str = "check", bounds
     return {"flux_scale": rec}
 
 
-def _refuse_nonfinite(obs: Observation) -> None:
-    """Unflagged visibilities that are NaN or Inf, which a run refuses (:func:`gcrsky.model.noise.clean_data`)."""
-    bad = obs.usable & ~np.isfinite(obs.vis)
-    if np.any(bad):
-        k, f, t, b = (int(x[0]) for x in np.nonzero(bad))
-        nan = int(np.sum(bad & np.isnan(obs.vis)))
-        a1, a2 = (int(a) for a in obs.baseline_antnums[b])
-        raise ValueError(f"{int(bad.sum())} unflagged visibilities are not finite ({nan} NaN, {int(bad.sum()) - nan} "
-                         f"Inf), first {obs.pol_names[k]} at channel {f} ({obs.freqs_hz[f] / 1e6:.4f} MHz), time {t}, "
-                         f"baseline {a1}-{a2}: a run refuses them; flag them in the file")
-
-
 def inspect_checks(obs: Observation, checks: dict, *, pol="pI", flag: bool = True, flux_scale: str = "check",
                    beam=None) -> InspectedChecks:
     """``inspect``'s checks: everything is reported, and what a run would refuse becomes a PROBLEM line.
@@ -247,7 +235,7 @@ def inspect_checks(obs: Observation, checks: dict, *, pol="pI", flag: bool = Tru
     Returns:
         (the Observation a run would fit, the checks, the problems: messages of what a run refuses).
     """
-    from ..model.datachecks import refuse_empty
+    from ..model.datachecks import refuse_empty, refuse_nonfinite
     from ..model.observed import kelvin_sr_per_unit
 
     problems = []
@@ -255,7 +243,7 @@ def inspect_checks(obs: Observation, checks: dict, *, pol="pI", flag: bool = Tru
     checks.update(flags)
     if "emptied" in flags["flags"]:
         problems.append(flags["flags"]["emptied"])
-    for check in (refuse_empty, kelvin_sr_per_unit, _refuse_nonfinite):
+    for check in (refuse_empty, kelvin_sr_per_unit, refuse_nonfinite):
         try:
             check(obs)
         except ValueError as err:

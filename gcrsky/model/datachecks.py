@@ -69,6 +69,7 @@ __all__ = [
     "noise_excess",
     "outlier_rule",
     "refuse_empty",
+    "refuse_nonfinite",
 ]
 
 log = logging.getLogger(__name__)
@@ -424,6 +425,33 @@ def flagged_antennas(obs: Observation) -> list[int]:
     seen = np.zeros(obs.n_antennas, bool)
     seen[obs.antpairs[usable].reshape(-1)] = True
     return [int(a) for a in obs.antenna_numbers[~seen]]
+
+
+def refuse_nonfinite(obs: Observation) -> None:
+    """Refuse unflagged visibilities that are NaN or Inf, cross- or autocorrelations, counted and located as the
+    file holds them (before any combination of feed products, which turns an Inf into a NaN).
+
+    ``run`` refuses them before anything is built (:func:`gcrsky.model.observed.check_observation`) and
+    ``inspect`` reports them as a PROBLEM: one check.  An unflagged Inf autocorrelation would make that
+    antenna's radiometer noise infinite, i.e. silently drop its baselines.
+
+    Raises:
+        ValueError: naming the count (NaN and Inf), the first sample's product, channel, time and baseline
+            (or antenna), and the remedy (flag them in the file).
+    """
+    for what, vals, used, pair in (("visibilities", obs.vis, obs.usable, lambda i: obs.baseline_antnums[i]),
+                                   ("autocorrelations", obs.autos, ~obs.auto_flags & (obs.auto_nsamples > 0),
+                                    lambda i: (obs.antenna_numbers[i],) * 2)):
+        bad = used & ~np.isfinite(vals)
+        if not np.any(bad):
+            continue
+        k, f, t, b = (int(x[0]) for x in np.nonzero(bad))
+        nan = int(np.sum(bad & np.isnan(vals)))
+        a1, a2 = (int(a) for a in pair(b))
+        raise ValueError(f"{int(bad.sum())} unflagged {what} are not finite ({nan} NaN, {int(bad.sum()) - nan} "
+                         f"Inf), first {obs.pol_names[k]} at channel {f} ({obs.freqs_hz[f] / 1e6:.4f} MHz), time {t}, "
+                         f"baseline {a1}-{a2} (value {complex(vals[k, f, t, b])!r}): a run refuses them; flag them in "
+                         "the file (or select other channels, times or antennas)")
 
 
 def refuse_empty(obs: Observation) -> None:

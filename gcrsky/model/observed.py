@@ -44,7 +44,7 @@ from ..instrument.beams import unique_beams
 from ..instrument.response import response_matrix
 from ..io.visdata import POLS, Observation, parse_products
 from .compress import COMPRESS_TOL_M
-from .datachecks import refuse_empty
+from .datachecks import refuse_empty, refuse_nonfinite
 from .noise import adjacent_times, radiometer_variance, time_difference_variance
 from .prior import Prior
 from .problem import Problem, assemble_problem, observation_geometry
@@ -160,9 +160,11 @@ def check_observation(obs: Observation, pol="pI", noise="autos") -> None:
 
     Checks the units (:func:`kelvin_sr_per_unit`), that the feed products ``pol`` needs
     are there, that the radiometer noise (``noise="autos"``) has autocorrelations, and that
-    some cross-correlation is unflagged with a positive nsample (:func:`gcrsky.model.datachecks.refuse_empty`).
+    some cross-correlation is unflagged with a positive nsample (:func:`gcrsky.model.datachecks.refuse_empty`) and
+    none of those used is NaN or Inf (:func:`gcrsky.model.datachecks.refuse_nonfinite`).
     """
     refuse_empty(obs)
+    refuse_nonfinite(obs)
     kelvin_sr_per_unit(obs)
     _, raw = parse_products(pol)
     missing = [r for r in raw if r not in obs.pol_names]
