@@ -209,8 +209,9 @@ def test_bad_input_is_refused_with_a_message(sim, tmp_path):
     with pytest.raises(FileNotFoundError):
         from_uvdata(tmp_path / "nope.uvh5", lmax=LMAX, nside=NSIDE, dish_diameter_m=14.0)
     bad = sim.uvdata.copy()
-    bad.data_array[3, 0, 0] = np.nan  # unflagged NaN: the existing clear error
-    with pytest.raises(ValueError, match="non-finite"):
+    bad.data_array[3, 0, 0] = np.nan  # unflagged NaN: refused before anything is built, naming where
+    with pytest.raises(ValueError, match=r"1 unflagged visibilities are not finite \(1 NaN, 0 Inf\), first xx at "
+                                         r"channel 0 \(100.0000 MHz\), time 0, baseline 0-3"):
         _problem(bad, pol="xx")
 
 

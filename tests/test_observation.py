@@ -250,6 +250,20 @@ def test_malformed_antenna_positions_and_site_are_named(h1c, tmp_path):
     with pytest.raises(ValueError, match=r"nanpos.uvh5: the positions of antennas \[12\] are not finite"):
         read_observation(path, pol="pI", freq_chans=[30])
     read_observation(path, pol="pI", freq_chans=[30], antennas=[1, 11, 13])  # the control: antenna 12 left out
+    # a NaN latitude in the header ("cannot convert float NaN to integer" before issue 40)
+    import shutil
+
+    import h5py
+
+    nanlat = tmp_path / "nanlat.uvh5"
+    shutil.copy(H1C, nanlat)
+    with h5py.File(nanlat, "r+") as f:
+        f["Header"]["latitude"][...] = np.nan
+    with pytest.raises(ValueError, match=r"nanlat.uvh5: the telescope's location \(telescope_location, ECEF \[nan, "
+                                         r"nan, nan\] m\) is not a place on the Earth's surface"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # pyuvdata: the LSTs and uvws no longer match the location
+            read_observation(nanlat, pol="pI", freq_chans=[30])
 
 
 def test_a_channel_named_twice_is_refused_not_read_as_every_channel(sim_file):
