@@ -1,0 +1,267 @@
+"""Per-antenna beams sampled with the sky: the beam block (issue 41, DESIGN section 15).
+
+The model is :mod:`gcrsky.instrument.beammodes`' exactly bilinear one: row ``b = (i, j)`` sees
+
+    ``d_b = D_b sum_{k,l} u_ik u_jl (X^(kl) a)_b + n_b``,  ``u_i = (1, c_i1(nu), .., c_iM(nu))``,
+
+with ``X^(kl)`` the operator of the response set ``R^(kl)`` (symmetric in ``k, l``), ``D`` a
+fixed complex row factor (gains and amplitude, or 1) and ``c_ik(nu) = sum_q theta_ikq B_q(nu)``
+(``theta`` (Nant, M, Q) real, ``B`` (Nf, Q) smooth frequency modes).  Given the sky and every
+other antenna, the data are *exactly* linear in one antenna's ``theta_i``:
+
+    ``d_b = D_b (T_b0 + sum_k c_ik T_bk) + n_b``,  ``T_bk = sum_l u_ol (X^(kl) a)_b``,
+
+``o`` the row's other antenna, so ``theta_i | a, theta_-i, d`` is Gaussian (no linearisation):
+with per-component inverse noise ``W``, precision
+``sum_f B_q B_q' sum_tb W |D|^2 Re(conj(T_bk) T_bk') + Lambda^-1`` and right-hand side
+``sum_f B_q sum_tb W Re(conj(D T_bk) r_b) + Lambda^-1 mu`` (``r = d - D T_0``).  The block
+sweeps the antennas one by one (:func:`beam_sweep`, a ``lax.scan``; each antenna's draw is
+exact given the others, so the sweep is a valid Gibbs update of the joint ``theta``); the
+model visibilities of the ``P`` sets are computed once per sweep (one operator application
+of ``P`` times as many rows).  Autocorrelation rows (quadratic in ``theta_i``) are refused.
+
+The sky given the beams (:func:`beam_sky_step`) is the usual exact GCR draw of the system
+whose response is :func:`gcrsky.instrument.beammodes.combine_responses` of the current
+coefficients (a new response each sweep: the Cholesky path factorises per sweep, ~``Nf n^3 / 3``).
+
+Redundancy: baselines of the same separation no longer share a response once their antennas'
+beams differ, so a beam run keeps every baseline (no redundant compression).
+
+Kernels in the blackjax form::
+
+    block = beam_setup(stack, pairs, basis_f, sigma=0.05)
+    state = beam_init(sky0, block)
+    state, info = beam_step(key, state, system, block)      # jit / lax.scan it
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..instrument.beammodes import combine_responses, mode_pairs
+from ..model.operator import apply
+from ..model.system import LinearSystem
+from ..solvers.info import SolveInfo
+from ..solvers.options import CholeskyOptions
+from .gibbs import gcr_init, gcr_step
+
+__all__ = [
+    "BeamBlock",
+    "BeamState",
+    "beam_coefficients",
+    "beam_conditional",
+    "beam_init",
+    "beam_setup",
+    "beam_sky_step",
+    "beam_step",
+    "beam_sweep",
+    "beam_system",
+    "set_visibilities",
+]
+
+
+class BeamBlock(NamedTuple):
+    """The beam block's fixed parts (a PyTree; :func:`beam_setup`).
+
+    Attributes:
+        stack: (Nf, P, Nbl, n) the response sets ``R^(kl)`` (:func:`gcrsky.instrument.beammodes.mode_responses`).
+        pairs: (Nbl, 2) int, the antenna indices of each row.
+        basis_f: (Nf, Q) the frequency modes ``B_q(nu)``.
+        prior_inv_var: (M, Q) inverse prior variance of each antenna's ``theta_ikq``.
+        prior_mean: (Nant, M, Q) prior mean of ``theta``.
+        row_factor: (Nf, Nt, Nbl) complex ``D`` (gains, amplitude), or a scalar 1.
+        mean_inv_var: (M, Q) inverse prior variance of the array's mean coefficient
+            ``theta_bar = sum_i theta_i / Nant`` (0: no prior beyond each antenna's).
+    """
+
+    stack: jax.Array
+    pairs: jax.Array
+    basis_f: jax.Array
+    prior_inv_var: jax.Array
+    prior_mean: jax.Array
+    row_factor: jax.Array
+    mean_inv_var: jax.Array
+
+
+class BeamState(NamedTuple):
+    """The joint chain: ``sky`` a (Nf, n) K; ``theta`` (Nant, M, Q) the beam coefficients."""
+
+    sky: jax.Array
+    theta: jax.Array
+
+
+def beam_setup(stack, pairs, basis_f, *, sigma, mean_sigma=None, n_ant: int | None = None,
+               row_factor=1.0) -> BeamBlock:
+    """The beam block (pure NumPy set-up).
+
+    Args:
+        stack: (Nf, P, Nbl, n) response sets; ``P = (M + 1)(M + 2) / 2``.
+        pairs: (Nbl, 2) antenna indices (cross-correlations only).
+        basis_f: (Nf, Q) frequency modes (e.g. :func:`gcrsky.model.gains.mode_basis`; ``np.ones((Nf, 1))``
+            for coefficients constant in frequency).
+        sigma: prior standard deviation of each coefficient (fractional beam change per mode at the disc's
+            edge): scalar, (M,) per mode or (M, Q).
+        mean_sigma: prior standard deviation of the array's *mean* coefficient (as ``sigma``), or None (no
+            such prior).  A perturbation common to every dish is nearly degenerate with the sky (a common
+            East-West pointing offset with a rotation of the sky in right ascension: the chain crawls along
+            it); the nominal beam is the array's mean beam when this is small.  The prior term
+            ``theta_bar^2 / (2 mean_sigma^2)`` couples the antennas, and each one's conditional stays
+            Gaussian (:func:`beam_conditional`).
+        n_ant: the number of antennas (default: the largest index in ``pairs`` plus one).
+        row_factor: ``D``, (Nf, Nt, Nbl) complex or a scalar.
+
+    Raises:
+        ValueError: an autocorrelation row, shapes that disagree, or a non-positive sigma.
+    """
+    stack = jnp.asarray(stack)
+    pairs = np.asarray(pairs, np.int64)
+    basis_f = np.asarray(basis_f, np.float64)
+    nf, npair = stack.shape[:2]
+    m = int(round((np.sqrt(8 * npair + 1) - 3) / 2))
+    if mode_pairs(m).shape[0] != npair:
+        raise ValueError(f"stack has {npair} response sets, not (M + 1)(M + 2) / 2 for any M")
+    if pairs.ndim != 2 or pairs.shape != (stack.shape[2], 2):
+        raise ValueError(f"pairs has shape {pairs.shape}, expected (Nbl, 2) = ({stack.shape[2]}, 2)")
+    if np.any(pairs[:, 0] == pairs[:, 1]):
+        raise ValueError("the beam block models cross-correlations only: drop the autocorrelation rows")
+    if basis_f.ndim != 2 or basis_f.shape[0] != nf:
+        raise ValueError(f"basis_f has shape {basis_f.shape}, expected (Nf, Q) with Nf = {nf}")
+    q = basis_f.shape[1]
+    sig = np.asarray(sigma, np.float64)
+    sig = sig[:, None] if sig.ndim == 1 else sig
+    try:
+        sig = np.broadcast_to(sig, (m, q))
+    except ValueError:
+        raise ValueError(f"sigma has shape {np.shape(sigma)}, not broadcastable to (M, Q) = {(m, q)}") from None
+    if np.any(~(sig > 0)) or np.any(~np.isfinite(sig)):
+        raise ValueError("the beam prior's sigma must be positive and finite")
+    mean_iv = np.zeros((m, q))
+    if mean_sigma is not None:
+        ms = np.asarray(mean_sigma, np.float64)
+        ms = np.broadcast_to(ms[:, None] if ms.ndim == 1 else ms, (m, q))
+        if np.any(~(ms > 0)) or np.any(~np.isfinite(ms)):
+            raise ValueError("the beam prior's mean_sigma must be positive and finite (None: no prior on the mean)")
+        mean_iv = 1.0 / ms**2
+    nant = int(pairs.max()) + 1 if n_ant is None else int(n_ant)
+    return BeamBlock(stack, jnp.asarray(pairs), jnp.asarray(basis_f), jnp.asarray(1.0 / sig**2),
+                     jnp.zeros((nant, m, q)), jnp.asarray(row_factor), jnp.asarray(mean_iv))
+
+
+def beam_init(sky, block: BeamBlock, *, theta=None) -> BeamState:
+    """Start the chain at sky ``a`` (Nf, n) and ``theta`` (default: the prior mean)."""
+    sky = jnp.asarray(sky)
+    th = block.prior_mean if theta is None else jnp.asarray(theta, sky.dtype)
+    return BeamState(sky, th)
+
+
+def beam_coefficients(block: BeamBlock, theta) -> jax.Array:
+    """``c_ik(nu) = sum_q theta_ikq B_q(nu)``: (Nant, Nf, M)."""
+    return jnp.einsum("amq,fq->afm", theta, block.basis_f)
+
+
+def beam_system(system: LinearSystem, block: BeamBlock, theta) -> LinearSystem:
+    """The sky's system with the response of the beams ``theta`` (and the row factor folded into the data and noise)."""
+    resp = combine_responses(block.stack, block.pairs, beam_coefficients(block, theta))
+    D = jnp.broadcast_to(block.row_factor, system.data.shape).astype(system.data.dtype)
+    w = system.inv_noise * jnp.abs(D) ** 2
+    data = jnp.where(D == 0, 0.0, system.data / jnp.where(D == 0, 1.0, D))
+    return system._replace(op=system.op._replace(response=resp), data=data, inv_noise=w)
+
+
+def set_visibilities(system: LinearSystem, block: BeamBlock, sky) -> jax.Array:
+    """``X^(kl) a`` of every response set: (Nf, Nt, P, Nbl) complex (one operator application)."""
+    nf, npair, nbl, n = block.stack.shape
+    op = system.op._replace(response=jnp.reshape(block.stack, (nf, npair * nbl, n)))
+    v = apply(op, sky)  # (Nf, Nt, P * Nbl)
+    return jnp.reshape(v, v.shape[:2] + (npair, nbl))
+
+
+def _full_index(m: int) -> np.ndarray:
+    """(M+1, M+1) the set index of ``(k, l)`` (symmetric)."""
+    idx = np.zeros((m + 1, m + 1), np.int64)
+    for p, (k, l) in enumerate(mode_pairs(m)):
+        idx[k, l] = idx[l, k] = p
+    return idx
+
+
+def beam_conditional(block: BeamBlock, i, theta, sets, data, inv_noise):
+    """Precision (MQ, MQ) and right-hand side (MQ,) of ``theta_i | a, theta_-i, d`` (module docstring).
+
+    Args:
+        block: :func:`beam_setup`'s block.
+        i: the antenna (an int, or a traced index).
+        theta: (Nant, M, Q) the current coefficients (antenna ``i``'s are not used).
+        sets: :func:`set_visibilities` of the current sky, (Nf, Nt, P, Nbl).
+        data, inv_noise: (Nf, Nt, Nbl) the visibilities and per-component inverse noise variance.
+    """
+    nant, m, q = theta.shape
+    pairs = block.pairs
+    involved = (pairs[:, 0] == i) | (pairs[:, 1] == i)  # (Nbl,)
+    other = jnp.where(pairs[:, 0] == i, pairs[:, 1], pairs[:, 0])
+    u = jnp.concatenate([jnp.ones((nant, block.basis_f.shape[0], 1)), beam_coefficients(block, theta)], axis=-1)
+    uo = u[other]  # (Nbl, Nf, M+1)
+    full = sets[:, :, jnp.asarray(_full_index(m)), :]  # (Nf, Nt, M+1, M+1, Nbl)
+    T = jnp.einsum("ftklb,bfl->ftkb", full, uo)  # (Nf, Nt, M+1, Nbl)
+    D = jnp.broadcast_to(block.row_factor, data.shape)
+    w = jnp.where(involved[None, None, :], inv_noise, 0.0)
+    z = D[:, :, None, :] * T  # (Nf, Nt, M+1, Nbl)
+    r = data - z[:, :, 0]
+    S = jnp.einsum("ftb,ftkb,ftmb->fkm", w, jnp.conj(z[:, :, 1:]), z[:, :, 1:]).real  # (Nf, M, M)
+    g = jnp.einsum("ftb,ftkb,ftb->fk", w, jnp.conj(z[:, :, 1:]), r).real  # (Nf, M)
+    B = block.basis_f
+    prec = jnp.einsum("fkm,fq,fr->kqmr", S, B, B).reshape(m * q, m * q)
+    kappa = block.mean_inv_var / nant**2  # the mean's prior: (kappa / 2) (sum_j theta_j)^2
+    others = jnp.sum(theta, axis=0) - theta[i]
+    prec = prec + jnp.diag((block.prior_inv_var + kappa).reshape(-1))
+    rhs = jnp.einsum("fk,fq->kq", g, B).reshape(-1) + (block.prior_inv_var * block.prior_mean[i]
+                                                       - kappa * others).reshape(-1)
+    return prec, rhs
+
+
+def _draw(key, prec, rhs):
+    L = jnp.linalg.cholesky(prec)
+    z = jax.random.normal(key, rhs.shape, rhs.dtype)
+    return jax.scipy.linalg.cho_solve((L, True), rhs) + jax.scipy.linalg.solve_triangular(L.T, z, lower=False)
+
+
+def beam_sweep(key: jax.Array, theta, block: BeamBlock, sets, data, inv_noise) -> jax.Array:
+    """One Gibbs sweep over the antennas: each ``theta_i`` drawn exactly given the sky and the others (``lax.scan``).
+
+    Returns:
+        the new ``theta`` (Nant, M, Q).
+    """
+    nant, m, q = theta.shape
+
+    def one(th, xs):
+        i, k = xs
+        prec, rhs = beam_conditional(block, i, th, sets, data, inv_noise)
+        return th.at[i].set(_draw(k, prec, rhs).reshape(m, q)), None
+
+    theta, _ = jax.lax.scan(one, theta, (jnp.arange(nant), jax.random.split(key, nant)))
+    return theta
+
+
+def beam_sky_step(key: jax.Array, state: BeamState, system: LinearSystem, block: BeamBlock, *,
+                  options=None) -> tuple[BeamState, SolveInfo]:
+    """One exact draw of the sky given the beams (:func:`beam_system`, then :func:`gcrsky.inference.gcr_step`;
+    default the Cholesky path)."""
+    sys_b = beam_system(system, block, state.theta)
+    new, info = gcr_step(key, gcr_init(state.sky), sys_b, options=CholeskyOptions() if options is None else options)
+    return state._replace(sky=new.position), info
+
+
+def beam_step(key: jax.Array, state: BeamState, system: LinearSystem, block: BeamBlock, *,
+              options=None) -> tuple[BeamState, SolveInfo]:
+    """One sweep of the joint chain: the beams given the sky (:func:`beam_sweep`), then the sky given the beams.
+
+    ``system`` holds the raw data, noise, the nominal operator's angles and the sky prior (its response is
+    replaced by the beams' each sweep).  Pure; ``jit`` / ``lax.scan`` it.
+    """
+    kb, ka = jax.random.split(key)
+    sets = set_visibilities(system, block, state.sky)
+    theta = beam_sweep(kb, state.theta, block, sets, system.data, system.inv_noise)
+    return beam_sky_step(ka, state._replace(theta=theta), system, block, options=options)
