@@ -15,8 +15,8 @@ import pytest
 
 from gcrsky.checks.uvsim import DipoleGaussianBeam
 from gcrsky.inference.beams import (
-    beam_conditional,
     beam_coefficients,
+    beam_conditional,
     beam_init,
     beam_setup,
     beam_sky_step,
