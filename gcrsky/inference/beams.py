@@ -256,12 +256,16 @@ def beam_sky_step(key: jax.Array, state: BeamState, system: LinearSystem, block:
 
 def beam_step(key: jax.Array, state: BeamState, system: LinearSystem, block: BeamBlock, *,
               options=None) -> tuple[BeamState, SolveInfo]:
-    """One sweep of the joint chain: the beams given the sky (:func:`beam_sweep`), then the sky given the beams.
+    """One sweep of the joint chain: the sky given the beams, then the beams given that sky (:func:`beam_sweep`).
 
-    ``system`` holds the raw data, noise, the nominal operator's angles and the sky prior (its response is
-    replaced by the beams' each sweep).  Pure; ``jit`` / ``lax.scan`` it.
+    The sky goes first: a chain started at the nominal beams (``theta = 0``) and any sky then moves the beams
+    only as far as the data ask (a beam draw given a sky far from the data, e.g. the prior mean, lands
+    anywhere in the beam prior, and the chain takes hundreds of sweeps to crawl back).  ``system`` holds the
+    raw data, noise, the nominal operator's angles and the sky prior (its response is replaced by the beams'
+    each sweep).  Pure; ``jit`` / ``lax.scan`` it.  Returns the new state and the sky step's SolveInfo.
     """
-    kb, ka = jax.random.split(key)
+    ka, kb = jax.random.split(key)
+    state, info = beam_sky_step(ka, state, system, block, options=options)
     sets = set_visibilities(system, block, state.sky)
     theta = beam_sweep(kb, state.theta, block, sets, system.data, system.inv_noise)
-    return beam_sky_step(ka, state._replace(theta=theta), system, block, options=options)
+    return state._replace(theta=theta), info

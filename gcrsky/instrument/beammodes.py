@@ -47,6 +47,7 @@ __all__ = [
     "ZERNIKE_NAMES",
     "beam_modes",
     "combine_responses",
+    "disc_radius",
     "mode_maps",
     "mode_pairs",
     "mode_responses",
@@ -197,7 +198,8 @@ def disc_radius(beam, freqs_hz, modes: BeamModes) -> np.ndarray:
 
 def mode_responses(array, pairs, freqs_hz, lmax: int, nside: int, modes: BeamModes, *, lst_ref_rad: float = 0.0,
                    pols=None, beam_floor: float = 1e-16) -> np.ndarray:
-    """The response sets ``R^(kl)`` of every mode pair (module docstring), by the rings quadrature.
+    """The response sets ``R^(kl)`` of every mode pair (module docstring), by the rings quadrature
+    (:func:`gcrsky.instrument.response.modulated_responses` of the modes' products).
 
     Args:
         array: the :class:`~gcrsky.instrument.AntennaArray` with the *nominal* beams (one per antenna;
@@ -211,31 +213,15 @@ def mode_responses(array, pairs, freqs_hz, lmax: int, nside: int, modes: BeamMod
         (Nf, P, Nbl, (lmax + 1)^2) complex128, ``P = (M + 1)(M + 2) / 2`` in the order of
         :func:`mode_pairs`; ``[:, 0]`` is ``response_matrix(..., method="rings")``.
     """
-    from ..base.units import SPEED_OF_LIGHT
-    from .antennas import baseline_vectors
-    from .polarization import normalise_pols
-    from .response import _checked_inputs, _grid_kernels, _rings, check_response_memory
-    from .skygrid import sky_grid
+    from .response import modulated_responses
 
-    freqs, pairs, _ = _checked_inputs(array, pairs, freqs_hz, lmax, "rings", beam_floor)
-    pols = normalise_pols(pols, pairs.shape[0])
     kl = mode_pairs(modes.n_modes)
-    npair = kl.shape[0]
-    check_response_memory(array, np.tile(pairs, (npair, 1)), freqs, lmax, nside,
-                          None if pols is None else list(pols) * npair)
-    grid = sky_grid(nside, array.latitude_rad, lst_ref_rad)
-    grid, kern_r, kern_i, kidx = _grid_kernels(array, pairs, freqs, grid, pols, beam_floor)
-    radius = disc_radius(array.beams[0], freqs, modes)  # one basis for the array: R^(kl) = R^(lk)
-    fk = mode_maps(modes, grid.az_uvbeam, grid.za, radius)  # (Nf, M, Np)
-    f_all = np.concatenate([np.ones((freqs.size, 1, fk.shape[-1])), fk], axis=1)  # (Nf, M+1, Np)
-    scale = f_all[:, kl[:, 0]] * f_all[:, kl[:, 1]]  # (Nf, P, Np)
-    nk = kern_r.shape[1]
-    scale = scale[:, :, None, :]  # (Nf, P, 1, Np): every kernel alike
-    kr = (kern_r[:, None] * scale).reshape(freqs.size, npair * nk, -1)
-    ki = None if kern_i is None else (kern_i[:, None] * scale).reshape(freqs.size, npair * nk, -1)
-    kidx_all = (np.arange(npair)[:, None] * nk + kidx[None, :]).reshape(-1)  # rows: pair-major
-    bvec = baseline_vectors(array.positions_enu_m, pairs)
-    bvec_wl = jnp.asarray(np.tile(bvec, (npair, 1))[None, :, :] * (freqs[:, None, None] / SPEED_OF_LIGHT))
-    weight_pix = np.full(grid.theta.size, grid.weight_sr)
-    out = _rings(int(lmax), grid, kr, ki, kidx_all, bvec_wl, weight_pix)  # (Nf, P * Nbl, n)
-    return jnp.reshape(out, (freqs.size, npair, pairs.shape[0], out.shape[-1]))
+    radius = disc_radius(array.beams[0], freqs_hz, modes)  # one basis for the array: R^(kl) = R^(lk)
+
+    def products(az, za, freqs):
+        fk = mode_maps(modes, az, za, radius)  # (Nf, M, Np)
+        f_all = np.concatenate([np.ones((fk.shape[0], 1, fk.shape[-1])), fk], axis=1)  # (Nf, M+1, Np)
+        return f_all[:, kl[:, 0]] * f_all[:, kl[:, 1]]  # (Nf, P, Np)
+
+    return modulated_responses(array, pairs, freqs_hz, lmax, nside, products, lst_ref_rad=lst_ref_rad, pols=pols,
+                               beam_floor=beam_floor)

@@ -49,6 +49,7 @@ __all__ = [
     "RESPONSE_SHT_MIN_LMAX",
     "SkyGrid",
     "analytic_response",
+    "modulated_responses",
     "equatorial_to_enu",
     "response_matrix",
     "check_response_memory",
@@ -250,6 +251,41 @@ def response_matrix(
     if method == "rings":
         return _rings(int(lmax), grid, kern_r, kern_i, kidx, bvec_wl, weight_pix)
     return _direct(int(lmax), int(chunk), grid, kern_r, kern_i, kidx, bvec_wl, weight_pix)
+
+
+def modulated_responses(array: AntennaArray, pairs: np.ndarray, freqs_hz, lmax: int, nside: int, modulation, *,
+                        lst_ref_rad: float = 0.0, pols=None, beam_floor: float = 1e-16) -> jax.Array:
+    """The responses of every row's beam kernel times each of ``S`` real maps: ``R^(s)`` with kernel ``K_b m_s``.
+
+    The quadrature of :func:`response_matrix`'s ``"rings"`` method with each kernel multiplied by the maps
+    ``modulation(az_uvbeam, za, freqs)`` -> (Nf, S, Np) on the grid's kept pixels (e.g. the products of
+    :mod:`gcrsky.instrument.beammodes`' perturbation modes); a modulation of ones is the response itself.
+
+    Args:
+        array, pairs, freqs_hz, lmax, nside, lst_ref_rad, pols, beam_floor: as :func:`response_matrix`.
+        modulation: a function of ``(az_uvbeam (Np,), za (Np,), freqs (Nf,))`` returning (Nf, S, Np) real.
+
+    Returns:
+        (Nf, S, Nbl, (lmax + 1)^2) complex128.
+    """
+    freqs, pairs, _ = _checked_inputs(array, pairs, freqs_hz, lmax, "rings", beam_floor)
+    pols = normalise_pols(pols, pairs.shape[0])
+    grid = sky_grid(nside, array.latitude_rad, lst_ref_rad)
+    grid, kern_r, kern_i, kidx = _grid_kernels(array, pairs, freqs, grid, pols, beam_floor)
+    scale = np.asarray(modulation(grid.az_uvbeam, grid.za, freqs), np.float64)
+    if scale.ndim != 3 or scale.shape[0] != freqs.size or scale.shape[2] != grid.za.size:
+        raise ValueError(f"modulation returned shape {scale.shape}, expected (Nf, S, Np) = ({freqs.size}, S, "
+                         f"{grid.za.size})")
+    ns, nk = scale.shape[1], kern_r.shape[1]
+    check_response_memory(array, np.tile(pairs, (ns, 1)), freqs, lmax, nside,
+                          None if pols is None else list(pols) * ns)
+    kr = (kern_r[:, None] * scale[:, :, None, :]).reshape(freqs.size, ns * nk, -1)
+    ki = None if kern_i is None else (kern_i[:, None] * scale[:, :, None, :]).reshape(freqs.size, ns * nk, -1)
+    kidx_all = (np.arange(ns)[:, None] * nk + kidx[None, :]).reshape(-1)  # rows: map-major
+    bvec = baseline_vectors(array.positions_enu_m, pairs)
+    bvec_wl = jnp.asarray(np.tile(bvec, (ns, 1))[None, :, :] * (freqs[:, None, None] / SPEED_OF_LIGHT))
+    out = _rings(int(lmax), grid, kr, ki, kidx_all, bvec_wl, np.full(grid.theta.size, grid.weight_sr))
+    return jnp.reshape(out, (freqs.size, ns, pairs.shape[0], out.shape[-1]))
 
 
 def _auto_method(lmax: int) -> str:
