@@ -2,6 +2,7 @@
 
 - ``antennas``: :class:`AntennaArray`, hexagonal layouts, antenna pairs, sites
 - ``beams``: pyuvdata beams evaluated on the sky (unpolarised amplitude), beam files, per-antenna beams
+- ``beammodes``: per-antenna beam perturbations in a Zernike basis and the bilinear response sets they need
 - ``polarization``: the cross power beam of each visibility product (``"xx"``, ``"yy"``, ``"pI"``, ...) on each pair of beams
 - ``response``: the response of every baseline and frequency to every mode at the reference angle: a quadrature over HEALPix rings
 - ``response_sht``: the same by healpy transforms (an independent cross-check)
@@ -20,6 +21,7 @@ from .antennas import (
     hex_array,
     make_array,
 )
+from .beammodes import BeamModes, beam_modes, combine_responses, mode_responses
 from .beams import (
     AIRY_X_MAX,
     JaxAiryBeam,
@@ -82,6 +84,7 @@ __all__ = [
     "PRODUCTS",
     "AntennaArray",
     "BaselineKernels",
+    "BeamModes",
     "JaxAiryBeam",
     "JaxGaussianBeam",
     "RedundantGroups",
@@ -93,8 +96,10 @@ __all__ = [
     "baseline_vectors",
     "beam_amplitude",
     "beam_fwhm_rad",
+    "beam_modes",
     "check_beam_frequencies",
     "check_redundancy",
+    "combine_responses",
     "cross_power_kernel",
     "equatorial_to_enu",
     "fwhm_airy_rad",
@@ -104,6 +109,7 @@ __all__ = [
     "icrs_to_corotating",
     "load_beam",
     "make_array",
+    "mode_responses",
     "normalise_pols",
     "point_source_response",
     "problem_source_response",
