@@ -146,3 +146,59 @@ def test_setup_refuses_what_it_cannot_model(world):
         beam_setup(block.stack, pairs, basis[:2], sigma=0.1)
     with pytest.raises(ValueError, match="not \\(M \\+ 1\\)"):
         beam_setup(block.stack[:, :4], pairs, basis, sigma=0.1)
+
+
+def _small_world(theta_scale, seed=3):
+    """4 dishes, 1 channel, lmax 4, 16 LSTs over 4 h: the beam block's evidence (k = 8 coefficients)."""
+    array = make_array(hex_array((1, 2, 1)), HERA_LATITUDE_DEG, DipoleGaussianBeam(diameter=14.0))
+    lmax, freqs = 4, FREQS[:1]
+    n = (lmax + 1) ** 2
+    prior = isotropic_prior((30.0 / (1.0 + np.arange(lmax + 1)) ** 2)[None], n)
+    rng = np.random.default_rng(seed)
+    truth = np.asarray(prior.inv_var) ** -0.5 * rng.standard_normal((1, n))
+    prob = build_problem(array, freqs, np.linspace(0.0, np.pi / 3, 16), lmax, NSIDE, a_true=truth, sigma=1e-4,
+                         prior=prior, key=jax.random.PRNGKey(seed))
+    system = prob.system()
+    pairs = np.asarray(prob.antpairs)
+    block = beam_setup(mode_responses(array, pairs, freqs, lmax, NSIDE, MODES), pairs, np.ones((1, 1)), sigma=0.1)
+    theta = theta_scale * rng.standard_normal(block.prior_mean.shape)
+    clean = apply(beam_system(system, block, jnp.asarray(theta)).op, jnp.asarray(truth))
+    noise = 1e-4 * (rng.standard_normal(clean.shape) + 1j * rng.standard_normal(clean.shape))
+    return system._replace(data=clean + noise), block, theta
+
+
+def test_the_beam_evidence_by_laplace_against_importance_sampling_and_it_says_when_the_block_is_needed():
+    """Laplace's log evidence of the beam block against importance sampling of the exact integrand
+    ``p(d | theta) p(theta)`` (4000 draws from the Laplace Gaussian widened 1.3x; the estimate's standard error
+    is printed by the assertion): they agree within 0.05 + 3 standard errors (measured: 1445.229 against
+    1445.272 +- 0.021).  Dishes perturbed by the prior's scale: the log Bayes factor for the block is 154
+    (measured); dishes that all share the nominal beam: the Occam penalty makes it -10.6 (measured)."""
+    from gcrsky.inference import log_evidence_system
+    from gcrsky.inference.beams import beam_log_evidence, beam_log_prior
+    from gcrsky.solvers import CholeskyOptions
+
+    system, block, theta = _small_world(0.1)
+    ev = beam_log_evidence(system, block)
+    assert bool(ev.converged)
+    mean, cov = np.asarray(ev.theta).ravel(), 1.3**2 * np.asarray(ev.covariance)
+    rng = np.random.default_rng(0)
+    L = np.linalg.cholesky(cov)
+    z = rng.standard_normal((4000, mean.size))
+    samples = mean + z @ L.T
+    log_q = -0.5 * np.sum(z**2, 1) - np.sum(np.log(np.diag(L))) - 0.5 * mean.size * np.log(2 * np.pi)
+
+    def log_target(flat):
+        th = jnp.reshape(flat, block.prior_mean.shape)
+        lz = log_evidence_system(beam_system(system, block, th), options=CholeskyOptions(), check=False)[0]
+        return jnp.sum(lz) + beam_log_prior(block, th)
+
+    lt = np.asarray(jax.jit(jax.vmap(log_target))(jnp.asarray(samples)))
+    lw = lt - log_q
+    top = lw.max()
+    w = np.exp(lw - top)
+    log_z_is = top + np.log(w.mean())
+    se = w.std() / w.mean() / np.sqrt(w.size)  # the log estimate's standard error (delta method)
+    assert abs(float(ev.log_z) - log_z_is) < 0.05 + 3 * se, (float(ev.log_z), log_z_is, se)
+    assert float(ev.log_bayes_factor) > 10.0, float(ev.log_bayes_factor)
+    system0, block0, _ = _small_world(0.0)
+    assert float(beam_log_evidence(system0, block0).log_bayes_factor) < 0.0
