@@ -31,7 +31,14 @@ Kernels in the blackjax form::
 
     block = beam_setup(stack, pairs, basis_f, sigma=0.05)
     state = beam_init(sky0, block)
+    for k in warm_keys:                                      # a few, discarded
+        state, _ = beam_warmup_step(k, state, system, block)
     state, info = beam_step(key, state, system, block)      # jit / lax.scan it
+
+A sweep (:func:`beam_step`) is the exact sky draw, a joint Metropolis-Hastings move of every antenna's
+coefficients with the Gauss-Newton Gaussian as proposal (:func:`beam_joint_move`: the antennas trade off
+along directions with posterior correlations of +-0.99, which the antenna-by-antenna sweep crosses only
+in hundreds of sweeps) and the antenna-by-antenna sweep.
 """
 
 from __future__ import annotations
@@ -54,15 +61,22 @@ __all__ = [
     "BeamEvidence",
     "BeamState",
     "beam_coefficients",
+    "beam_collapsed_step",
     "beam_conditional",
+    "beam_conditional_mode",
     "beam_init",
+    "beam_joint_move",
     "beam_log_evidence",
+    "beam_log_posterior",
+    "beam_marginal_log_posterior",
     "beam_log_prior",
+    "beam_model",
     "beam_setup",
     "beam_sky_step",
     "beam_step",
     "beam_sweep",
     "beam_system",
+    "beam_warmup_step",
     "set_visibilities",
 ]
 
@@ -248,6 +262,98 @@ def beam_sweep(key: jax.Array, theta, block: BeamBlock, sets, data, inv_noise) -
     return theta
 
 
+def beam_model(block: BeamBlock, theta, sets) -> jax.Array:
+    """The model visibilities ``D sum_{k<=l} w_kl(u_i, u_j) (X^(kl) a)_b`` (Nf, Nt, Nbl) from :func:`set_visibilities`."""
+    from ..instrument.beammodes import pair_weights
+
+    nant = theta.shape[0]
+    u = jnp.concatenate([jnp.ones((nant, block.basis_f.shape[0], 1)), beam_coefficients(block, theta)], axis=-1)
+    w = pair_weights(u[block.pairs[:, 0]], u[block.pairs[:, 1]])  # (Nbl, Nf, P)
+    return jnp.broadcast_to(block.row_factor, sets.shape[:2] + sets.shape[3:]) * jnp.einsum("bfp,ftpb->ftb", w, sets)
+
+
+def beam_log_posterior(block: BeamBlock, theta, sets, data, inv_noise) -> jax.Array:
+    """``log p(theta | a, d)`` up to a constant: ``-1/2 sum W |d - model|^2`` plus the beam prior (:func:`beam_log_prior`)."""
+    r = data - beam_model(block, theta, sets)
+    return -0.5 * jnp.sum(inv_noise * (r.real**2 + r.imag**2)) + beam_log_prior(block, theta)
+
+
+def _gauss_newton(block: BeamBlock, theta, sets, data, inv_noise):
+    """The joint Gauss-Newton system of every antenna's coefficients at ``theta``: ``(P (K, K), g (K,))`` with
+    ``P = Re(J^H W J) + prior precision`` and ``g`` the gradient of :func:`beam_log_posterior` (``K = Nant M Q``).
+
+    ``J`` is never formed: row ``b = (i, j)`` depends on antennas ``i`` and ``j`` only, through
+    ``T_bk^(i) = sum_l u_jl (X^(kl) a)_b`` and ``T_bk^(j)`` (:func:`beam_conditional`), so the row's 2 x 2 blocks
+    of ``M Q x M Q`` are summed over times and scattered into ``P``.
+    """
+    nant, m, q = theta.shape
+    pi, pj = block.pairs[:, 0], block.pairs[:, 1]
+    u = jnp.concatenate([jnp.ones((nant, block.basis_f.shape[0], 1)), beam_coefficients(block, theta)], axis=-1)
+    full = sets[:, :, jnp.asarray(_full_index(m)), :]  # (Nf, Nt, M+1, M+1, Nbl)
+    D = jnp.broadcast_to(block.row_factor, data.shape)
+    Zi = D[:, :, None, :] * jnp.einsum("ftklb,bfl->ftkb", full[:, :, 1:], u[pj])  # d model / d c_i: (Nf, Nt, M, Nbl)
+    Zj = D[:, :, None, :] * jnp.einsum("ftklb,bfl->ftkb", full[:, :, 1:], u[pi])
+    r = data - beam_model(block, theta, sets)
+    B = block.basis_f
+
+    def pair_block(Za, Zb):  # (Nbl, M Q, M Q)
+        S = jnp.einsum("ftb,ftkb,ftmb->fbkm", inv_noise, jnp.conj(Za), Zb).real
+        return jnp.einsum("fbkm,fq,fr->bkqmr", S, B, B).reshape(-1, m * q, m * q)
+
+    P = jnp.zeros((nant, m * q, nant, m * q))
+    P = P.at[pi, :, pi, :].add(pair_block(Zi, Zi)).at[pj, :, pj, :].add(pair_block(Zj, Zj))
+    cross = pair_block(Zi, Zj)
+    P = P.at[pi, :, pj, :].add(cross).at[pj, :, pi, :].add(jnp.swapaxes(cross, 1, 2))
+    gi = jnp.einsum("fbk,fq->bkq", jnp.einsum("ftb,ftkb,ftb->fbk", inv_noise, jnp.conj(Zi), r).real, B)
+    gj = jnp.einsum("fbk,fq->bkq", jnp.einsum("ftb,ftkb,ftb->fbk", inv_noise, jnp.conj(Zj), r).real, B)
+    g = jnp.zeros((nant, m, q)).at[pi].add(gi).at[pj].add(gj)
+    kappa = block.mean_inv_var / nant**2
+    g = g - block.prior_inv_var * (theta - block.prior_mean) - kappa * jnp.sum(theta, axis=0)
+    K = nant * m * q
+    P = P.reshape(K, K) + jnp.diag(jnp.broadcast_to(block.prior_inv_var, theta.shape).reshape(-1))
+    P = P + jnp.kron(jnp.ones((nant, nant)), jnp.diag(kappa.reshape(-1)))
+    return P, g.reshape(-1)
+
+
+def _proposal(block, theta, sets, data, inv_noise):
+    P, g = _gauss_newton(block, theta, sets, data, inv_noise)
+    L = jnp.linalg.cholesky(P)
+    mean = theta.reshape(-1) + jax.scipy.linalg.cho_solve((L, True), g)
+    return mean, L
+
+
+def _log_q(x, mean, L):
+    y = L.T @ (x - mean)  # P = L L^T: the density of N(mean, P^-1) up to the shared 2 pi
+    return -0.5 * jnp.sum(y**2) + jnp.sum(jnp.log(jnp.diag(L)))
+
+
+def beam_joint_move(key: jax.Array, theta, block: BeamBlock, sets, data, inv_noise):
+    """One Metropolis-Hastings move of every antenna's coefficients at once (exact: leaves ``theta | a, d`` invariant).
+
+    The proposal is the Gauss-Newton Gaussian at the current point, ``N(theta + P^-1 g, P^-1)``
+    (:func:`_gauss_newton`: the model linearised in all the coefficients together), accepted with the
+    Metropolis-Hastings ratio that uses the reverse proposal at the new point.  The model is bilinear, so
+    the posterior is nearly Gaussian where the perturbations are small and the move is accepted nearly
+    always; it crosses in one step the directions along which the antennas trade off (posterior
+    correlations of +-0.99 between antennas were measured on a 4-dish problem, where the antenna-by-antenna
+    sweep's autocorrelation was still 0.9 after 500 sweeps).  Costs two ``K x K`` Cholesky factorisations.
+
+    Returns:
+        ``(theta (Nant, M, Q), accepted (bool))``.
+    """
+    kp, ku = jax.random.split(key)
+    mean, L = _proposal(block, theta, sets, data, inv_noise)
+    z = jax.random.normal(kp, mean.shape, mean.dtype)
+    new = mean + jax.scipy.linalg.solve_triangular(L.T, z, lower=False)
+    new_t = new.reshape(theta.shape)
+    mean_b, L_b = _proposal(block, new_t, sets, data, inv_noise)
+    log_ratio = (beam_log_posterior(block, new_t, sets, data, inv_noise) + _log_q(theta.reshape(-1), mean_b, L_b)
+                 - beam_log_posterior(block, theta, sets, data, inv_noise) - _log_q(new, mean, L))
+    accept = jnp.log(jax.random.uniform(ku, (), log_ratio.dtype)) < log_ratio
+    accept = accept & jnp.all(jnp.isfinite(new))
+    return jnp.where(accept, new_t, theta), accept
+
+
 def beam_sky_step(key: jax.Array, state: BeamState, system: LinearSystem, block: BeamBlock, *,
                   options=None) -> tuple[BeamState, SolveInfo]:
     """One exact draw of the sky given the beams (:func:`beam_system`, then :func:`gcrsky.inference.gcr_step`;
@@ -259,7 +365,9 @@ def beam_sky_step(key: jax.Array, state: BeamState, system: LinearSystem, block:
 
 def beam_step(key: jax.Array, state: BeamState, system: LinearSystem, block: BeamBlock, *,
               options=None) -> tuple[BeamState, SolveInfo]:
-    """One sweep of the joint chain: the sky given the beams, then the beams given that sky (:func:`beam_sweep`).
+    """One sweep of the joint chain: the sky given the beams, then the beams given that sky: a joint
+    Metropolis-Hastings move of every antenna's coefficients (:func:`beam_joint_move`) and the exact
+    antenna-by-antenna Gibbs sweep (:func:`beam_sweep`).
 
     The sky goes first: a chain started at the nominal beams (``theta = 0``) and any sky then moves the beams
     only as far as the data ask (a beam draw given a sky far from the data, e.g. the prior mean, lands
@@ -267,10 +375,11 @@ def beam_step(key: jax.Array, state: BeamState, system: LinearSystem, block: Bea
     raw data, noise, the nominal operator's angles and the sky prior (its response is replaced by the beams'
     each sweep).  Pure; ``jit`` / ``lax.scan`` it.  Returns the new state and the sky step's SolveInfo.
     """
-    ka, kb = jax.random.split(key)
+    ka, km, kb = jax.random.split(key, 3)
     state, info = beam_sky_step(ka, state, system, block, options=options)
     sets = set_visibilities(system, block, state.sky)
-    theta = beam_sweep(kb, state.theta, block, sets, system.data, system.inv_noise)
+    theta, _ = beam_joint_move(km, state.theta, block, sets, system.data, system.inv_noise)
+    theta = beam_sweep(kb, theta, block, sets, system.data, system.inv_noise)
     return state._replace(theta=theta), info
 
 
@@ -338,3 +447,70 @@ def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, op
     nominal = jnp.sum(log_evidence_system(beam_system(system, block, jnp.zeros_like(start)), options=options,
                                           check=False)[0])
     return BeamEvidence(log_z, nominal, log_z - nominal, fit.theta, fit.covariance, fit.converged & (sign > 0))
+
+
+def beam_conditional_mode(theta, block: BeamBlock, sets, data, inv_noise, *, iterations: int = 5) -> jax.Array:
+    """The mode of ``theta | a, d`` by ``iterations`` Gauss-Newton steps from ``theta`` (:func:`_gauss_newton`).
+
+    Not a Markov-chain move: the warm-up's way to the posterior's bulk (:func:`beam_warmup_step`).  The joint
+    Metropolis-Hastings move is accepted ~80 % of the time near the mode (measured) but almost never from far
+    away (from the nominal beams on a 4-dish problem: log ratio -95), where the reverse proposal has no mass.
+    """
+    def one(t, _):
+        mean, _ = _proposal(block, t, sets, data, inv_noise)
+        return mean.reshape(t.shape), None
+
+    theta, _ = jax.lax.scan(one, theta, None, length=iterations)
+    return theta
+
+
+def beam_warmup_step(key: jax.Array, state: BeamState, system: LinearSystem, block: BeamBlock, *, iterations: int = 3,
+                     options=None) -> tuple[BeamState, SolveInfo]:
+    """One warm-up sweep: the sky given the beams (exact), then the beams moved to their conditional mode given
+    that sky (:func:`beam_conditional_mode`).  Run a few before :func:`beam_step` and discard them (not a valid
+    Markov-chain step: it optimises the beams)."""
+    state, info = beam_sky_step(key, state, system, block, options=options)
+    sets = set_visibilities(system, block, state.sky)
+    theta = beam_conditional_mode(state.theta, block, sets, system.data, system.inv_noise, iterations=iterations)
+    return state._replace(theta=theta), info
+
+
+def beam_marginal_log_posterior(system: LinearSystem, block: BeamBlock, theta, *, options=None) -> jax.Array:
+    """``log p(d | theta) + log p(theta)``: the sky marginalised exactly (the sky evidence of the beams ``theta``'s
+    response, :func:`gcrsky.inference.log_evidence_system`, summed over channels) plus the beam prior."""
+    from .evidence import log_evidence_system
+
+    options = CholeskyOptions() if options is None else options
+    lz = log_evidence_system(beam_system(system, block, theta), options=options, check=False)[0]
+    return jnp.sum(lz) + beam_log_prior(block, theta)
+
+
+def beam_collapsed_step(key: jax.Array, state: BeamState, system: LinearSystem, block: BeamBlock, proposal, *,
+                        options=None) -> tuple[BeamState, jax.Array]:
+    """One exact step of the collapsed chain: the beams from their marginal ``p(theta | d)`` (the sky integrated
+    out exactly) by an independence Metropolis-Hastings move, then the sky given them (exact GCR).
+
+    The alternating chain (:func:`beam_step`) mixes slowly where the sky and the beams trade off (on a 4-dish SBC
+    problem its ranks were over-dispersed, mean z^2 ~2, after 100 sweeps); integrating the sky out removes
+    that coupling.  ``proposal = (mean (K,), chol (K, K))``: a Gaussian close to the marginal, e.g. Laplace's at
+    its maximum (:func:`beam_log_evidence`'s ``theta`` and ``covariance``, widened a little).  Costs two sky
+    evidences (a Cholesky of the dense precision each) and one sky draw.
+
+    Returns:
+        ``(state, accepted)``.
+    """
+    mean, chol = proposal
+    kp, ku, ka = jax.random.split(key, 3)
+    z = jax.random.normal(kp, mean.shape, mean.dtype)
+    new = (mean + chol @ z).reshape(state.theta.shape)
+
+    def log_q(t):  # the independence proposal's log density, up to a constant
+        y = jax.scipy.linalg.solve_triangular(chol, t.reshape(-1) - mean, lower=True)
+        return -0.5 * jnp.sum(y**2)
+
+    log_ratio = (beam_marginal_log_posterior(system, block, new, options=options) + log_q(state.theta)
+                 - beam_marginal_log_posterior(system, block, state.theta, options=options) - log_q(new))
+    accept = (jnp.log(jax.random.uniform(ku, (), log_ratio.dtype)) < log_ratio) & jnp.all(jnp.isfinite(new))
+    theta = jnp.where(accept, new, state.theta)
+    state, _ = beam_sky_step(ka, state._replace(theta=theta), system, block, options=options)
+    return state, accept
