@@ -23,7 +23,8 @@
   :func:`gain_sky_step`, :func:`scale_step`, the gauge move :func:`gauge_step`, one sweep
   :func:`joint_gain_step`)
 - ``beams``: per-antenna beam perturbations sampled with the sky (:func:`beam_setup`, each antenna's exact
-  conditional :func:`beam_conditional`, one sweep :func:`beam_step`)
+  conditional :func:`beam_conditional`, one sweep :func:`beam_step`, the collapsed step
+  :func:`beam_collapsed_step`, the block's evidence :func:`beam_log_evidence`)
 - ``sources``: point-source fluxes as a linear Gaussian block (:func:`flux_setup`,
   :func:`flux_step`, :func:`sample_fluxes`) and the two-block (sky, fluxes) Gibbs step
   :func:`sky_source_step`
@@ -38,7 +39,17 @@ not.  C_l steps will live here too.
 
 from .api import Method, prepare, sample, wiener_filter
 from .batches import BatchedDraws, draw_batches
-from .beams import BeamState, beam_conditional, beam_init, beam_setup, beam_sky_step, beam_step
+from .beams import (
+    BeamState,
+    beam_collapsed_step,
+    beam_conditional,
+    beam_init,
+    beam_log_evidence,
+    beam_setup,
+    beam_sky_step,
+    beam_step,
+    beam_warmup_step,
+)
 from .cl import cl_hat, sample_cl, sample_power_law
 from .collapsed import (
     CollapsedInfo,
@@ -104,11 +115,14 @@ from .sources import (
 
 __all__ = [
     "BeamState",
+    "beam_collapsed_step",
     "beam_conditional",
     "beam_init",
+    "beam_log_evidence",
     "beam_setup",
     "beam_sky_step",
     "beam_step",
+    "beam_warmup_step",
     "GainState",
     "gain_init",
     "gain_setup",
