@@ -24,7 +24,14 @@ from gcrsky import ingest  # noqa: E402
 from gcrsky.checks.beamsim import scattered_beams  # noqa: E402
 from gcrsky.checks.matvis import HERA_SITE, observing_times, random_sky, site  # noqa: E402
 from gcrsky.checks.uvsim import DipoleGaussianBeam, simulate_uvdata  # noqa: E402
-from gcrsky.inference.beams import beam_init, beam_setup, beam_sky_step, beam_step, beam_system  # noqa: E402
+from gcrsky.inference.beams import (  # noqa: E402
+    beam_init,
+    beam_setup,
+    beam_sky_step,
+    beam_step,
+    beam_system,
+    beam_warmup_step,
+)
 from gcrsky.instrument import hex_array, make_array  # noqa: E402
 from gcrsky.instrument.beammodes import beam_modes, mode_responses  # noqa: E402
 from gcrsky.model.gains import mode_basis  # noqa: E402
@@ -67,6 +74,9 @@ def _chi2(system, block, theta, sky):
 
 def _run(system, block, sweeps):
     state = beam_init(system.prior.mean, block)
+    warm = jax.jit(lambda k, s: beam_warmup_step(k, s, system, block)[0])
+    for k in jax.random.split(jax.random.PRNGKey(4), 5):
+        state = warm(k, state)
     step = jax.jit(lambda k, s: beam_step(k, s, system, block)[0])
     chain = []
     for k in jax.random.split(jax.random.PRNGKey(1), sweeps):
@@ -83,33 +93,33 @@ def _nominal_chi2(system, block):
 
 @pytest.mark.slow
 def test_dishes_with_their_own_beams_rejected_nominal_fitted_with_the_block():
-    """Measured: the nominal model's chi2/dof 74 (3024 dof); with the block 1.04, 1.04, 1.02, 1.01 after 100-400
-    sweeps; the posterior-mean tilts correlate with the true pointing offsets at 0.91 (East: an East-West
-    offset common to a pair trades off against the sky's right ascension) and 0.99 (North).  The stack's
-    unperturbed set equals the file's response (1e-14)."""
+    """Measured: the nominal model's chi2/dof 74 (3024 dof); with the block (5 warm-up steps, 150 sweeps of
+    :func:`beam_step`) 1.02; the posterior-mean tilts (after 50) correlate with the true pointing offsets at
+    0.99 (East and North; 0.91 East without the joint move and the warm-up).  The stack's unperturbed set
+    equals the file's response (1e-14)."""
     prob, block, scatter = _problem(0.03, 0.005)
     assert float(jnp.max(jnp.abs(block.stack[:, 0] - prob.response)) / jnp.max(jnp.abs(prob.response))) < 1e-12
     system = prob.system()
     assert _nominal_chi2(system, block) > 10.0
-    state, chain = _run(system, block, 400)
+    state, chain = _run(system, block, 150)
     assert _chi2(system, block, state.theta, state.sky) < 1.1
-    mean = chain[200:].mean(0)
-    assert np.corrcoef(mean[:, 0, 0], scatter.offset_east_rad)[0, 1] > 0.8
+    mean = chain[50:].mean(0)
+    assert np.corrcoef(mean[:, 0, 0], scatter.offset_east_rad)[0, 1] > 0.95
     assert np.corrcoef(mean[:, 1, 0], scatter.offset_north_rad)[0, 1] > 0.95
 
 
 @pytest.mark.slow
 def test_dishes_that_share_the_nominal_beam_the_block_finds_nothing():
     """The control: every dish the nominal beam.  Both models fit alike (chi2/dof within 0.1 of 1 and of each
-    other) and the block finds no perturbation worth the name: every posterior-mean coefficient below 0.03
-    (measured max 0.016; the scattered dishes' tilts are 0.1-0.25).  Not 0 within its posterior sd, though
-    (measured |mean| / sd up to 7 on 70 coefficients, posterior sd ~0.005): at this noise (1 % of the rms) the
-    block absorbs ~1e-3 of disagreement between matvis and gcrsky's quadrature, and the chain mixes slowly."""
+    other; measured 0.99 and 1.01) and the block finds no perturbation worth the name: every posterior-mean
+    coefficient below 0.04 (measured max 0.024; the scattered dishes' tilts reach 0.28).  Not 0 within its
+    posterior sd, though (measured |mean| / sd up to 7 on 70 coefficients, sd ~0.005): at this noise (1 % of
+    the rms) the block absorbs ~1e-3 of disagreement between matvis and gcrsky's quadrature."""
     prob, block, _ = _problem(0.0, 0.0)
     system = prob.system()
     nominal = _nominal_chi2(system, block)
-    state, chain = _run(system, block, 300)
+    state, chain = _run(system, block, 150)
     fitted = _chi2(system, block, state.theta, state.sky)
     assert abs(nominal - 1.0) < 0.1 and abs(fitted - 1.0) < 0.1 and abs(fitted - nominal) < 0.1, (nominal, fitted)
-    post = chain[100:]
-    assert np.max(np.abs(post.mean(0))) < 0.03, np.max(np.abs(post.mean(0)))
+    post = chain[50:]
+    assert np.max(np.abs(post.mean(0))) < 0.04, np.max(np.abs(post.mean(0)))
