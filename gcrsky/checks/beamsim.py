@@ -44,15 +44,6 @@ class PerturbedDishBeam(DipoleGaussianBeam):
         sx, sy = sig * (1 + self.width_east), sig * (1 + self.width_north)
         return np.exp(-((x - self.offset_east_rad) ** 2 / (2 * sx**2) + (y - self.offset_north_rad) ** 2 / (2 * sy**2)))
 
-    def _efield_eval(self, *, az_grid, za_grid, f_grid):
-        data = self._get_empty_data_array(az_grid.shape)
-        amp = self.amplitude(az_grid, za_grid, f_grid)
-        fields = {"x": (-np.sin(az_grid), np.cos(za_grid) * np.cos(az_grid)),
-                  "y": (np.cos(az_grid), np.cos(za_grid) * np.sin(az_grid))}
-        for k, feed in enumerate(self.feed_array):
-            data[0, k], data[1, k] = fields[str(feed)][0] * amp, fields[str(feed)][1] * amp
-        return data
-
 
 class BeamScatter(NamedTuple):
     """What :func:`scattered_beams` drew: the beams and their parameters, (Nant,) each."""

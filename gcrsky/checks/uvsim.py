@@ -67,9 +67,13 @@ class DipoleGaussianBeam(AnalyticBeam):
     def validate(self):
         self.feed_array = np.asarray(["x", "y"] if self.feed_array is None else self.feed_array)
 
+    def amplitude(self, az_grid, za_grid, f_grid):
+        """The dish's field amplitude (a subclass changes it, the polarisation stays the dipole's)."""
+        return np.exp(-(za_grid**2) / (2 * diameter_to_sigma(self.diameter, f_grid) ** 2))
+
     def _efield_eval(self, *, az_grid, za_grid, f_grid):
         data = self._get_empty_data_array(az_grid.shape)
-        amp = np.exp(-(za_grid**2) / (2 * diameter_to_sigma(self.diameter, f_grid) ** 2))
+        amp = self.amplitude(az_grid, za_grid, f_grid)
         # (azimuth, zenith-angle) components of each feed; pyuvdata may ask for one feed only
         fields = {"x": (-np.sin(az_grid), np.cos(za_grid) * np.cos(az_grid)),
                   "y": (np.cos(az_grid), np.cos(za_grid) * np.sin(az_grid))}
