@@ -330,7 +330,7 @@ def make_twin(template, out=None, *, channels=DEFAULT_CHANNELS, lmax_sky: int = 
               small_scale_kind: str = "brightness", amplitude: float = 0.003,
               slope: float = -0.3, gain_amp: float = 0.05, gain_phase_deg: float = 5.0, dish_diameter_m: float = 14.0,
               noise: bool = True, sky_seed: int = 0, gain_seed: int = 0, noise_seed: int = 0,
-              overwrite: bool = False) -> Twin:
+              overwrite: bool = False, beams=None) -> Twin:
     """A twin of ``template``: matvis visibilities of :func:`twin_sky` with gains, a bandpass and noise.
 
     The model is the module docstring's.  Defaults: 4 channels over 120-180 MHz
@@ -354,6 +354,9 @@ def make_twin(template, out=None, *, channels=DEFAULT_CHANNELS, lmax_sky: int = 
         dish_diameter_m: the Gaussian dish.
         noise: add radiometer noise (``noise_seed``).
         overwrite: replace an existing ``out``.
+        beams: None (every antenna the Gaussian dish), or one pyuvdata beam per data antenna of the
+            template, in its ``get_enu_data_ants`` order (e.g. :func:`gcrsky.checks.beamsim.scattered_beams`'
+            dishes, each its own: a non-redundant array).
 
     Returns:
         :class:`Twin`.
@@ -392,7 +395,10 @@ def make_twin(template, out=None, *, channels=DEFAULT_CHANNELS, lmax_sky: int = 
                    small_scale_kind=small_scale_kind, seed=sky_seed)
     seconds["sky"] = time.perf_counter() - t0
     t1 = time.perf_counter()
-    sim = simulate_uvdata(pos, location, times, freqs, gaussian_beam(dish_diameter_m), sky.alm, lmax_sky,
+    if beams is not None and len(beams) != numbers.size:
+        raise ValueError(f"beams: {len(beams)} beams for the template's {numbers.size} data antennas")
+    sim = simulate_uvdata(pos, location, times, freqs, gaussian_beam(dish_diameter_m) if beams is None else list(beams),
+                          sky.alm, lmax_sky, beam_idx=None if beams is None else np.arange(numbers.size),
                           nside_matvis=nside_matvis, pols=("xx", "yy"), vis_units="Jy", pol_convention="sum", dt_s=dt,
                           dnu_hz=float(widths[0]), noise_seed=noise_seed if noise else None, antenna_numbers=numbers)
     seconds["matvis"] = time.perf_counter() - t1
@@ -442,7 +448,8 @@ def make_twin(template, out=None, *, channels=DEFAULT_CHANNELS, lmax_sky: int = 
                     slope=float(slope),
                     gain_amp=float(gain_amp), gain_phase_deg=float(gain_phase_deg),
                     dish_diameter_m=float(dish_diameter_m), noise=bool(noise), sky_seed=int(sky_seed),
-                    gain_seed=int(gain_seed), noise_seed=int(noise_seed), dt_s=dt, dnu_hz=float(widths[0]),
+                    gain_seed=int(gain_seed), noise_seed=int(noise_seed), dt_s=dt,
+                    beams="nominal" if beams is None else f"{len(beams)} per antenna", dnu_hz=float(widths[0]),
                     reach=int(reach), sky=sky.note, seconds=seconds)
     return Twin(uvdata=uvd, path=path, channels=chans, freqs_hz=freqs, amplitude=q, gains=np.asarray(cal.gain_array),
                 uvcal=full, sky=sky, model=model, sigma=sigma, reach=int(reach), settings=settings)

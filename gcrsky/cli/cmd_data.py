@@ -17,7 +17,7 @@ from ..io.manyfiles import source_name
 from ..run.sampling import AMPLITUDE_MODEL_SD
 from ..solvers.options import DEFAULT_TOL
 from .errors import report_user_error
-from .options import CLI_SELECTION, DEFAULT_NSAMPLES, amplitude_sampling, gain_sampling, ingest_spec
+from .options import CLI_SELECTION, DEFAULT_NSAMPLES, amplitude_sampling, beam_sampling, gain_sampling, ingest_spec
 from .runs import EXIT_REFUSED, execute_with_bars, report_run, run_spec
 from .terminal import band_limit_line, refusal_message
 
@@ -65,6 +65,7 @@ def _check_data_options(parser, args) -> None:
             except (OSError, ValueError) as e:
                 parser.error(f"{option}: {e}")
     check_gain_options(parser, args)
+    check_beam_options(parser, args)
 
 
 def expand_inputs(args, dest: str = "data") -> None:
@@ -112,6 +113,48 @@ def check_gain_options(parser, args) -> None:
         return
     if args.data is None:
         parser.error("--gains sample samples the gains of a file's data: give --data FILE")
+
+
+#: The beam block's options (dest, option) that mean something only with ``--beams sample``.
+BEAM_ONLY = (("beam_modes", "--beam-modes"), ("beam_sigma", "--beam-sigma"), ("beam_freq_modes", "--beam-freq-modes"),
+             ("beam_burn", "--beam-burn"))
+
+
+def check_beam_options(parser, args) -> None:
+    """The beam block's options need ``--beams sample``; ``--beams sample`` needs ``--data``, the amplitude fixed
+    and the gains off (not composed with them yet), and a joint run (one chain over the channels)."""
+    if args.beams != "sample":
+        used = [opt for dest, opt in BEAM_ONLY if getattr(args, dest) is not None]
+        if used:
+            parser.error(f"{', '.join(used)} set the beam block: add --beams sample")
+        return
+    if args.data is None:
+        parser.error("--beams sample samples the beams of a file's antennas: give --data FILE")
+    if args.amplitude == "infer" or args.gains == "sample":
+        parser.error("--beams sample is not yet combined with an inferred amplitude or sampled gains: give "
+                     "--amplitude fixed --gains off (calibrated data), or drop --beams sample")
+    from .options import channel_mode
+
+    if channel_mode(args) is not None or getattr(args, "freq_prior", "independent") != "independent":
+        parser.error("--beams sample samples one chain over all channels: drop --by-channel, --devices, "
+                     "--num-processes and --freq-prior")
+
+
+def _beam_inputs(args) -> None:
+    """``--beams sample`` keeps every baseline (two baselines of one separation no longer share a response once
+    their antennas' beams differ) and holds the amplitude and gains fixed (``auto`` resolves to that)."""
+    if args.beams != "sample":
+        return
+    if args.amplitude == "auto":
+        args.amplitude = "fixed"
+        print("gcrsky: --beams sample: the overall amplitude is fixed and the gains are the file's (the beam block is "
+              "not yet combined with inferred ones: the data must be calibrated)")
+    if args.gains == "auto":
+        args.gains = "off"
+    if not args.no_compress:
+        print("gcrsky: --beams sample: every baseline kept (beams are per antenna; redundant compression would "
+              "average baselines whose beams differ)")
+        args.no_compress = True
 
 
 def _amplitude_inputs(args) -> bool:
@@ -210,11 +253,11 @@ def _data_settings(args, spec) -> dict:
 
 
 def _read_problem(args, spec):
-    """The :class:`~gcrsky.model.Problem` of the file (:func:`gcrsky.ingest.ingest`; the beam a path: its file
-    is recorded)."""
-    from ..ingest.uvdata import ingest
+    """``(problem, beams)``: the :class:`~gcrsky.model.Problem` of the file and its nominal beams, one per antenna
+    (:func:`gcrsky.ingest.ingest_with_beams`; the beam a path: its file is recorded)."""
+    from ..ingest.uvdata import ingest_with_beams
 
-    return ingest(args.data, spec)
+    return ingest_with_beams(args.data, spec)
 
 
 def _run_data(args) -> int:
@@ -226,6 +269,7 @@ def _run_data(args) -> int:
     from ..paper.report import PaperReport
     from ..run import RunExistsError, check_out_dir, check_unlocked, existing_run_files
 
+    _beam_inputs(args)
     infer = _amplitude_inputs(args)
     _gain_inputs(args)
     ingested = ingest_spec(args, run=True)
@@ -245,7 +289,7 @@ def _run_data(args) -> int:
             print(refusal_message(RunExistsError(out, taken), resume=False), file=sys.stderr)
             return EXIT_REFUSED
     t0 = time.perf_counter()
-    prob = _read_problem(args, ingested)
+    prob, nominal = _read_problem(args, ingested)
     build_s = time.perf_counter() - t0
     cfg = prob.config
     print(f"gcrsky: {source_name(args.data if isinstance(args.data, list) else [args.data])}: "
@@ -261,6 +305,15 @@ def _run_data(args) -> int:
               + ("; the draws are independent" if g is None else
                  f"; gains sampled with the sky: {g.modes[0]} x {g.modes[1]} {g.basis} modes per gain, prior sd "
                  f"{g.sigma:g}, burn-in {g.burn} sweeps; the draws are a Markov chain's"))
+    elif args.beams == "sample":
+        from ..run.sampling import Beams
+
+        spec = run_spec(args, nsamples=spec.draws.nsamples, method=spec.solver.method, tol=spec.solver.tol,
+                        extra=spec.extra, sampling=Beams(beam_sampling(args), nominal=nominal))
+        b = spec.sampling.beams
+        print(f"gcrsky: beams sampled with the sky: Zernike orders 1-{b.nmax} ({b.freq_modes} frequency mode(s)) per "
+              f"antenna, prior sd {b.sigma:g} (array mean {b.mean_sigma:g}), warm-up {b.burn} steps; the draws are a "
+              "Markov chain's")
     elif args.gains == "sample":
         spec = run_spec(args, nsamples=spec.draws.nsamples, method=spec.solver.method, tol=spec.solver.tol,
                         extra=spec.extra, gains=gain_sampling(args, _applied_amplitude(prob), prob))

@@ -29,9 +29,10 @@ def run_command(args, parser) -> int:
         from .cmd_data import data_command
 
         return data_command(args, parser)
-    from .cmd_data import check_gain_options
+    from .cmd_data import check_beam_options, check_gain_options
 
     check_gain_options(parser, args)
+    check_beam_options(parser, args)
     if args.lmax is None:  # the simulation's default (with --data: the baselines' reach)
         from ..sim.config import Config
 

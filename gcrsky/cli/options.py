@@ -22,7 +22,9 @@ __all__ = [
     "check_frequency_options",
     "frequency_model",
     "gain_sampling",
+    "add_beam_options",
     "add_beam_prior_options",
+    "beam_sampling",
     "add_run_flags",
     "channel_mode",
     "check_channel_options",
@@ -288,6 +290,36 @@ def add_gain_options(g) -> None:
                    help="sweeps per kept draw (default 1)")
     g.add_argument("--gauge-moves", type=int_at_least(0, "gauge-moves"), default=4, metavar="N",
                    help="moves along the amplitude-sky gauge per sweep (default 4; 0: plain Gibbs)")
+
+
+def add_beam_options(g) -> None:
+    """``--beams sample`` and the beam block's settings (:class:`gcrsky.run.BeamSampling`)."""
+    g.add_argument("--beams", choices=("off", "sample"), default="off",
+                   help="every antenna's beam perturbation sampled with the sky (Zernike modes over the main lobe; "
+                   "docs/beams.md): off (default: the nominal beam for every antenna), sample (every baseline kept; "
+                   "the amplitude fixed and the gains off; lmax <= 49)")
+    g.add_argument("--beam-modes", type=int_at_least(1, "beam-modes", 4), default=None, metavar="NMAX",
+                   help="the highest Zernike radial order of the perturbations (default 2: tilts, defocus, "
+                   "astigmatisms; 1: tilts, i.e. pointing, only)")
+    g.add_argument("--beam-sigma", type=positive_float("beam-sigma"), default=None, metavar="S",
+                   help="prior sd of each perturbation coefficient (fractional voltage change at 1.5 FWHM; "
+                   "default 0.2: a 5 mrad pointing offset of a 14 m dish at 100-200 MHz is a tilt of ~0.1-0.3)")
+    g.add_argument("--beam-freq-modes", type=int_at_least(1, "beam-freq-modes", 8), default=None, metavar="Q",
+                   help="Legendre modes per coefficient across the band (default 1: constant)")
+    g.add_argument("--beam-burn", type=int_at_least(0, "beam-burn"), default=None, metavar="N",
+                   help="warm-up steps of the beam chain (default 20)")
+
+
+def beam_sampling(args):
+    """The :class:`gcrsky.run.BeamSampling` of the options (its defaults where not given), or None without
+    ``--beams sample``."""
+    if args.beams != "sample":
+        return None
+    from ..run.spec import BeamSampling
+
+    kw = {k: v for k, v in (("nmax", args.beam_modes), ("sigma", args.beam_sigma),
+                            ("freq_modes", args.beam_freq_modes), ("burn", args.beam_burn)) if v is not None}
+    return BeamSampling(**kw)
 
 
 def add_frequency_options(g) -> None:

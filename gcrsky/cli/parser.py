@@ -12,6 +12,7 @@ from .options import (
     DEFAULT_OUT,
     DEFAULT_SUITE_OUT,
     MAX_SEED,
+    add_beam_options,
     add_channel_options,
     add_compile_cache_options,
     add_data_options,
@@ -104,6 +105,10 @@ def _add_run_parser(sub) -> None:
         "gains sampled with the sky", "--data only: per-antenna complex gains (a few smooth modes in frequency and "
         "time) and the overall amplitude sampled jointly with the sky (docs/gains.md); the draws are then a Markov "
         "chain's, and the posterior-mean gains are written as gains.calh5"))
+    add_beam_options(r.add_argument_group(
+        "beams sampled with the sky", "--data only: every antenna's beam perturbed by a few Zernike modes over its "
+        "main lobe (pointing, width, ellipticity), sampled jointly with the sky (docs/beams.md); the draws are then a "
+        "Markov chain's, and the posterior-mean beams are written as beams/ant<N>.beamfits"))
     add_frequency_options(r.add_argument_group(
         "frequency prior", "one prior over all channels, coupling them (docs/frequency.md): the channels are sampled "
         "jointly, and fully flagged channels are inpainted through their neighbours (marked in summary.json)"))

@@ -25,16 +25,16 @@ def existing_mode(args) -> str:
 
 
 def run_spec(args, *, nsamples: int, method: str, tol: float, scenario: str | None = None, extra=None, gains=None,
-             amplitude=None):
+             amplitude=None, sampling=None):
     """The :class:`~gcrsky.run.RunSpec` of ``gcrsky run``'s options (draws, output, channels, argv, gains,
-    frequency prior)."""
+    frequency prior); ``sampling``: a draw stage given as it is (e.g. :class:`gcrsky.run.Beams`)."""
     from ..run import Draws, Output, RunSpec, Solver
     from ..run.spec import sampling_of
 
     return RunSpec(Draws(nsamples, args.seed, args.batch), Output(args.out, existing_mode(args), not args.no_plots,
                                                                    bool(getattr(args, "trust_recorded", False))),
-                   Solver(method, tol), sampling_of(channel_mode(args), gains, frequency_model(args),
-                                                       amplitude),
+                   Solver(method, tol), sampling if sampling is not None else
+                   sampling_of(channel_mode(args), gains, frequency_model(args), amplitude),
                    scenario=scenario, argv=getattr(args, "_argv", None), extra=extra)
 
 

@@ -47,6 +47,7 @@ __all__ = [
     "checked_observation",
     "from_uvdata",
     "ingest",
+    "ingest_with_beams",
     "prepared_prior",
     "read_selection",
 ]
@@ -123,6 +124,7 @@ def prepared_prior(spec: IngestSpec, freqs_hz, lmax: int) -> PreparedPrior:
 
 def ingest(data, spec: IngestSpec) -> Problem:
     """The inference problem of a visibility file: ICRS coefficients at ``lmax`` (module docstring).
+    :func:`ingest_with_beams` also returns the prepared beams.
 
     Args:
         data: a path to any file ``UVData.from_file`` reads, a ``UVData`` (not modified), or a list of
@@ -136,6 +138,13 @@ def ingest(data, spec: IngestSpec) -> Problem:
         :class:`~gcrsky.ingest.DataConfig` whose ``checks`` say what was checked: calibration, flags,
         flux_scale, beam, prior, band_limit, pol).
     """
+    return ingest_with_beams(data, spec)[0]
+
+
+def ingest_with_beams(data, spec: IngestSpec) -> tuple[Problem, list]:
+    """``(problem, beams)``: :func:`ingest`'s problem and the prepared nominal beams it was built with, one
+    pyuvdata beam object per antenna in the order of ``problem.antpos_enu_m`` (what a run that perturbs them,
+    :mod:`gcrsky.run.beams`, starts from)."""
     from ..base.dtypes import require_x64
 
     require_x64("from_uvdata")
@@ -164,7 +173,8 @@ def ingest(data, spec: IngestSpec) -> Problem:
                                     noise=spec.noise, compress=spec.compress, frame_pad=spec.frame_pad,
                                     beam_note=beams.note, prior_note=prior.note, band_limit=spec.band_limit,
                                     band_note=band.note, checks=checks)
-    return with_checks(prob, {"beam": beams.record, "prior": prior.record, **({"pol": pol_rec} if pol_rec else {})})
+    prob = with_checks(prob, {"beam": beams.record, "prior": prior.record, **({"pol": pol_rec} if pol_rec else {})})
+    return prob, list(beams.beams)
 
 
 def from_uvdata(data, spec: IngestSpec | None = None, **keywords) -> Problem:

@@ -51,6 +51,7 @@ __all__ = [
     "mode_maps",
     "mode_pairs",
     "mode_responses",
+    "perturbed_power_beam",
     "pair_weights",
     "zernike",
 ]
@@ -225,3 +226,46 @@ def mode_responses(array, pairs, freqs_hz, lmax: int, nside: int, modes: BeamMod
 
     return modulated_responses(array, pairs, freqs_hz, lmax, nside, products, lst_ref_rad=lst_ref_rad, pols=pols,
                                beam_floor=beam_floor)
+
+
+def perturbed_power_beam(nominal, coeffs, freqs_hz, modes: BeamModes, *, n_az: int = 73, n_za: int = 181,
+                         telescope_name: str = "gcrsky", antenna: str = ""):
+    """One antenna's perturbed beam as a pyuvdata ``UVBeam`` power beam (what files of it hold).
+
+    The model's voltage beam is ``A_i = A_0 (1 + sum_k c_ik(nu) f_k)`` (module docstring; ``A_0`` the
+    nominal beam's unpolarised amplitude ``sqrt(P_xx)``, :func:`gcrsky.instrument.beams.beam_amplitude`),
+    so its power beam is ``P_i = A_i^2``, written as the ``"xx"`` power beam that gcrsky and pyuvdata read
+    back (``beam_amplitude`` of it is ``|A_i|``), peak-normalised as the nominal one (not renormalised:
+    a perturbation that changes the zenith gain would show; the modes vanish at the zenith).
+
+    Args:
+        nominal: the nominal beam (pyuvdata AnalyticBeam, UVBeam or BeamInterface).
+        coeffs: (Nf, M) the antenna's ``c_ik(nu)``.
+        freqs_hz: (Nf,) frequencies, Hz.
+        modes: the basis (:func:`beam_modes`).
+        n_az, n_za: the az/za grid (0..360 deg and 0..90 deg, inclusive of both ends in za).
+        telescope_name, antenna: recorded in the beam's header and history.
+
+    Returns:
+        a ``UVBeam`` (``beam_type="power"``, ``pixel_coordinate_system="az_za"``, ``polarization_array``
+        ``["xx"]``, ``Nfreqs = Nf``).
+    """
+    from pyuvdata import UVBeam
+
+    from .beams import beam_amplitude
+
+    freqs = np.atleast_1d(np.asarray(freqs_hz, np.float64))
+    c = np.asarray(coeffs, np.float64).reshape(freqs.size, modes.n_modes)
+    az = np.linspace(0.0, 2 * np.pi, n_az, endpoint=False)
+    za = np.linspace(0.0, np.pi / 2, n_za)
+    AZ, ZA = np.meshgrid(az, za)  # (n_za, n_az): UVBeam's (Naxes2, Naxes1)
+    a0 = beam_amplitude(nominal, AZ.ravel(), ZA.ravel(), freqs)  # (Nf, Np)
+    f = mode_maps(modes, AZ.ravel(), ZA.ravel(), disc_radius(nominal, freqs, modes))  # (Nf, M, Np)
+    amp = a0 * (1.0 + np.einsum("fm,fmp->fp", c, f))
+    power = (amp**2).reshape(freqs.size, n_za, n_az)
+    return UVBeam.new(telescope_name=telescope_name, data_normalization="peak", freq_array=freqs,
+                      beam_type="power", polarization_array=["xx"], x_orientation="east",
+                      pixel_coordinate_system="az_za", axis1_array=az, axis2_array=za,
+                      data_array=power[None, None], feed_name="gcrsky-perturbed", model_name=f"antenna {antenna}",
+                      history=f"gcrsky: posterior-mean perturbed beam of antenna {antenna} (modes "
+                              f"{', '.join(modes.names)}; A = A0 (1 + sum c_k f_k))")

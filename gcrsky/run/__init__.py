@@ -8,7 +8,7 @@ and figures through report hooks (:class:`ReportHook`; the paper's are in
 - ``spec``: :class:`RunSpec` (:class:`Draws`, :class:`Solver`, :class:`Output`), validated
   on construction; :func:`run_settings`, what identifies a run's draws;
 - ``sampling``: what a run samples, one draw stage (:class:`Joint`, :class:`Independent`,
-  :class:`JointFrequency`, :class:`Gains`, :class:`Amplitude`): its settings block, files, draws and summary block;
+  :class:`JointFrequency`, :class:`Gains`, :class:`Amplitude`, :class:`Beams`): its settings block, files, draws and summary block;
 - ``output``: the run's files, :func:`check_output` (refuse / overwrite / resume),
   :func:`remove_run_files`, :func:`open_run`;
 - ``resume``: :class:`ResumeError`, :func:`settings_differences`, the recorded solver options;
@@ -48,6 +48,8 @@ from .runner import execute
 from .sampling import (
     Amplitude,
     AmplitudeSampling,
+    Beams,
+    BeamSampling,
     DrawStage,
     FrequencyModel,
     Gains,
@@ -77,6 +79,8 @@ __all__ = [
     "Gains",
     "Amplitude",
     "AmplitudeSampling",
+    "BeamSampling",
+    "Beams",
     "Independent",
     "Joint",
     "JointFrequency",

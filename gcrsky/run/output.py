@@ -26,6 +26,7 @@ from .summary import versions
 
 __all__ = [
     "EXISTING",
+    "BEAM_DIR",
     "GAIN_FILE",
     "PRODUCT_FILES",
     "RESULTS_FILE",
@@ -63,11 +64,13 @@ PRODUCT_FILES = {
 #: The posterior-mean gains of a run that samples them (:func:`gcrsky.run.gains.write_gain_products`; the file
 #: :class:`gcrsky.run.sampling.Gains` declares).
 GAIN_FILE = "gains.calh5"
+#: The directory of a beam run's posterior-mean beams, one UVBeam file per antenna (:mod:`gcrsky.run.beams`).
+BEAM_DIR = "beams"
 #: Every file the core writes into a run's directory, whatever it samples (the draw stages' files included).  A
 #: report hook's files (:meth:`gcrsky.run.ReportHook.files`, e.g. the paper's figures) are passed as ``files`` to
 #: the functions here: they are then part of the run's files, refused, overwritten and resumed with it.
-RUN_FILES = (RESULTS_FILE, SUMMARY_FILE, *PRODUCT_FILES.values(), GAIN_FILE)
-_STAGE_FILES = (GAIN_FILE,)
+RUN_FILES = (RESULTS_FILE, SUMMARY_FILE, *PRODUCT_FILES.values(), GAIN_FILE, BEAM_DIR)
+_STAGE_FILES = (GAIN_FILE, BEAM_DIR)
 
 
 def run_files(files: Sequence[str] = ()) -> tuple[str, ...]:
@@ -174,10 +177,16 @@ def remove_run_files(out, files: Sequence[str] = ()) -> list[str]:
     out = Path(out)
     gone = []
     for f in existing_run_files(out, files):
-        (out / f).unlink()
+        if f == BEAM_DIR and (out / f).is_dir():  # the one run file that is a directory (of files the run wrote)
+            shutil.rmtree(out / f)
+        else:
+            (out / f).unlink()
         gone.append(f)
     for p in temporaries(out, files):
-        p.unlink(missing_ok=True)
+        if p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
         gone.append(p.name)
     return gone
 

@@ -8,7 +8,9 @@
   :mod:`gcrsky.run.frequency`);
 * :class:`Gains`: per-antenna gains sampled with the sky (:class:`GainSampling`, :mod:`gcrsky.run.gains`);
 * :class:`Amplitude`: the overall amplitude per channel (bandpass) inferred with the sky, anchored by a
-  sky model, with or without per-antenna gains (:class:`AmplitudeSampling`, :mod:`gcrsky.run.amplitude`).
+  sky model, with or without per-antenna gains (:class:`AmplitudeSampling`, :mod:`gcrsky.run.amplitude`);
+* :class:`Beams`: every antenna's beam perturbation sampled with the sky (:class:`BeamSampling`,
+  :mod:`gcrsky.run.beams`).
 
 Each stage declares what the runner needs of it, so that :func:`gcrsky.run.execute` has no
 test of the kind of run: its settings block (:meth:`DrawStage.settings_block`, recorded in the
@@ -32,13 +34,14 @@ from ..model.gains import BASES
 from ..parallel.channels import CHANNEL_KEY_SCHEME
 from .amplitude import amplitude_draws, amplitude_summary
 from .amplitude import fit_problem as amplitude_fit_problem
+from .beams import beam_draws, beam_summary, beamed_problem, stored_response, write_beam_products
 from .channels import channel_draws, worker_channels
 from .draws import joint_draws
 from .frequency import channels_block, frequency_draws
 from .gains import gain_draws, gain_summary, gained_problem, stored_gain_factor, write_gain_products
-from .output import GAIN_FILE
+from .output import BEAM_DIR, GAIN_FILE
 
-__all__ = ["AMPLITUDE_MODEL_SD", "Amplitude", "AmplitudeSampling", "CHANNEL_MODES", "FIXED_SCALE_SD", "DEFAULT_NUGGET", "FREQ_PRIORS", "DrawStage", "FrequencyModel", "GainSampling", "Gains",
+__all__ = ["AMPLITUDE_MODEL_SD", "Amplitude", "AmplitudeSampling", "BeamSampling", "Beams", "CHANNEL_MODES", "FIXED_SCALE_SD", "DEFAULT_NUGGET", "FREQ_PRIORS", "DrawStage", "FrequencyModel", "GainSampling", "Gains",
            "Independent", "Joint", "JointFrequency", "STAGES", "check_choice", "check_integer", "check_positive"]
 
 #: The frequency models of a run: independent channels (each its own prior), or one prior over all of them
@@ -420,5 +423,91 @@ class Amplitude(DrawStage):
         return amplitude_summary(prob, self.amplitude, h5)
 
 
+@dataclasses.dataclass(frozen=True)
+class BeamSampling:
+    """Every antenna's beam perturbation sampled with the sky (:mod:`gcrsky.run.beams`; the model:
+    :mod:`gcrsky.instrument.beammodes`, :mod:`gcrsky.inference.beams`, ``docs/beams.md``).
+
+    Antenna ``i``'s voltage beam is ``A_0 (1 + sum_k c_ik(nu) f_k)``, ``f_k`` the Zernike modes of radial
+    order 1 to ``nmax`` on a disc of 1.5 power FWHM (tilts: pointing; defocus: width; astigmatisms:
+    ellipticity), ``c_ik(nu)`` ``freq_modes`` Legendre modes across the band.
+
+    Attributes:
+        nmax: the highest Zernike radial order (2: tilts, defocus, astigmatisms, 5 modes; 1: tilts only).
+        piston: include the piston (an antenna's gain: leave it to the gains).
+        sigma: prior sd of each coefficient (fractional voltage change at the disc's edge).
+        mean_sigma: prior sd of the array's mean coefficient (a change common to every dish is nearly
+            degenerate with the sky: small, so that the nominal beam is the array's mean), or None.
+        freq_modes: Legendre modes per coefficient across the band (1: constant).
+        burn: warm-up steps of the chain (discarded).
+        thin: steps per kept draw.
+    """
+
+    nmax: int = 2
+    piston: bool = False
+    sigma: float = 0.2
+    mean_sigma: float | None = 0.02
+    freq_modes: int = 1
+    burn: int = 20
+    thin: int = 1
+
+    def __post_init__(self):
+        check_integer(self, "nmax", "beams.nmax", 1, 4)
+        if not isinstance(self.piston, bool):
+            raise ValueError(f"beams.piston must be True or False, got {self.piston!r}")
+        check_positive(self, "sigma", "beams.sigma")
+        if self.mean_sigma is not None:
+            check_positive(self, "mean_sigma", "beams.mean_sigma")
+        check_integer(self, "freq_modes", "beams.freq_modes", 1, 8)
+        check_integer(self, "burn", "beams.burn", 0)
+        check_integer(self, "thin", "beams.thin", 1)
+
+    def to_dict(self) -> dict:
+        """The settings as a JSON-able dict (recorded with the run's settings as ``beams``)."""
+        return dataclasses.asdict(self)
+
+
+@dataclasses.dataclass(frozen=True)
+class Beams(DrawStage):
+    """Every antenna's beam sampled with the sky (:mod:`gcrsky.run.beams`): a chain over (sky, beams).
+
+    Attributes:
+        beams: the :class:`BeamSampling` (recorded in the settings as ``beams``).
+        nominal: the nominal beams, one pyuvdata beam per antenna of the problem (what it was built with:
+            :func:`gcrsky.ingest.ingest_with_beams`); not a setting (the problem's ``config`` records them).
+    """
+
+    name: ClassVar[str] = "beams"
+    files: ClassVar[tuple[str, ...]] = (BEAM_DIR,)
+    beams: BeamSampling = BeamSampling()
+    nominal: tuple = dataclasses.field(default=(), compare=False, repr=False)
+
+    def __post_init__(self):
+        if not isinstance(self.beams, BeamSampling):
+            raise ValueError(f"sampling.beams must be a BeamSampling, got {self.beams!r}")
+        object.__setattr__(self, "nominal", tuple(self.nominal))
+        if not self.nominal:
+            raise ValueError("sampling.nominal: give the nominal beams, one per antenna (gcrsky.ingest.ingest_with_beams)")
+
+    def settings_block(self) -> dict:
+        """``beams``: the beam sampling's settings."""
+        return {"beams": self.beams.to_dict()}
+
+    def run_draws(self, prob, spec, run, st, watch) -> str:
+        """:func:`gcrsky.run.beams.beam_draws`."""
+        return beam_draws(prob, self.nominal, spec, run, st, watch)
+
+    def fit_problem(self, prob, h5):
+        """The problem with the beams of the Wiener filter's set-up (:func:`gcrsky.run.beams.beamed_problem`)."""
+        return beamed_problem(prob, stored_response(h5))
+
+    def finish(self, prob, out, h5) -> dict:
+        """``{"beams": block}`` (:func:`gcrsky.run.beams.beam_summary`) with ``beam_files``, the directory of
+        per-antenna UVBeam files written (:func:`gcrsky.run.beams.write_beam_products`)."""
+        block = beam_summary(prob, self.beams, h5)
+        block["beam_files"] = write_beam_products(prob, self.nominal, self.beams, out, h5)
+        return {"beams": block}
+
+
 #: The draw stages a run may hold (:attr:`gcrsky.run.RunSpec.sampling`).
-STAGES = (Joint, Independent, JointFrequency, Gains, Amplitude)
+STAGES = (Joint, Independent, JointFrequency, Gains, Amplitude, Beams)

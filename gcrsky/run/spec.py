@@ -29,6 +29,8 @@ from .sampling import (
     FREQ_PRIORS,
     Amplitude,
     AmplitudeSampling,
+    Beams,
+    BeamSampling,
     DrawStage,
     FrequencyModel,
     Gains,
@@ -40,7 +42,7 @@ from .sampling import (
     check_integer,
 )
 
-__all__ = ["Amplitude", "AmplitudeSampling", "CHANNEL_MODES", "EXISTING", "FREQ_PRIORS", "METHODS", "DrawStage", "Draws", "FrequencyModel", "GainSampling",
+__all__ = ["Amplitude", "AmplitudeSampling", "BeamSampling", "Beams", "CHANNEL_MODES", "EXISTING", "FREQ_PRIORS", "METHODS", "DrawStage", "Draws", "FrequencyModel", "GainSampling",
            "Gains", "Independent", "Joint", "JointFrequency", "Output", "RunSpec", "Solver", "run_settings", "sampling_of"]
 
 #: The paths a run may ask for (``"auto"``: chosen by size, :func:`gcrsky.solvers.plan.choose_path`): the

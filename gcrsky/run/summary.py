@@ -85,6 +85,9 @@ class RunSummary:
             (:func:`gcrsky.run.amplitude.amplitude_summary`), 1 where fixed; the autos' ratio beside it
             and ``source`` (``"inferred"``, ``"fixed"``); None for a simulated run.
         amplitude: a run that infers the amplitude: its settings and the ESS of every sampled scalar.
+        beams: a run that samples every antenna's beam with the sky: the block's evidence against the nominal
+            beams, the nominal beams' fit, each antenna's coefficients, the chain's diagnostics
+            (:func:`gcrsky.run.beams.beam_summary`); None otherwise.
         shown_channel: the channel whose metrics are the top-level ones and whose maps the figures and
             :class:`RunProducts` show (:func:`shown_channel`: the first with unflagged data).
         units: what the maps are in (:func:`map_units`): ``maps`` (``"K"``, or ``"K x q"`` on the data's
@@ -116,6 +119,7 @@ class RunSummary:
     channels: dict | None = None
     flux_scale: dict | None = None
     amplitude: dict | None = None
+    beams: dict | None = None
     shown_channel: dict | None = None
     units: dict | None = None
 

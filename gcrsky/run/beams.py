@@ -1,0 +1,430 @@
+"""The draws of a run that samples every antenna's beam with the sky: a Markov chain, batch by batch into ``results.h5``.
+
+With :class:`~gcrsky.run.RunSpec`'s ``sampling`` a :class:`~gcrsky.run.Beams` (``gcrsky run --data F --beams
+sample``) the run draws from the joint posterior of the sky ``a`` and each antenna's beam perturbation
+``theta`` (:mod:`gcrsky.inference.beams`; the model and its basis: :mod:`gcrsky.instrument.beammodes`,
+``docs/beams.md``) instead of the sky's alone under the nominal beams:
+
+1. **Set-up** (stage ``wiener``): the response sets of every mode pair (:func:`gcrsky.instrument.beammodes.
+   mode_responses`, one per baseline: no redundant compression), checked against the problem's own
+   response (their unperturbed set must equal it); the beam prior (:func:`gcrsky.inference.beam_setup`);
+   then **Laplace's approximation** of the beams' marginal posterior ``p(theta | d)`` (the sky integrated
+   out exactly, :func:`gcrsky.inference.beam_log_evidence`), which gives both the evidence of the block
+   against the nominal beams (the summary's ``beams.evidence``) and the chain's proposal;
+2. the **Wiener filter** recorded is the sky's posterior mean given the beams at the marginal's maximum; the
+   goodness of fit (:mod:`gcrsky.run.fit`) tests the data against the same model, and the summary's
+   ``beams.fit_nominal`` the nominal beams' fit (the same test without the block);
+   The fit starts from :data:`WARM_START_STEPS` conditional-mode steps (:func:`gcrsky.inference.beam_warmup_step`)
+   and ends with Newton steps on the exact Hessian;
+3. **warm-up**: from a draw of the proposal (not from the maximum: an independence sampler started at the
+   state of largest weight ``p / q``, ~``exp(0.2 K)`` above a typical one for ``K`` coefficients, stays there),
+   ``beams.burn`` steps of the chain, discarded;
+4. the **draws**: the collapsed chain (:func:`gcrsky.inference.beam_collapsed_step`: the beams by an
+   independence Metropolis-Hastings move from their exact marginal with the Laplace Gaussian, widened by
+   :data:`PROPOSAL_WIDEN`, as proposal; then the sky given them, exact).  Batch ``b`` is ``batch`` kept
+   states, one every ``beams.thin`` steps, from the state the previous batch ended in; each batch appends
+   the sky draws, the beam coefficients and the acceptance and replaces the chain's state, so a killed run
+   resumes where it stopped.  This is the kernel that passed simulation-based calibration
+   (``tests/test_beam_block.py``); the alternating one (sky, then beams given the sky) did not.
+
+The exact marginal needs the sky's dense precision per channel: a beam run is limited to
+:data:`BEAM_DENSE_MAX_N` coefficients per channel (``lmax <= 49``).
+
+Key scheme (:data:`BEAM_KEY_SCHEME`): warm-up ``fold_in(key, 2**31 - 1)``, batch ``b`` ``fold_in(key, b)``,
+each split into one key per kept state, that into one per step.
+
+``results.h5`` of a beam run (besides the standard datasets):
+
+* ``beam_theta`` (ndraws, Nant, M, Q): each antenna's coefficients ``theta_ikq`` (``c_ik(nu) = sum_q theta_ikq
+  B_q(nu)``: the voltage beam ``A_i = A_0 (1 + sum_k c_ik f_k)``); ``beam_info/accept`` (ndraws,) the mean
+  acceptance of the independence move over the ``thin`` steps;
+* ``beams/antenna_numbers`` (Nant,), ``beams/orders`` (M, 2) the Zernike ``(n, m)``, ``beams/basis_f`` (Nf, Q),
+  ``beams/radius_rad`` (Nf,), ``beams/prior_inv_var`` (M, Q), ``beams/mean_inv_var`` (M, Q),
+  ``beams/laplace_theta`` (Nant, M, Q), ``beams/proposal_mean`` (K,), ``beams/proposal_chol`` (K, K),
+  ``beams/log_z`` (), ``beams/log_z_nominal`` (), ``beams/laplace_converged`` (), ``beams/setup_response``
+  (Nf, Nbl, n) the response at ``laplace_theta`` (the Wiener filter's and the fit's), and the chain's last
+  state ``beams/state/{sky, theta}``.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import time
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..inference.api import prepare
+from ..inference.beams import (
+    beam_coefficients,
+    beam_collapsed_step,
+    beam_init,
+    beam_log_evidence,
+    beam_setup,
+    beam_warmup_step,
+)
+from ..instrument.beammodes import beam_modes, combine_responses, disc_radius, mode_responses
+from ..io.results import append_batch
+from ..model.gains import mode_basis
+from ..solvers.plan import choose_path
+from .draws import kill_hook, record_setup
+from .output import BEAM_DIR, OpenRun
+from .resume import options_json
+from .stages import StageTimer, Watch
+
+__all__ = ["BEAM_DENSE_MAX_N", "BEAM_KEY_SCHEME", "PROPOSAL_WIDEN", "BeamChain", "beam_chain_setup", "beam_draws",
+           "beam_summary", "beamed_problem", "modes_of", "write_beam_products"]
+
+log = logging.getLogger(__name__)
+
+#: Coefficients per channel up to which a beam run goes (the beams' exact marginal factorises the sky's dense
+#: precision, ``~Nf n^3 / 3`` flop, twice per step): ``lmax <= 49``.
+BEAM_DENSE_MAX_N = 2500
+#: The key scheme of a beam run's chain (module doc).
+BEAM_KEY_SCHEME = ("beams-v1: Laplace fit from conditional modes fold_in(key, 2**31-2); start a proposal draw "
+                   "fold_in(key, 2**31-3); warm-up fold_in(key, 2**31-1); batch b fold_in(key, b); each split per "
+                   "kept state, then per step; collapsed independence MH")
+#: The proposal's covariance is the Laplace covariance times ``PROPOSAL_WIDEN**2`` (heavier than the marginal's
+#: bulk, so that the importance weights stay bounded where the marginal is not quite Gaussian).
+PROPOSAL_WIDEN = 1.1
+#: Acceptance of the independence move below which the summary warns (the chain then sticks).
+LOW_ACCEPT = 0.1
+_WARM = 2**31 - 1
+_START = 2**31 - 2
+#: Steps to the beams' conditional mode (:func:`gcrsky.inference.beam_warmup_step`) from which the Laplace fit
+#: starts (from the nominal beams BFGS stalls far from the maximum: on a 7-dish twin at an indefinite Hessian).
+WARM_START_STEPS = 5
+#: Newton steps after BFGS in the Laplace fit (:func:`gcrsky.inference.beam_log_evidence`; it stops earlier once
+#: at the maximum).
+NEWTON_STEPS = 10
+#: Relative difference between the response sets' unperturbed set and the problem's response that is refused.
+RESPONSE_RTOL = 1e-8
+
+
+def modes_of(sampling):
+    """The :class:`~gcrsky.instrument.beammodes.BeamModes` of a :class:`~gcrsky.run.BeamSampling`."""
+    return beam_modes(sampling.nmax, piston=sampling.piston)
+
+
+class BeamChain(NamedTuple):
+    """The chain's fixed parts and state (:func:`beam_chain_setup`).
+
+    Attributes:
+        system: the sky's linear system (raw data, noise, prior; its response is replaced per step).
+        block: the :class:`gcrsky.inference.BeamBlock`.
+        proposal: ``(mean (K,), chol (K, K))`` of the independence move.
+        state: the :class:`gcrsky.inference.BeamState`.
+        radius: (Nf,) the modes' disc radius, radians.
+    """
+
+    system: object
+    block: object
+    proposal: tuple
+    state: object
+    radius: np.ndarray
+
+
+def _site_latitude(prob) -> float:
+    conv = getattr(prob.config, "conventions", None) or {}
+    if "site_lat_lon_alt" not in conv:
+        raise ValueError("a beam run needs the array's site (a problem read from a file records it)")
+    return float(conv["site_lat_lon_alt"][0])
+
+
+def check_beam_problem(prob, sampling) -> None:
+    """Refuse what the beam block cannot model, naming it: redundant groups as rows, autocorrelation rows, a
+    problem without antenna positions, or more than :data:`BEAM_DENSE_MAX_N` coefficients per channel."""
+    if getattr(prob.config, "compressed", False):
+        raise ValueError("beams are per antenna, but the problem's rows are redundant groups (averages of baselines "
+                         "whose beams differ): read the file without compression (--no-compress)")
+    if prob.antpos_enu_m is None:
+        raise ValueError("a beam run needs the antennas' positions (a problem read from a file records them)")
+    pairs = np.asarray(prob.antpairs)
+    if np.any(pairs[:, 0] == pairs[:, 1]):
+        raise ValueError("the beam block models cross-correlations only, but the problem has autocorrelation rows")
+    if prob.n > BEAM_DENSE_MAX_N:
+        lmax = int(np.floor(np.sqrt(BEAM_DENSE_MAX_N))) - 1
+        raise ValueError(f"--beams sample integrates the sky out exactly (its dense precision per channel): at most "
+                         f"{BEAM_DENSE_MAX_N} coefficients per channel (lmax <= {lmax}), but lmax {prob.lmax} has "
+                         f"{prob.n}: give --lmax {lmax} or less")
+
+
+def beam_chain_setup(prob, beams, sampling) -> BeamChain:
+    """The response sets, the beam prior and the chain at the prior mean (no Laplace fit yet).
+
+    Args:
+        prob: the :class:`~gcrsky.model.Problem` (rows: antenna pairs, every baseline).
+        beams: the nominal beams, one per antenna of ``prob.antpos_enu_m`` (as the problem was built with).
+        sampling: the :class:`~gcrsky.run.BeamSampling`.
+
+    Raises:
+        ValueError: :func:`check_beam_problem`'s refusals, a beam count that is not the antennas', or response
+            sets whose unperturbed set differs from the problem's response (other beams, frame or rows).
+    """
+    from ..instrument import make_array
+
+    check_beam_problem(prob, sampling)
+    nant = np.asarray(prob.antpos_enu_m).shape[0]
+    if len(beams) != nant:
+        raise ValueError(f"{len(beams)} nominal beams for {nant} antennas")
+    modes = modes_of(sampling)
+    array = make_array(np.asarray(prob.antpos_enu_m), _site_latitude(prob), list(beams))
+    lmax_resp = int(round(np.sqrt(prob.response.shape[-1]))) - 1
+    freqs = np.asarray(prob.freqs_hz)
+    stack = mode_responses(array, np.asarray(prob.antpairs), freqs, lmax_resp, prob.nside, modes,
+                           lst_ref_rad=prob.lst_ref_rad, pols=None if prob.pols is None else list(prob.pols))
+    ref = np.asarray(prob.response)
+    diff = float(np.max(np.abs(np.asarray(stack[:, 0]) - ref)) / max(float(np.max(np.abs(ref))), 1e-300))
+    if not diff < RESPONSE_RTOL:
+        raise ValueError(f"the beam modes' unperturbed response differs from the problem's by {diff:.2g} (relative): "
+                         "the problem was not built with these beams, rows or quadrature")
+    basis_f = mode_basis(freqs.size, min(sampling.freq_modes, freqs.size), "legendre")
+    block = beam_setup(stack, np.asarray(prob.antpairs), basis_f, sigma=sampling.sigma,
+                       mean_sigma=sampling.mean_sigma, n_ant=nant)
+    system = prob.system()
+    k = block.prior_mean.size
+    zero = (jnp.zeros(k), jnp.eye(k))
+    return BeamChain(system, block, zero, beam_init(system.prior.mean, block),
+                     disc_radius(beams[0], freqs, modes))
+
+
+def beamed_problem(prob, response):
+    """``prob`` with the response (Nf, Nbl, n) of perturbed beams: the sky's likelihood given them."""
+    return eqx.tree_at(lambda p: p.response, prob, jnp.asarray(response))
+
+
+def _proposal(mean, cov):
+    cov = np.asarray(cov)
+    cov = 0.5 * (cov + cov.T) * PROPOSAL_WIDEN**2
+    try:
+        chol = np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        raise ValueError("the beams' Laplace covariance is not positive definite (the fit of their marginal did not "
+                         "reach a maximum): give a smaller --beam-sigma or fewer --beam-modes") from None
+    return jnp.asarray(np.asarray(mean).reshape(-1)), jnp.asarray(chol)
+
+
+@functools.partial(jax.jit, static_argnames=("n", "thin"))
+def _segment(system, block, proposal, state, key, *, n: int, thin: int):
+    """``n`` kept states, one every ``thin`` steps: (last state, (states, mean acceptance, sky SolveInfo))."""
+
+    def step(s, k):
+        return beam_collapsed_step(k, s, system, block, proposal, with_info=True)
+
+    def keep(s, k):
+        s, (acc, info) = jax.lax.scan(step, s, jax.random.split(k, thin))
+        return s, (s, jnp.mean(acc.astype(jnp.float64)), jax.tree_util.tree_map(lambda x: x[-1], info))
+
+    return jax.lax.scan(keep, state, jax.random.split(key, n))
+
+
+def _state_arrays(state) -> dict:
+    return {"beams/state/sky": np.asarray(state.sky), "beams/state/theta": np.asarray(state.theta)}
+
+
+def _per_draw(chain: BeamChain) -> dict:
+    return {"beam_theta": (tuple(chain.block.prior_mean.shape), "f8",
+                           "(ndraws, Nant, M, Q): c_ik(nu) = sum_q theta_ikq B_q(nu); A_i = A_0 (1 + sum_k c_ik f_k)"),
+            "beam_info/accept": ((), "f8", "(ndraws,) mean acceptance of the beams' independence move over thin steps")}
+
+
+def _layout_arrays(prob, chain: BeamChain, sampling, ev, response) -> dict:
+    conv = getattr(prob.config, "conventions", None) or {}
+    nant = chain.block.prior_mean.shape[0]
+    nums = np.asarray(conv.get("antenna_numbers", np.arange(nant)))
+    return {"beams/antenna_numbers": nums, "beams/orders": np.asarray(modes_of(sampling).orders, np.int64),
+            "beams/basis_f": np.asarray(chain.block.basis_f), "beams/radius_rad": np.asarray(chain.radius),
+            "beams/prior_inv_var": np.asarray(chain.block.prior_inv_var),
+            "beams/mean_inv_var": np.asarray(chain.block.mean_inv_var), "beams/laplace_theta": np.asarray(ev.theta),
+            "beams/proposal_mean": np.asarray(chain.proposal[0]), "beams/proposal_chol": np.asarray(chain.proposal[1]),
+            "beams/log_z": np.asarray(ev.log_z), "beams/log_z_nominal": np.asarray(ev.log_z_nominal),
+            "beams/laplace_converged": np.asarray(bool(ev.converged)), "beams/setup_response": np.asarray(response)}
+
+
+def _setup(prob, beams, spec, run: OpenRun, key) -> BeamChain:
+    """New run: set up, fit the marginal (Laplace), record the Wiener filter given its maximum, warm up;
+    resumed: the recorded proposal and state."""
+    import h5py
+
+    sampling = spec.sampling.beams
+    chain = beam_chain_setup(prob, beams, sampling)
+    if run.state is not None:
+        with h5py.File(run.h5, "r") as h:
+            proposal = (jnp.asarray(h["beams/proposal_mean"][()]), jnp.asarray(h["beams/proposal_chol"][()]))
+            state = chain.state._replace(sky=jnp.asarray(h["beams/state/sky"][()]),
+                                         theta=jnp.asarray(h["beams/state/theta"][()]))
+        return chain._replace(proposal=proposal, state=state)
+    t0 = time.perf_counter()
+    warm = jax.jit(lambda k, st: beam_warmup_step(k, st, chain.system, chain.block)[0])
+    start = chain.state
+    for k in jax.random.split(jax.random.fold_in(key, _START), WARM_START_STEPS):
+        start = warm(k, start)
+    ev = beam_log_evidence(chain.system, chain.block, theta0=start.theta, newton_steps=NEWTON_STEPS)
+    log.info("beams: Laplace fit of the marginal in %.1f s: log Bayes factor %.2f against the nominal beams "
+             "(converged: %s)", time.perf_counter() - t0, float(ev.log_bayes_factor), bool(ev.converged))
+    chain = chain._replace(proposal=_proposal(ev.theta, ev.covariance))
+    response = combine_responses(chain.block.stack, chain.block.pairs, beam_coefficients(chain.block, ev.theta))
+    prob_b = beamed_problem(prob, response)
+    options = choose_path(prob_b.system(), spec.solver.method, tol=spec.solver.tol, ndraws=1)
+    prepared = prepare(prob_b, options=options)
+    a_wf = np.asarray(jax.block_until_ready(prepared.a_wf))
+    mean, chol = chain.proposal  # start from a proposal draw, not the maximum: the maximum has the largest
+    z = jax.random.normal(jax.random.fold_in(key, _START - 1), mean.shape, mean.dtype)  # weight p/q of all (by
+    state = beam_init(jnp.asarray(a_wf), chain.block, theta=(mean + chol @ z).reshape(ev.theta.shape))  # ~e^{0.2 K})
+    if sampling.burn:
+        state, _ = _segment(chain.system, chain.block, chain.proposal, state, jax.random.fold_in(key, _WARM),
+                            n=1, thin=sampling.burn)
+    chain = chain._replace(state=state)
+    record_setup(prob, spec, run, a_wf, prepared.wiener, rank=getattr(prepared, "kept", None), method="beams+cholesky",
+                 options=options, key_scheme=BEAM_KEY_SCHEME, per_draw=_per_draw(chain),
+                 arrays={**_layout_arrays(prob, chain, sampling, ev, response), **_state_arrays(state)})
+    log.info("beam chain: Wiener filter given the beams at the marginal's maximum by %s (%s); warm-up of %d steps",
+             prepared.method, options_json(options), sampling.burn)
+    return chain
+
+
+def beam_draws(prob, beams, spec, run: OpenRun, st: StageTimer, watch: Watch) -> str:
+    """The ``wiener`` stage (set-up, Laplace fit, Wiener filter, warm-up) and the chain's batches from
+    ``run.start``; returns ``"beams+cholesky"`` and leaves the ``draws`` stage running."""
+    d, sampling = spec.draws, spec.sampling.beams
+    key = jax.random.PRNGKey(d.seed)
+    st.start("wiener")
+    chain = _setup(prob, beams, spec, run, key) if run.start < d.n_batches else None
+    st.stop()
+    st.start("draws")
+    batches = range(run.start, d.n_batches)
+    state = None if chain is None else chain.state
+    for b in watch.progress(batches) if watch.progress is not None else batches:
+        t0 = time.perf_counter()
+        state, (states, accept, info) = _segment(chain.system, chain.block, chain.proposal, state,
+                                                 jax.random.fold_in(key, b), n=d.batch, thin=sampling.thin)
+        take = min(d.batch, d.nsamples - b * d.batch)
+        draws = np.swapaxes(np.asarray(jax.block_until_ready(states.sky))[:take], 0, 1)
+        info = jax.tree_util.tree_map(lambda a: np.swapaxes(np.asarray(a)[:take], 0, 1), info)
+        extra = {"beam_theta": np.asarray(states.theta)[:take], "beam_info/accept": np.asarray(accept)[:take]}
+        kill_hook(append_batch(run.h5, b, draws, info, seconds=time.perf_counter() - t0, extra=extra,
+                               replace=_state_arrays(state)))
+    return "beams+cholesky"
+
+
+def stored_response(h5) -> np.ndarray:
+    """The response (Nf, Nbl, n) at the beams of a beam run's Wiener filter (``beams/setup_response``)."""
+    import h5py
+
+    with h5py.File(h5, "r") as h:
+        return h["beams/setup_response"][()]
+
+
+def _read(h5) -> dict:
+    import h5py
+
+    with h5py.File(h5, "r") as h:
+        rows = int(h["draws"].shape[1]) if "draws" in h else 0
+        out = {"theta": h["beam_theta"][:rows], "accept": h["beam_info/accept"][:rows]}
+        for k in ("antenna_numbers", "orders", "basis_f", "radius_rad", "prior_inv_var", "laplace_theta", "log_z",
+                  "log_z_nominal", "laplace_converged"):
+            out[k] = h[f"beams/{k}"][()]
+    return out
+
+
+def _nominal_fit(prob) -> dict:
+    """The goodness of fit of the nominal beams (the same test as the run's, without the block)."""
+    from .fit import goodness_of_fit
+
+    options = choose_path(prob.system(), "auto", ndraws=1)
+    prepared = prepare(prob, options=options)
+    gof = goodness_of_fit(prob, np.asarray(prepared.a_wf), rank=getattr(prepared, "kept", None))
+    return {k: gof[k] for k in ("chi2", "dof", "chi2_per_dof", "p_value", "p_value_low", "rejected",
+                                "rejected_channels", "threshold_p")}
+
+
+def beam_summary(prob, sampling, h5) -> dict:
+    """``summary.json``'s ``beams`` block: the evidence of the block against the nominal beams (Laplace), the
+    nominal beams' goodness of fit (the run's own ``goodness_of_fit`` is the block's), each antenna's
+    posterior coefficients (mean and sd per mode, averaged over frequency modes' first: the constant), the
+    acceptance, and :func:`gcrsky.inference.chain_diagnostics` of every coefficient with its warning."""
+    from ..inference.diagnostics import chain_diagnostics, diagnostics_warning
+
+    g = _read(h5)
+    th = g["theta"]  # (ndraws, Nant, M, Q)
+    nd = th.shape[0]
+    names = [n for n in modes_of(sampling).names]
+    z_max = None
+    if nd > 1:
+        sd = th.std(axis=0, ddof=1)
+        z = np.abs(th.mean(axis=0)) / np.where(sd > 0, sd, np.inf)
+        z_max = float(np.max(z))
+    lbf = float(g["log_z"] - g["log_z_nominal"])
+    out = {
+        "settings": sampling.to_dict(), "modes": names, "antennas": int(th.shape[1]), "parameters": int(th[0].size),
+        "ndraws": nd, "acceptance": float(np.mean(g["accept"])) if nd else None,
+        "evidence": {"method": "Laplace (beams' exact marginal, the sky integrated out)",
+                     "log_z": float(g["log_z"]), "log_z_nominal": float(g["log_z_nominal"]), "log_bayes_factor": lbf,
+                     "converged": bool(g["laplace_converged"]),
+                     "verdict": "the data ask for the beam block" if lbf > 0 else
+                                "the nominal beams are preferred (the block is not needed)"},
+        "fit_nominal": _nominal_fit(prob),
+        "coefficients": [{"antenna": int(a), **{n: {"mean": float(th[:, i, k, 0].mean()),
+                                                    "sd": float(th[:, i, k, 0].std(ddof=1)) if nd > 1 else 0.0}
+                                                for k, n in enumerate(names)}}
+                         for i, a in enumerate(np.asarray(g["antenna_numbers"]))],
+        "max_abs_mean_over_sd": z_max,
+        "beam_files": None,
+        "note": ("coefficients: the constant frequency mode of theta per antenna and mode (fractional change of the "
+                 "voltage beam at the disc's edge); evidence: log p(d | block) - log p(d | nominal beams), Laplace "
+                 "over the beam coefficients, exact over the sky; fit_nominal: the goodness of fit without the block "
+                 "(goodness_of_fit: with it, at the marginal's maximum)."),
+    }
+    out["chain"] = chain_diagnostics({"beam_theta": th.reshape(nd, -1)})
+    warnings = []
+    line = diagnostics_warning(out["chain"], "the beam chain")
+    if line is not None:
+        warnings.append(line)
+    if nd and out["acceptance"] < LOW_ACCEPT:
+        warnings.append(f"WARNING: the beam chain's independence move is accepted {100 * out['acceptance']:.1f} % of "
+                        "the time: the Laplace proposal misses the beams' marginal (draws repeat; fewer --beam-modes or "
+                        "more draws)")
+    for w in warnings:
+        log.warning(w.removeprefix("WARNING: "))
+    out["warnings"] = warnings
+    return out
+
+
+def write_beam_products(prob, beams, sampling, out, h5) -> str | None:
+    """The posterior-mean beams, one UVBeam power beam per antenna (``beams/ant<number>.beamfits`` in ``out``,
+    written atomically as a directory; pyuvdata reads each back:
+    :func:`gcrsky.instrument.beammodes.perturbed_power_beam`), or None with a log line when the problem does not
+    record its antennas."""
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    from ..instrument.beammodes import perturbed_power_beam
+
+    conv = getattr(prob.config, "conventions", None) or {}
+    if "antenna_numbers" not in conv:
+        log.info("beams: no %s written (the problem does not record its antennas)", BEAM_DIR)
+        return None
+    g = _read(h5)
+    mean = g["theta"].mean(axis=0)  # (Nant, M, Q)
+    coeffs = np.einsum("amq,fq->afm", mean, g["basis_f"])
+    modes = modes_of(sampling)
+    out = Path(out)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{BEAM_DIR}.tmp-", dir=out))
+    try:
+        for i, num in enumerate(np.asarray(g["antenna_numbers"])):
+            uvb = perturbed_power_beam(beams[i], coeffs[i], np.asarray(prob.freqs_hz), modes,
+                                       telescope_name=conv.get("telescope_name", "gcrsky"), antenna=str(int(num)))
+            uvb.write_beamfits(str(tmp / f"ant{int(num)}.beamfits"), clobber=True)
+        final = out / BEAM_DIR
+        if final.exists():
+            shutil.rmtree(final)
+        tmp.rename(final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return BEAM_DIR
