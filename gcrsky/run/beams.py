@@ -68,10 +68,9 @@ from ..inference.beams import (
     beam_warmup_step,
 )
 from ..instrument.beammodes import beam_modes, combine_responses, disc_radius, mode_responses
-from ..io.results import append_batch
 from ..model.gains import mode_basis
 from ..solvers.plan import choose_path
-from .draws import kill_hook, record_setup
+from .draws import append_chain_batch, read_chain, record_setup
 from .output import BEAM_DIR, OpenRun
 from .resume import options_json
 from .stages import StageTimer, Watch
@@ -303,11 +302,8 @@ def beam_draws(prob, beams, spec, run: OpenRun, st: StageTimer, watch: Watch) ->
         state, (states, accept, info) = _segment(chain.system, chain.block, chain.proposal, state,
                                                  jax.random.fold_in(key, b), n=d.batch, thin=sampling.thin)
         take = min(d.batch, d.nsamples - b * d.batch)
-        draws = np.swapaxes(np.asarray(jax.block_until_ready(states.sky))[:take], 0, 1)
-        info = jax.tree_util.tree_map(lambda a: np.swapaxes(np.asarray(a)[:take], 0, 1), info)
         extra = {"beam_theta": np.asarray(states.theta)[:take], "beam_info/accept": np.asarray(accept)[:take]}
-        kill_hook(append_batch(run.h5, b, draws, info, seconds=time.perf_counter() - t0, extra=extra,
-                               replace=_state_arrays(state)))
+        append_chain_batch(run, b, take, states.sky, info, extra, _state_arrays(state), t0)
     return "beams+cholesky"
 
 
@@ -320,14 +316,10 @@ def stored_response(h5) -> np.ndarray:
 
 
 def _read(h5) -> dict:
-    import h5py
-
-    with h5py.File(h5, "r") as h:
-        rows = int(h["draws"].shape[1]) if "draws" in h else 0
-        out = {"theta": h["beam_theta"][:rows], "accept": h["beam_info/accept"][:rows]}
-        for k in ("antenna_numbers", "orders", "basis_f", "radius_rad", "prior_inv_var", "laplace_theta", "log_z",
-                  "log_z_nominal", "laplace_converged"):
-            out[k] = h[f"beams/{k}"][()]
+    out = read_chain(h5, ("beam_theta", "beam_info/accept"),
+                     tuple(f"beams/{k}" for k in ("antenna_numbers", "orders", "basis_f", "radius_rad", "prior_inv_var",
+                                                  "laplace_theta", "log_z", "log_z_nominal", "laplace_converged")))
+    out["theta"] = out.pop("beam_theta")
     return out
 
 

@@ -37,7 +37,7 @@ from .resume import options_from_json, options_json
 from .stages import StageTimer, Watch
 from .summary import versions
 
-__all__ = ["append_batches", "draw_batch", "joint_draws", "record_setup"]
+__all__ = ["append_batches", "append_chain_batch", "draw_batch", "joint_draws", "read_chain", "record_setup"]
 
 log = logging.getLogger(__name__)
 
@@ -149,3 +149,26 @@ def append_batches(run: OpenRun, draws_spec, watch: Watch, draw_one) -> None:
         t0 = time.perf_counter()
         draws, info = draw_one(b)
         kill_hook(append_batch(run.h5, b, draws, info, seconds=time.perf_counter() - t0))
+
+
+def append_chain_batch(run: OpenRun, b: int, take: int, sky, info, extra: dict, state_arrays: dict, t0: float) -> None:
+    """Append a Markov chain's batch ``b`` (its first ``take`` kept states) to ``run.h5``: the sky draws ``sky``
+    (take+, Nf, n) and the sky steps' ``info`` (take+, Nf) moved to (Nf, take, ...), the per-draw datasets
+    ``extra`` (already ``take`` rows), and the chain's state written over (``state_arrays``) before the batch
+    counts, so a killed run resumes at the batch's end (:func:`gcrsky.io.append_batch`; ``t0`` the batch's start)."""
+    draws = np.swapaxes(np.asarray(jax.block_until_ready(sky))[:take], 0, 1)
+    info = jax.tree_util.tree_map(lambda a: np.swapaxes(np.asarray(a)[:take], 0, 1), info)
+    kill_hook(append_batch(run.h5, b, draws, info, seconds=time.perf_counter() - t0, extra=extra,
+                           replace=state_arrays))
+
+
+def read_chain(h5, per_draw, fixed=()) -> dict:
+    """A chain's datasets in ``results.h5``: the kept rows of the ``per_draw`` ones and the whole ``fixed`` ones,
+    each under its last path component."""
+    import h5py
+
+    with h5py.File(h5, "r") as h:
+        rows = int(h["draws"].shape[1]) if "draws" in h else 0
+        out = {k.split("/")[-1]: h[k][:rows] for k in per_draw}
+        out.update({k.split("/")[-1]: h[k][()] for k in fixed})
+    return out

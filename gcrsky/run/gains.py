@@ -56,11 +56,10 @@ import numpy as np
 from ..inference.api import prepare
 from ..inference.gains import gain_init, gain_setup, joint_gain_step, recentre
 from ..inference.gibbs import gibbs_setup
-from ..io.results import append_batch
 from ..model.gains import gain_model, perturbations, scale_profile, unit_gains
 from ..solvers.options import CGOptions, CholeskyOptions
 from ..solvers.plan import choose_path
-from .draws import kill_hook, record_setup
+from .draws import append_chain_batch, read_chain, record_setup
 from .output import GAIN_FILE, OpenRun
 from .resume import options_json
 from .stages import StageTimer, Watch
@@ -325,12 +324,9 @@ def gain_draws(prob, spec, run: OpenRun, st: StageTimer, watch: Watch) -> str:
         take = min(d.batch, d.nsamples - b * d.batch)
         gdraws = jax.vmap(lambda t, s: unit_gains(chain.block.model, t, s, chain.lin))(states.theta[:take],
                                                                                          states.scale[:take])
-        draws = np.swapaxes(np.asarray(jax.block_until_ready(states.sky))[:take], 0, 1)
-        info = jax.tree_util.tree_map(lambda a: np.swapaxes(np.asarray(a)[:take], 0, 1), info)
         extra = {"gain_draws": np.asarray(gdraws), "gain_theta": np.asarray(states.theta)[:take],
                  "gain_scale": np.asarray(states.scale)[:take], "gain_info/gauge_accept": np.asarray(accept)[:take]}
-        kill_hook(append_batch(run.h5, b, draws, info, seconds=time.perf_counter() - t0, extra=extra,
-                               replace=_state_arrays(state)))
+        append_chain_batch(run, b, take, states.sky, info, extra, _state_arrays(state), t0)
     return method
 
 
@@ -344,15 +340,8 @@ def stored_gain_factor(h5) -> np.ndarray:
 
 
 def _read_gain_draws(h5) -> dict:
-    import h5py
-
-    with h5py.File(h5, "r") as h:
-        rows = int(h["draws"].shape[1]) if "draws" in h else 0
-        out = {k.split("/")[-1]: h[k][:rows] for k in ("gain_draws", "gain_theta", "gain_scale",
-                                                         "gain_info/gauge_accept")}
-        out.update({k.split("/")[1]: h[k][()] for k in ("gains/units", "gains/basis_f", "gains/prior_inv_var",
-                                                        "gains/basis_t", "gains/param_mode")})
-    return out
+    return read_chain(h5, ("gain_draws", "gain_theta", "gain_scale", "gain_info/gauge_accept"),
+                      ("gains/units", "gains/basis_f", "gains/prior_inv_var", "gains/basis_t", "gains/param_mode"))
 
 
 def _interval(x) -> dict:
