@@ -67,17 +67,22 @@ from .gains import GainBlock, theta_draw
 __all__ = [
     "COARSE",
     "FINE",
+    "GH_NODES",
     "GRID_DROP",
     "LOG_U_RANGE",
     "AmplitudeEigen",
+    "AmplitudeEvidence",
     "AmplitudeFixed",
     "AmplitudeState",
     "amplitude_eigen",
+    "amplitude_log_prior",
     "amplitude_memory_bytes",
     "amplitude_setup",
     "amplitude_sweep",
     "draw_log_u",
+    "log_evidence_over_u",
     "log_marginal",
+    "scale_response",
     "sky_given",
     "wiener_given",
 ]
@@ -318,3 +323,101 @@ def amplitude_sweep(key: jax.Array, state: AmplitudeState, fixed: AmplitudeFixed
     log_u = draw_log_u(k_u, fixed, eig, 1)[0] if free_u else state.log_u
     delta = sky_given(k_s, fixed, eig, jnp.exp(log_u))
     return AmplitudeState(log_u, delta, theta), eig
+
+
+def amplitude_log_prior(log_u) -> jax.Array:
+    """The normalised log density of the amplitude's prior at ``log_u`` (Nf,): uniform in ``ln u`` over
+    :data:`LOG_U_RANGE` per channel (-inf outside); what :func:`draw_log_u` samples under."""
+    lo, hi = LOG_U_RANGE
+    log_u = jnp.asarray(log_u)
+    inside = jnp.all((log_u >= lo) & (log_u <= hi))
+    return jnp.where(inside, -log_u.size * jnp.log(hi - lo), -jnp.inf)
+
+
+def scale_response(system: LinearSystem, log_u) -> LinearSystem:
+    """``system`` with its response (Nf, Nbl, n) multiplied by ``u_f = exp(log_u_f)`` per channel (the data
+    ``u X a``: the amplitude is the response's, so the system's evidence is ``p(d | u)``)."""
+    resp = system.op.response
+    return system._replace(op=system.op._replace(response=resp * jnp.exp(jnp.asarray(log_u))[:, None, None]
+                                                  .astype(resp.dtype)))
+
+
+class AmplitudeEvidence(NamedTuple):
+    """What :func:`log_evidence_over_u` returns (per channel, (Nf,)).
+
+    Attributes:
+        log_z: ``log int p(d_f | u) p(ln u) d ln u`` (the prior :func:`amplitude_log_prior`'s).
+        log_u: the maximum of ``log p(d_f | u)`` in ``ln u``.
+        sd: ``(-d^2 log p / d ln u^2)^-1/2`` there (the Gauss-Hermite scale).
+        converged: Newton's steps reached the maximum (``|d log p / d ln u| sd < 1e-6``) at a negative curvature.
+    """
+
+    log_z: jax.Array
+    log_u: jax.Array
+    sd: jax.Array
+    converged: jax.Array
+
+
+#: Gauss-Hermite nodes of :func:`log_evidence_over_u` (about the maximum, at the curvature's scale).
+GH_NODES = 24
+
+
+def log_evidence_over_u(system: LinearSystem, log_u0, *, options=None, nodes: int = GH_NODES,
+                        steps: int = 30) -> AmplitudeEvidence:
+    """The sky model's evidence with the overall amplitude per channel integrated out, in the primal form.
+
+    ``log p(d_f) = log int p(d_f | u) p(ln u) d ln u`` with ``p(d_f | u)`` the exact sky evidence of the system
+    whose response is ``u X`` (:func:`scale_response`, :func:`gcrsky.inference.log_evidence_system`: dense
+    Cholesky by default) and the prior uniform in ``ln u`` (:func:`amplitude_log_prior`).  The channels are
+    independent: damped Newton steps per channel (the gradient and the curvature of the summed log evidence,
+    whose Hessian is diagonal) from ``log_u0`` find each maximum, then ``nodes``-point Gauss-Hermite quadrature
+    about it at the curvature's scale integrates (exact for a Gaussian integrand times a polynomial of degree
+    ``2 nodes - 1``; ``tests/test_beam_amplitude.py`` checks it against the data-space marginal
+    :func:`log_marginal` integrated on a fine grid).  Eager (a loop of jitted pieces), not differentiable.
+
+    Args:
+        system: the sky's system (raw data, noise, prior; its response the amplitude's ``u = 1``).
+        log_u0: (Nf,) or scalar: where Newton's steps start (e.g. the log of the autos' ratio).
+        options: the evidence path (default ``CholeskyOptions()``).
+    """
+    from ..solvers.options import CholeskyOptions
+    from .evidence import log_evidence_system
+
+    options = CholeskyOptions() if options is None else options
+    nf = system.data.shape[0]
+
+    @jax.jit
+    def f(x):
+        return log_evidence_system(scale_response(system, x), options=options, check=False)[0]
+
+    @jax.jit
+    def g_h(x):  # per channel: the log evidence's first and second derivative in ln u
+        grad = jax.grad(lambda y: jnp.sum(f(y)))
+        g, h = jax.jvp(grad, (x,), (jnp.ones_like(x),))
+        return g, h
+
+    x = jnp.broadcast_to(jnp.asarray(log_u0, jnp.float64), (nf,))
+    fx = f(x)
+    for _ in range(steps):
+        g, h = g_h(x)
+        step = jnp.where(h < 0, -g / jnp.where(h < 0, h, -1.0), jnp.sign(g))
+        step = jnp.clip(step, -2.0, 2.0)
+        t = jnp.ones(nf)
+        for _ in range(20):  # halve per channel until the log evidence does not decrease
+            fn = f(x + t * step)
+            bad = ~(fn >= fx)
+            if not bool(jnp.any(bad)):
+                break
+            t = jnp.where(bad, 0.5 * t, t)
+        x, fx = x + t * step, jnp.where(jnp.isfinite(fn), fn, fx)
+        if bool(jnp.all(jnp.abs(step * t) < 1e-9)):
+            break
+    g, h = g_h(x)
+    sd = 1.0 / jnp.sqrt(jnp.maximum(-h, 1e-300))
+    converged = (h < 0) & (jnp.abs(g) * sd < 1e-6)
+    t, w = np.polynomial.hermite.hermgauss(nodes)
+    vals = jnp.stack([f(x + np.sqrt(2.0) * sd * tk) for tk in t])  # (nodes, Nf)
+    log_int = (jax.scipy.special.logsumexp(vals + jnp.asarray(np.log(w) + t**2)[:, None], axis=0)
+               + jnp.log(np.sqrt(2.0) * sd))
+    lo, hi = LOG_U_RANGE
+    return AmplitudeEvidence(log_int - np.log(hi - lo), x, sd, converged)

@@ -105,10 +105,12 @@ class BeamBlock(NamedTuple):
 
 
 class BeamState(NamedTuple):
-    """The joint chain: ``sky`` a (Nf, n) K; ``theta`` (Nant, M, Q) the beam coefficients."""
+    """The joint chain: ``sky`` a (Nf, n) K; ``theta`` (Nant, M, Q) the beam coefficients; ``log_u`` (Nf,) the
+    natural log of the overall amplitude per channel where it is inferred (:func:`beam_system`), else None."""
 
     sky: jax.Array
     theta: jax.Array
+    log_u: jax.Array | None = None
 
 
 def beam_setup(stack, pairs, basis_f, *, sigma, mean_sigma=None, n_ant: int | None = None,
@@ -168,11 +170,12 @@ def beam_setup(stack, pairs, basis_f, *, sigma, mean_sigma=None, n_ant: int | No
                      jnp.zeros((nant, m, q)), jnp.asarray(row_factor), jnp.asarray(mean_iv))
 
 
-def beam_init(sky, block: BeamBlock, *, theta=None) -> BeamState:
-    """Start the chain at sky ``a`` (Nf, n) and ``theta`` (default: the prior mean)."""
+def beam_init(sky, block: BeamBlock, *, theta=None, log_u=None) -> BeamState:
+    """Start the chain at sky ``a`` (Nf, n), ``theta`` (default: the prior mean) and, with the amplitude inferred,
+    ``log_u`` (Nf,) (default None: the amplitude is the row factor's)."""
     sky = jnp.asarray(sky)
     th = block.prior_mean if theta is None else jnp.asarray(theta, sky.dtype)
-    return BeamState(sky, th)
+    return BeamState(sky, th, None if log_u is None else jnp.asarray(log_u, sky.dtype))
 
 
 def beam_coefficients(block: BeamBlock, theta) -> jax.Array:
@@ -180,13 +183,20 @@ def beam_coefficients(block: BeamBlock, theta) -> jax.Array:
     return jnp.einsum("amq,fq->afm", theta, block.basis_f)
 
 
-def beam_system(system: LinearSystem, block: BeamBlock, theta) -> LinearSystem:
-    """The sky's system with the response of the beams ``theta`` (and the row factor folded into the data and noise)."""
+def beam_system(system: LinearSystem, block: BeamBlock, theta, log_u=None) -> LinearSystem:
+    """The sky's system with the response of the beams ``theta`` (and the row factor folded into the data and noise).
+
+    With ``log_u`` (Nf,) the response is also multiplied by the overall amplitude ``u_f = exp(log_u_f)`` (DESIGN
+    section 14: the data are ``u X a``, the sky ``a ~ N(a0, S)`` a sky model in K; the amplitude is a parameter of
+    the response, not of the data, so the system's evidence stays the density of the data as given)."""
+    from .amplitude import scale_response
+
     resp = combine_responses(block.stack, block.pairs, beam_coefficients(block, theta))
     D = jnp.broadcast_to(block.row_factor, system.data.shape).astype(system.data.dtype)
     w = system.inv_noise * jnp.abs(D) ** 2
     data = jnp.where(D == 0, 0.0, system.data / jnp.where(D == 0, 1.0, D))
-    return system._replace(op=system.op._replace(response=resp), data=data, inv_noise=w)
+    out = system._replace(op=system.op._replace(response=resp), data=data, inv_noise=w)
+    return out if log_u is None else scale_response(out, log_u)
 
 
 def set_visibilities(system: LinearSystem, block: BeamBlock, sky) -> jax.Array:
@@ -358,7 +368,7 @@ def beam_sky_step(key: jax.Array, state: BeamState, system: LinearSystem, block:
                   options=None) -> tuple[BeamState, SolveInfo]:
     """One exact draw of the sky given the beams (:func:`beam_system`, then :func:`gcrsky.inference.gcr_step`;
     default the Cholesky path)."""
-    sys_b = beam_system(system, block, state.theta)
+    sys_b = beam_system(system, block, state.theta, state.log_u)
     new, info = gcr_step(key, gcr_init(state.sky), sys_b, options=CholeskyOptions() if options is None else options)
     return state._replace(sky=new.position), info
 
@@ -375,6 +385,9 @@ def beam_step(key: jax.Array, state: BeamState, system: LinearSystem, block: Bea
     raw data, noise, the nominal operator's angles and the sky prior (its response is replaced by the beams'
     each sweep).  Pure; ``jit`` / ``lax.scan`` it.  Returns the new state and the sky step's SolveInfo.
     """
+    if state.log_u is not None:
+        raise ValueError("beam_step (the alternating chain) holds the amplitude fixed: a state with log_u is the "
+                         "collapsed chain's (beam_collapsed_step)")
     ka, km, kb = jax.random.split(key, 3)
     state, info = beam_sky_step(ka, state, system, block, options=options)
     sets = set_visibilities(system, block, state.sky)
@@ -391,8 +404,10 @@ class BeamEvidence(NamedTuple):
         log_z_nominal: ``log p(d | nominal beams)`` (the coefficients at 0), exact.
         log_bayes_factor: ``log_z - log_z_nominal`` (> 0: the data ask for the block).
         theta: (Nant, M, Q) the maximum of ``log p(d | theta) + log p(theta)``.
-        covariance: (k, k) the Laplace covariance of the flattened ``theta``.
+        covariance: (k, k) the Laplace covariance of the flattened ``theta`` (then ``log_u``, where inferred).
         converged: the optimiser converged and the Hessian is positive definite.
+        log_u: (Nf,) the amplitude at the maximum where it is inferred (``log_u0``), else None.
+        log_u_nominal: (Nf,) the maximum of the nominal beams' ``log p(d | u)`` where inferred, else None.
     """
 
     log_z: jax.Array
@@ -401,6 +416,8 @@ class BeamEvidence(NamedTuple):
     theta: jax.Array
     covariance: jax.Array
     converged: jax.Array
+    log_u: jax.Array | None = None
+    log_u_nominal: jax.Array | None = None
 
 
 def beam_log_prior(block: BeamBlock, theta) -> jax.Array:
@@ -455,7 +472,7 @@ def _newton_polish(fun, x, steps: int):
     return x, f, h, g @ step
 
 
-def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, options=None,
+def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, log_u0=None, options=None,
                       max_steps: int = 200, newton_steps: int = 0) -> BeamEvidence:
     """Whether the data ask for the beam block: its evidence against the nominal beams'.
 
@@ -470,47 +487,77 @@ def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, op
     inverse Hessian of ``-f``.  Laplace is exact for a Gaussian integrand; ``tests/test_beam_block.py`` checks
     it against importance sampling of the exact integrand.  The row factor is folded in as in :func:`beam_system`.
 
+    **The amplitude inferred** (``log_u0`` given): the response is ``u_f`` times the beams' (DESIGN section 14),
+    ``u`` per channel with the prior uniform in ``ln u`` (:func:`gcrsky.inference.amplitude.amplitude_log_prior`),
+    and both models integrate it out: the nominal one exactly per channel (:func:`gcrsky.inference.amplitude.
+    log_evidence_over_u`: Newton then Gauss-Hermite; eager), the block's by Laplace jointly with ``theta``
+    (``k = Nant M Q + Nf``; BFGS starts at the nominal's maximum ``u``).  Needs ``newton_steps > 0`` (eager).
+
     Args:
         system: the sky's system (raw data, noise, prior; its response is replaced).
         block: :func:`beam_setup`'s block.
         theta0: the optimiser's start (default the prior mean; a start near the maximum, e.g. a few
             :func:`beam_warmup_step`'s, saves most of the steps).
+        log_u0: (Nf,) or scalar, the amplitude's starting ``ln u`` (e.g. of the autos' ratio): the amplitude is
+            inferred; None: it is the row factor's (fixed).
         options: the evidence path's options (default ``CholeskyOptions()``).
         max_steps: BFGS's step cap.
         newton_steps: Newton steps after BFGS (each one Hessian: ``k`` Hessian-vector products); 0: none.
 
     Returns:
         :class:`BeamEvidence`; ``converged``: the Hessian of ``-f`` is positive definite and BFGS converged
-        or (with Newton steps) the Newton decrement is below :data:`NEWTON_DECREMENT_TOL`.
+        or (with Newton steps) the Newton decrement is below :data:`NEWTON_DECREMENT_TOL` (and with the
+        amplitude, the nominal's Newton steps converged).
     """
     from jax.flatten_util import ravel_pytree
 
+    from .amplitude import amplitude_log_prior, log_evidence_over_u
     from .evidence import log_evidence_system
     from .hyper import fit_hyperparameters
 
     options = CholeskyOptions() if options is None else options
     start = block.prior_mean if theta0 is None else jnp.asarray(theta0)
-    fit = fit_hyperparameters(lambda th: beam_system(system, block, th), start, options=options,
-                              log_prior=lambda th: beam_log_prior(block, th), max_steps=max_steps)
-    nominal = jnp.sum(log_evidence_system(beam_system(system, block, jnp.zeros_like(start)), options=options,
-                                          check=False)[0])
-    if not newton_steps:  # pure: BFGS's maximum and its Hessian
-        k = fit.covariance.shape[0]
-        sign, logdet = jnp.linalg.slogdet(fit.covariance)
-        log_z = fit.objective + 0.5 * k * jnp.log(2 * jnp.pi) + 0.5 * logdet
-        return BeamEvidence(log_z, nominal, log_z - nominal, fit.theta, fit.covariance, fit.converged & (sign > 0))
-    flat, unravel = ravel_pytree(fit.theta)
+    if log_u0 is not None:
+        if not newton_steps:
+            raise ValueError("beam_log_evidence with the amplitude (log_u0) integrates it out eagerly: give "
+                             "newton_steps > 0")
+        nom = log_evidence_over_u(beam_system(system, block, jnp.zeros_like(start)), log_u0, options=options)
+        fit = fit_hyperparameters(lambda p: beam_system(system, block, p[0], p[1]), (start, nom.log_u),
+                                  options=options, log_prior=lambda p: beam_log_prior(block, p[0])
+                                  + amplitude_log_prior(p[1]), max_steps=max_steps)
+        flat, unravel = ravel_pytree(fit.theta)
+        nominal, nom_ok = jnp.sum(nom.log_z), jnp.all(nom.converged)
 
-    def fun(x):
-        return beam_marginal_log_posterior(system, block, unravel(x), options=options)
+        def fun(x):
+            th, lu = unravel(x)
+            return beam_marginal_log_posterior(system, block, th, log_u=lu, options=options)
+    else:
+        fit = fit_hyperparameters(lambda th: beam_system(system, block, th), start, options=options,
+                                  log_prior=lambda th: beam_log_prior(block, th), max_steps=max_steps)
+        nominal = jnp.sum(log_evidence_system(beam_system(system, block, jnp.zeros_like(start)), options=options,
+                                              check=False)[0])
+        if not newton_steps:  # pure: BFGS's maximum and its Hessian
+            k = fit.covariance.shape[0]
+            sign, logdet = jnp.linalg.slogdet(fit.covariance)
+            log_z = fit.objective + 0.5 * k * jnp.log(2 * jnp.pi) + 0.5 * logdet
+            return BeamEvidence(log_z, nominal, log_z - nominal, fit.theta, fit.covariance,
+                                fit.converged & (sign > 0))
+        flat, unravel = ravel_pytree(fit.theta)
+        nom, nom_ok = None, True
+
+        def fun(x):
+            return beam_marginal_log_posterior(system, block, unravel(x), options=options)
 
     flat, obj, hess, decrement = _newton_polish(fun, flat, newton_steps)
     k = flat.size
     evals, vecs = jnp.linalg.eigh(hess)
     cov = (vecs / evals) @ vecs.T
     log_z = obj + 0.5 * k * jnp.log(2 * jnp.pi) - 0.5 * jnp.sum(jnp.log(jnp.abs(evals)))
-    converged = jnp.all(evals > 0) & (decrement < NEWTON_DECREMENT_TOL)
-    return BeamEvidence(log_z, nominal, log_z - nominal, unravel(flat), cov, converged)
+    converged = jnp.all(evals > 0) & (decrement < NEWTON_DECREMENT_TOL) & nom_ok
+    best = unravel(flat)
+    if nom is None:
+        return BeamEvidence(log_z, nominal, log_z - nominal, best, cov, converged)
+    return BeamEvidence(log_z, nominal, log_z - nominal, best[0], cov, converged, best[1], nom.log_u)
 
 
 def beam_conditional_mode(theta, block: BeamBlock, sets, data, inv_noise, *, iterations: int = 5) -> jax.Array:
@@ -532,21 +579,32 @@ def beam_warmup_step(key: jax.Array, state: BeamState, system: LinearSystem, blo
                      options=None) -> tuple[BeamState, SolveInfo]:
     """One warm-up sweep: the sky given the beams (exact), then the beams moved to their conditional mode given
     that sky (:func:`beam_conditional_mode`).  Run a few before :func:`beam_step` and discard them (not a valid
-    Markov-chain step: it optimises the beams)."""
+    Markov-chain step: it optimises the beams).  With the amplitude (``state.log_u``) it is held where it is."""
     state, info = beam_sky_step(key, state, system, block, options=options)
     sets = set_visibilities(system, block, state.sky)
+    if state.log_u is not None:  # the response sets are linear in the response: the amplitude scales them
+        sets = sets * jnp.exp(state.log_u)[:, None, None, None].astype(sets.dtype)
     theta = beam_conditional_mode(state.theta, block, sets, system.data, system.inv_noise, iterations=iterations)
     return state._replace(theta=theta), info
 
 
-def beam_marginal_log_posterior(system: LinearSystem, block: BeamBlock, theta, *, options=None) -> jax.Array:
-    """``log p(d | theta) + log p(theta)``: the sky marginalised exactly (the sky evidence of the beams ``theta``'s
-    response, :func:`gcrsky.inference.log_evidence_system`, summed over channels) plus the beam prior."""
+def beam_marginal_log_posterior(system: LinearSystem, block: BeamBlock, theta, *, log_u=None,
+                                options=None) -> jax.Array:
+    """``log p(d | theta [, u]) + log p(theta) [+ log p(u)]``: the sky marginalised exactly (the sky evidence of the
+    beams ``theta``'s response, times the amplitude ``exp(log_u)`` where given, :func:`gcrsky.inference.
+    log_evidence_system`, summed over channels) plus the beam prior (and :func:`amplitude_log_prior`)."""
+    from .amplitude import amplitude_log_prior
     from .evidence import log_evidence_system
 
     options = CholeskyOptions() if options is None else options
-    lz = log_evidence_system(beam_system(system, block, theta), options=options, check=False)[0]
-    return jnp.sum(lz) + beam_log_prior(block, theta)
+    lz = log_evidence_system(beam_system(system, block, theta, log_u), options=options, check=False)[0]
+    prior = beam_log_prior(block, theta) + (0.0 if log_u is None else amplitude_log_prior(log_u))
+    return jnp.sum(lz) + prior
+
+
+def _flat(theta, log_u):
+    """The collapsed chain's parameter vector: ``theta`` flattened, then ``log_u`` where inferred."""
+    return theta.reshape(-1) if log_u is None else jnp.concatenate([theta.reshape(-1), log_u])
 
 
 def beam_collapsed_step(key: jax.Array, state: BeamState, system: LinearSystem, block: BeamBlock, proposal, *,
@@ -558,7 +616,9 @@ def beam_collapsed_step(key: jax.Array, state: BeamState, system: LinearSystem, 
     problem its ranks were over-dispersed, mean z^2 ~2, after 100 sweeps); integrating the sky out removes
     that coupling.  ``proposal = (mean (K,), chol (K, K))``: a Gaussian close to the marginal, e.g. Laplace's at
     its maximum (:func:`beam_log_evidence`'s ``theta`` and ``covariance``, widened a little).  Costs two sky
-    evidences (a Cholesky of the dense precision each) and one sky draw.
+    evidences (a Cholesky of the dense precision each) and one sky draw.  With the amplitude inferred
+    (``state.log_u`` not None) the move is joint in ``(theta, log_u)``: the proposal's ``K`` is then
+    ``theta.size + Nf``, ``theta`` flattened first (:func:`beam_log_evidence`'s covariance, in that order).
 
     Returns:
         ``(state, accepted)``; with ``with_info``, ``(state, (accepted, info))``, ``info`` the sky draw's
@@ -566,16 +626,27 @@ def beam_collapsed_step(key: jax.Array, state: BeamState, system: LinearSystem, 
     """
     mean, chol = proposal
     kp, ku, ka = jax.random.split(key, 3)
+    k = state.theta.size
+    old = _flat(state.theta, state.log_u)
+    if mean.shape != old.shape:
+        raise ValueError(f"the proposal has {mean.shape[0]} parameters, the state {old.shape[0]} (theta"
+                         + ("" if state.log_u is None else " and log_u") + ")")
     z = jax.random.normal(kp, mean.shape, mean.dtype)
-    new = (mean + chol @ z).reshape(state.theta.shape)
+    new = mean + chol @ z
 
-    def log_q(t):  # the independence proposal's log density, up to a constant
-        y = jax.scipy.linalg.solve_triangular(chol, t.reshape(-1) - mean, lower=True)
+    def split(x):
+        return x[:k].reshape(state.theta.shape), (None if state.log_u is None else x[k:])
+
+    def log_q(x):  # the independence proposal's log density, up to a constant
+        y = jax.scipy.linalg.solve_triangular(chol, x - mean, lower=True)
         return -0.5 * jnp.sum(y**2)
 
-    log_ratio = (beam_marginal_log_posterior(system, block, new, options=options) + log_q(state.theta)
-                 - beam_marginal_log_posterior(system, block, state.theta, options=options) - log_q(new))
+    def log_p(x):
+        th, lu = split(x)
+        return beam_marginal_log_posterior(system, block, th, log_u=lu, options=options)
+
+    log_ratio = log_p(new) + log_q(old) - log_p(old) - log_q(new)
     accept = (jnp.log(jax.random.uniform(ku, (), log_ratio.dtype)) < log_ratio) & jnp.all(jnp.isfinite(new))
-    theta = jnp.where(accept, new, state.theta)
-    state, info = beam_sky_step(ka, state._replace(theta=theta), system, block, options=options)
+    theta, log_u = split(jnp.where(accept, new, old))
+    state, info = beam_sky_step(ka, state._replace(theta=theta, log_u=log_u), system, block, options=options)
     return (state, (accept, info)) if with_info else (state, accept)
