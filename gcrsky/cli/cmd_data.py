@@ -121,8 +121,8 @@ BEAM_ONLY = (("beam_modes", "--beam-modes"), ("beam_sigma", "--beam-sigma"), ("b
 
 
 def check_beam_options(parser, args) -> None:
-    """The beam block's options need ``--beams sample``; ``--beams sample`` needs ``--data``, the amplitude fixed
-    and the gains off (not composed with them yet), and a joint run (one chain over the channels)."""
+    """The beam block's options need ``--beams sample``; ``--beams sample`` needs ``--data``, the gains off (not
+    composed with them yet; the amplitude may be inferred), and a joint run (one chain over the channels)."""
     if args.beams != "sample":
         used = [opt for dest, opt in BEAM_ONLY if getattr(args, dest) is not None]
         if used:
@@ -130,9 +130,10 @@ def check_beam_options(parser, args) -> None:
         return
     if args.data is None:
         parser.error("--beams sample samples the beams of a file's antennas: give --data FILE")
-    if args.amplitude == "infer" or args.gains == "sample":
-        parser.error("--beams sample is not yet combined with an inferred amplitude or sampled gains: give "
-                     "--amplitude fixed --gains off (calibrated data), or drop --beams sample")
+    if args.gains == "sample":
+        parser.error("--beams sample is not yet combined with sampled gains: give --gains off (the file's or --cal's "
+                     "gains; the overall amplitude per channel may still be inferred, --amplitude infer), or drop "
+                     "--beams sample")
     from .options import channel_mode
 
     if channel_mode(args) is not None or getattr(args, "freq_prior", "independent") != "independent":
@@ -142,15 +143,14 @@ def check_beam_options(parser, args) -> None:
 
 def _beam_inputs(args) -> None:
     """``--beams sample`` keeps every baseline (two baselines of one separation no longer share a response once
-    their antennas' beams differ) and holds the amplitude and gains fixed (``auto`` resolves to that)."""
+    their antennas' beams differ) and holds the gains at the file's (``--gains auto`` resolves to off; the
+    amplitude's ``auto`` is resolved as in any run, from the headers)."""
     if args.beams != "sample":
         return
-    if args.amplitude == "auto":
-        args.amplitude = "fixed"
-        print("gcrsky: --beams sample: the overall amplitude is fixed and the gains are the file's (the beam block is "
-              "not yet combined with inferred ones: the data must be calibrated)")
     if args.gains == "auto":
         args.gains = "off"
+        print("gcrsky: --beams sample: the gains are the file's (or --cal's): the beam block is not yet combined with "
+              "sampled gains")
     if not args.no_compress:
         print("gcrsky: --beams sample: every baseline kept (beams are per antenna; redundant compression would "
               "average baselines whose beams differ)")
@@ -297,7 +297,17 @@ def _run_data(args) -> int:
           f"({'compressed' if cfg.compressed else 'all baselines'}), {prob.data.shape[1]} times, "
           f"{prob.data.shape[0]} channels, {cfg.pol}; prior: {cfg.prior}")
     print(band_limit_line(cfg.checks.get("band_limit")))
-    if infer:
+    if args.beams == "sample":
+        from ..run.sampling import Beams
+
+        spec = run_spec(args, nsamples=spec.draws.nsamples, method=spec.solver.method, tol=spec.solver.tol,
+                        extra=spec.extra, sampling=Beams(beam_sampling(args, amplitude_sampling(args) if infer else None),
+                                                         nominal=nominal))
+        b = spec.sampling.beams
+        print(f"gcrsky: beams sampled with the sky: Zernike orders 1-{b.nmax} ({b.freq_modes} frequency mode(s)) per "
+              f"antenna, prior sd {b.sigma:g} (array mean {b.mean_sigma:g}), warm-up {b.burn} steps"
+              + ("; the overall amplitude per channel with them" if infer else "") + "; the draws are a Markov chain's")
+    elif infer:
         spec = run_spec(args, nsamples=spec.draws.nsamples, method=spec.solver.method, tol=spec.solver.tol,
                         extra=spec.extra, gains=gain_sampling(args, prob=prob), amplitude=amplitude_sampling(args))
         g = spec.sampling.amplitude.gains
@@ -305,15 +315,6 @@ def _run_data(args) -> int:
               + ("; the draws are independent" if g is None else
                  f"; gains sampled with the sky: {g.modes[0]} x {g.modes[1]} {g.basis} modes per gain, prior sd "
                  f"{g.sigma:g}, burn-in {g.burn} sweeps; the draws are a Markov chain's"))
-    elif args.beams == "sample":
-        from ..run.sampling import Beams
-
-        spec = run_spec(args, nsamples=spec.draws.nsamples, method=spec.solver.method, tol=spec.solver.tol,
-                        extra=spec.extra, sampling=Beams(beam_sampling(args), nominal=nominal))
-        b = spec.sampling.beams
-        print(f"gcrsky: beams sampled with the sky: Zernike orders 1-{b.nmax} ({b.freq_modes} frequency mode(s)) per "
-              f"antenna, prior sd {b.sigma:g} (array mean {b.mean_sigma:g}), warm-up {b.burn} steps; the draws are a "
-              "Markov chain's")
     elif args.gains == "sample":
         spec = run_spec(args, nsamples=spec.draws.nsamples, method=spec.solver.method, tol=spec.solver.tol,
                         extra=spec.extra, gains=gain_sampling(args, _applied_amplitude(prob), prob))

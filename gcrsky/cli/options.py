@@ -297,7 +297,7 @@ def add_beam_options(g) -> None:
     g.add_argument("--beams", choices=("off", "sample"), default="off",
                    help="every antenna's beam perturbation sampled with the sky (Zernike modes over the main lobe; "
                    "docs/beams.md): off (default: the nominal beam for every antenna), sample (every baseline kept; "
-                   "the amplitude fixed and the gains off; lmax <= 49)")
+                   "the gains off, the amplitude inferred or fixed as --amplitude says; lmax <= 49)")
     g.add_argument("--beam-modes", type=int_at_least(1, "beam-modes", 4), default=None, metavar="NMAX",
                    help="the highest Zernike radial order of the perturbations (default 2: tilts, defocus, "
                    "astigmatisms; 1: tilts, i.e. pointing, only)")
@@ -310,8 +310,9 @@ def add_beam_options(g) -> None:
                    help="warm-up steps of the beam chain (default 20)")
 
 
-def beam_sampling(args):
-    """The :class:`gcrsky.run.BeamSampling` of the options (its defaults where not given), or None without
+def beam_sampling(args, amplitude=None):
+    """The :class:`gcrsky.run.BeamSampling` of the options (its defaults where not given), with the amplitude
+    inferred where ``amplitude`` (an :class:`gcrsky.run.AmplitudeSampling`) is given, or None without
     ``--beams sample``."""
     if args.beams != "sample":
         return None
@@ -319,7 +320,7 @@ def beam_sampling(args):
 
     kw = {k: v for k, v in (("nmax", args.beam_modes), ("sigma", args.beam_sigma),
                             ("freq_modes", args.beam_freq_modes), ("burn", args.beam_burn)) if v is not None}
-    return BeamSampling(**kw)
+    return BeamSampling(**kw, amplitude=amplitude)
 
 
 def add_frequency_options(g) -> None:

@@ -67,7 +67,7 @@ from .output import OpenRun
 from .stages import StageTimer, Watch
 
 __all__ = ["AMPLITUDE_KEY_SCHEME", "ESS_FLOOR", "PILOT", "RECENTRES", "SETTLE", "AmplitudeChain", "amplitude_chain_setup", "amplitude_draws",
-           "amplitude_summary", "stored_setup_factor"]
+           "amplitude_summary", "autos_ratio", "draw_c", "stored_setup_factor"]
 
 log = logging.getLogger(__name__)
 
@@ -143,7 +143,7 @@ def amplitude_chain_setup(key, prob, amp) -> AmplitudeChain:
     """
     nf, nt, nbl = prob.data.shape
     t0 = time.perf_counter()
-    ratio = _autos_ratio(prob)
+    ratio = autos_ratio(prob)
     u0 = ratio if ratio is not None else 1.0
     fixed = _fixed_at(prob, np.full((nf, nt, nbl), u0))
     g = amp.gains
@@ -188,12 +188,14 @@ def _pieces(n: int) -> list[int]:
     return [n // k + (i < n % k) for i in range(k)]
 
 
-def _autos_ratio(prob) -> float | None:
+def autos_ratio(prob) -> float | None:
+    """The flux-scale check's ratio (the data's autos over the sky model's, :mod:`gcrsky.ingest.datachecks`), or None
+    where it did not run or is not a positive number: where the amplitude's search starts."""
     ratio = ((getattr(prob.config, "checks", None) or {}).get("flux_scale") or {}).get("ratio")
     return float(ratio) if ratio is not None and np.isfinite(ratio) and ratio > 0 else None
 
 
-def _draw_c(key, sd: float, shape=()):
+def draw_c(key, sd: float, shape=()):
     """``c ~ N(1, sd^2)`` truncated to ``c > 0``."""
     return 1.0 + sd * jax.random.truncated_normal(key, -1.0 / sd, jnp.inf, shape, jnp.float64)
 
@@ -235,7 +237,7 @@ def _batch(chain: AmplitudeChain, eig, key, n: int, amp):
     else:
         last, kept = _segment(chain.fixed, chain.block, chain.state, k_draw, n=n, thin=amp.gains.thin)
         lu, delta, theta = kept.log_u, kept.delta, kept.theta
-    return last, lu, delta, theta, _draw_c(k_c, amp.model_sd, (n,))
+    return last, lu, delta, theta, draw_c(k_c, amp.model_sd, (n,))
 
 
 def _per_draw(prob, chain: AmplitudeChain) -> dict:
@@ -374,10 +376,15 @@ def _ess(x: np.ndarray) -> float | None:
     return float(effective_sample_size(np.asarray(x)[None])) if x.shape[0] > 3 and np.std(x) > 0 else None
 
 
-def amplitude_summary(prob, amp, h5) -> dict:
+def amplitude_summary(prob, amp, h5, *, markov: bool | None = None) -> dict:
     """``summary.json``'s blocks: ``flux_scale`` (per channel median and 95 % interval of ``q``, the autos' ratio
-    beside it, the source) and ``amplitude`` (settings, ESS of every sampled scalar against :data:`ESS_FLOOR`)."""
+    beside it, the source) and ``amplitude`` (settings, ESS of every sampled scalar against :data:`ESS_FLOOR`).
+
+    ``markov``: the draws are a Markov chain's (default: with gains; a beam run's are, without them), so
+    every sampled scalar's chain diagnostics and their WARNING are given."""
     import h5py
+
+    markov = amp.gains is not None if markov is None else markov
 
     with h5py.File(h5, "r") as h:
         rows = int(h["draws"].shape[1])
@@ -402,12 +409,13 @@ def amplitude_summary(prob, amp, h5) -> dict:
         ess_theta_min = None
     low = sorted(k for k, v in ess.items() if v is not None and v < min(ESS_FLOOR, 0.5 * rows))
     chain = warning = None
-    if amp.gains is not None and rows:  # a Markov chain: every sampled scalar's ESS and R-hat, and the WARNING
+    if markov and rows:  # a Markov chain: every sampled scalar's ESS and R-hat, and the WARNING
         from ..inference.diagnostics import chain_diagnostics, diagnostics_warning
 
-        chain = chain_diagnostics({"amplitude_q": q, **({"gain_theta": theta} if theta.shape[1] else {})},
+        chain = chain_diagnostics({"amplitude_q": q, **({"gain_theta": theta} if theta is not None and theta.shape[1]
+                                                        else {})},
                                   floor=ESS_FLOOR)
-        warning = diagnostics_warning(chain, "the amplitude and gain chain")
+        warning = diagnostics_warning(chain, "the amplitude chain" if theta is None else "the amplitude and gain chain")
         if warning is not None:
             log.warning(warning.removeprefix("WARNING: "))
     flux = {"source": "inferred", "per_channel": chans,
@@ -420,5 +428,5 @@ def amplitude_summary(prob, amp, h5) -> dict:
                      "check of the same number (it includes the receiver's noise)")}
     block = {"settings": amp.to_dict(), "ndraws": rows, "ess": ess, "ess_floor": ESS_FLOOR, "ess_low": low,
              "ess_theta_min": ess_theta_min, "c_mean": float(np.mean(c)) if rows else None,
-             "independent_draws": amp.gains is None, "chain": chain, "warnings": [warning] if warning else []}
+             "independent_draws": not markov, "chain": chain, "warnings": [warning] if warning else []}
     return {"flux_scale": flux, "amplitude": block}

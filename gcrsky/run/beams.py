@@ -58,6 +58,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..inference.amplitude import log_evidence_over_u
 from ..inference.api import prepare
 from ..inference.beams import (
     beam_coefficients,
@@ -65,18 +66,21 @@ from ..inference.beams import (
     beam_init,
     beam_log_evidence,
     beam_setup,
+    beam_system,
     beam_warmup_step,
 )
 from ..instrument.beammodes import beam_modes, combine_responses, disc_radius, mode_responses
 from ..model.gains import mode_basis
 from ..solvers.plan import choose_path
+from .amplitude import autos_ratio, draw_c
 from .draws import append_chain_batch, read_chain, record_setup
+from .gains import noise_at
 from .output import BEAM_DIR, OpenRun
 from .resume import options_json
 from .stages import StageTimer, Watch
 
 __all__ = ["BEAM_DENSE_MAX_N", "BEAM_KEY_SCHEME", "PROPOSAL_WIDEN", "BeamChain", "beam_chain_setup", "beam_draws",
-           "beam_summary", "beamed_problem", "modes_of", "write_beam_products"]
+           "beam_fit_problem", "beam_summary", "beamed_problem", "modes_of", "write_beam_products"]
 
 log = logging.getLogger(__name__)
 
@@ -84,9 +88,10 @@ log = logging.getLogger(__name__)
 #: precision, ``~Nf n^3 / 3`` flop, twice per step): ``lmax <= 49``.
 BEAM_DENSE_MAX_N = 2500
 #: The key scheme of a beam run's chain (module doc).
-BEAM_KEY_SCHEME = ("beams-v1: Laplace fit from conditional modes fold_in(key, 2**31-2); start a proposal draw "
+BEAM_KEY_SCHEME = ("beams-v2: Laplace fit from conditional modes fold_in(key, 2**31-2); start a proposal draw "
                    "fold_in(key, 2**31-3); warm-up fold_in(key, 2**31-1); batch b fold_in(key, b); each split per "
-                   "kept state, then per step; collapsed independence MH")
+                   "kept state, then per step; collapsed independence MH; with the amplitude the sky model's scale c "
+                   "of batch b from fold_in(fold_in(key, b), 2**31-1)")
 #: The proposal's covariance is the Laplace covariance times ``PROPOSAL_WIDEN**2`` (heavier than the marginal's
 #: bulk, so that the importance weights stay bounded where the marginal is not quite Gaussian).
 PROPOSAL_WIDEN = 1.1
@@ -94,6 +99,7 @@ PROPOSAL_WIDEN = 1.1
 LOW_ACCEPT = 0.1
 _WARM = 2**31 - 1
 _START = 2**31 - 2
+_SCALE = 2**31 - 1  # folded into a batch's key: the sky model's scale c of its kept states
 #: Steps to the beams' conditional mode (:func:`gcrsky.inference.beam_warmup_step`) from which the Laplace fit
 #: starts (from the nominal beams BFGS stalls far from the maximum: on a 7-dish twin at an indefinite Hessian).
 WARM_START_STEPS = 5
@@ -184,11 +190,20 @@ def beam_chain_setup(prob, beams, sampling) -> BeamChain:
     basis_f = mode_basis(freqs.size, min(sampling.freq_modes, freqs.size), "legendre")
     block = beam_setup(stack, np.asarray(prob.antpairs), basis_f, sigma=sampling.sigma,
                        mean_sigma=sampling.mean_sigma, n_ant=nant)
-    system = prob.system()
-    k = block.prior_mean.size
+    k = block.prior_mean.size + (freqs.size if sampling.amplitude is not None else 0)
     zero = (jnp.zeros(k), jnp.eye(k))
-    return BeamChain(system, block, zero, beam_init(system.prior.mean, block),
+    log_u = None if sampling.amplitude is None else jnp.full(freqs.size, np.log(autos_ratio(prob) or 1.0))
+    system = _noise_system(prob, log_u)
+    return BeamChain(system, block, zero, beam_init(system.prior.mean, block, log_u=log_u),
                      disc_radius(beams[0], freqs, modes))
+
+
+def _noise_system(prob, log_u):
+    """The sky's system, the sky part of its noise (``--band-limit marginalise``) through the amplitude ``exp(log_u)``
+    (Nf,) where inferred (it is the sky's: :func:`gcrsky.run.gains.noise_at`)."""
+    if log_u is None:
+        return prob.system()
+    return noise_at(prob, np.exp(np.asarray(log_u))[:, None, None]).system()
 
 
 def beamed_problem(prob, response):
@@ -222,13 +237,23 @@ def _segment(system, block, proposal, state, key, *, n: int, thin: int):
 
 
 def _state_arrays(state) -> dict:
-    return {"beams/state/sky": np.asarray(state.sky), "beams/state/theta": np.asarray(state.theta)}
+    out = {"beams/state/sky": np.asarray(state.sky), "beams/state/theta": np.asarray(state.theta)}
+    if state.log_u is not None:
+        out["beams/state/log_u"] = np.asarray(state.log_u)
+    return out
 
 
 def _per_draw(chain: BeamChain) -> dict:
-    return {"beam_theta": (tuple(chain.block.prior_mean.shape), "f8",
-                           "(ndraws, Nant, M, Q): c_ik(nu) = sum_q theta_ikq B_q(nu); A_i = A_0 (1 + sum_k c_ik f_k)"),
-            "beam_info/accept": ((), "f8", "(ndraws,) mean acceptance of the beams' independence move over thin steps")}
+    out = {"beam_theta": (tuple(chain.block.prior_mean.shape), "f8",
+                          "(ndraws, Nant, M, Q): c_ik(nu) = sum_q theta_ikq B_q(nu); A_i = A_0 (1 + sum_k c_ik f_k)"),
+           "beam_info/accept": ((), "f8", "(ndraws,) mean acceptance of the beams' independence move over thin steps")}
+    if chain.state.log_u is not None:
+        nf = chain.state.log_u.shape[0]
+        out.update({"amplitude_q": ((nf,), "f8", "(ndraws, Nf): q = u / c, data = q x the sky model's visibilities "
+                                                 "in K through the beams"),
+                    "amplitude_u": ((nf,), "f8", "(ndraws, Nf): u = q c, what the data measure"),
+                    "amplitude_c": ((), "f8", "(ndraws,): the sky model's scale, a = c (a0 + delta)")})
+    return out
 
 
 def _layout_arrays(prob, chain: BeamChain, sampling, ev, response) -> dict:
@@ -241,7 +266,9 @@ def _layout_arrays(prob, chain: BeamChain, sampling, ev, response) -> dict:
             "beams/mean_inv_var": np.asarray(chain.block.mean_inv_var), "beams/laplace_theta": np.asarray(ev.theta),
             "beams/proposal_mean": np.asarray(chain.proposal[0]), "beams/proposal_chol": np.asarray(chain.proposal[1]),
             "beams/log_z": np.asarray(ev.log_z), "beams/log_z_nominal": np.asarray(ev.log_z_nominal),
-            "beams/laplace_converged": np.asarray(bool(ev.converged)), "beams/setup_response": np.asarray(response)}
+            "beams/laplace_converged": np.asarray(bool(ev.converged)), "beams/setup_response": np.asarray(response),
+            **({} if ev.log_u is None else {"beams/laplace_log_u": np.asarray(ev.log_u),
+                                             "beams/log_u_nominal": np.asarray(ev.log_u_nominal)})}
 
 
 def _setup(prob, beams, spec, run: OpenRun, key) -> BeamChain:
@@ -254,26 +281,42 @@ def _setup(prob, beams, spec, run: OpenRun, key) -> BeamChain:
     if run.state is not None:
         with h5py.File(run.h5, "r") as h:
             proposal = (jnp.asarray(h["beams/proposal_mean"][()]), jnp.asarray(h["beams/proposal_chol"][()]))
+            log_u = None if sampling.amplitude is None else jnp.asarray(h["beams/state/log_u"][()])
             state = chain.state._replace(sky=jnp.asarray(h["beams/state/sky"][()]),
-                                         theta=jnp.asarray(h["beams/state/theta"][()]))
-        return chain._replace(proposal=proposal, state=state)
+                                         theta=jnp.asarray(h["beams/state/theta"][()]), log_u=log_u)
+            system = chain.system if log_u is None else _noise_system(prob, h["beams/log_u_nominal"][()])
+        return chain._replace(proposal=proposal, state=state, system=system)
     t0 = time.perf_counter()
+    if sampling.amplitude is not None:  # the nominal beams' amplitude: where the fit starts, and the sky noise's
+        nom = log_evidence_over_u(beam_system(chain.system, chain.block, jnp.zeros_like(chain.block.prior_mean)),
+                                  chain.state.log_u)
+        chain = chain._replace(system=_noise_system(prob, nom.log_u), state=chain.state._replace(log_u=nom.log_u))
+        log.info("beams: the nominal beams' amplitude u per channel %s (started at the autos' ratio %s)",
+                 np.array2string(np.exp(np.asarray(nom.log_u)), precision=4), autos_ratio(prob))
     warm = jax.jit(lambda k, st: beam_warmup_step(k, st, chain.system, chain.block)[0])
     start = chain.state
     for k in jax.random.split(jax.random.fold_in(key, _START), WARM_START_STEPS):
         start = warm(k, start)
-    ev = beam_log_evidence(chain.system, chain.block, theta0=start.theta, newton_steps=NEWTON_STEPS)
+    ev = beam_log_evidence(chain.system, chain.block, theta0=start.theta, log_u0=start.log_u,
+                           newton_steps=NEWTON_STEPS)
     log.info("beams: Laplace fit of the marginal in %.1f s: log Bayes factor %.2f against the nominal beams "
              "(converged: %s)", time.perf_counter() - t0, float(ev.log_bayes_factor), bool(ev.converged))
-    chain = chain._replace(proposal=_proposal(ev.theta, ev.covariance))
+    best = ev.theta.reshape(-1) if ev.log_u is None else jnp.concatenate([ev.theta.reshape(-1), ev.log_u])
+    chain = chain._replace(proposal=_proposal(best, ev.covariance))
     response = combine_responses(chain.block.stack, chain.block.pairs, beam_coefficients(chain.block, ev.theta))
-    prob_b = beamed_problem(prob, response)
+    if ev.log_u is not None:
+        response = response * jnp.exp(ev.log_u)[:, None, None]
+    prob_b = beamed_problem(prob if ev.log_u is None else noise_at(prob, np.exp(np.asarray(ev.log_u))[:, None, None]),
+                            response)
     options = choose_path(prob_b.system(), spec.solver.method, tol=spec.solver.tol, ndraws=1)
     prepared = prepare(prob_b, options=options)
     a_wf = np.asarray(jax.block_until_ready(prepared.a_wf))
     mean, chol = chain.proposal  # start from a proposal draw, not the maximum: the maximum has the largest
     z = jax.random.normal(jax.random.fold_in(key, _START - 1), mean.shape, mean.dtype)  # weight p/q of all (by
-    state = beam_init(jnp.asarray(a_wf), chain.block, theta=(mean + chol @ z).reshape(ev.theta.shape))  # ~e^{0.2 K})
+    x = mean + chol @ z  # ~e^{0.2 K})
+    k = ev.theta.size
+    state = beam_init(jnp.asarray(a_wf), chain.block, theta=x[:k].reshape(ev.theta.shape),
+                      log_u=None if ev.log_u is None else x[k:])
     if sampling.burn:
         state, _ = _segment(chain.system, chain.block, chain.proposal, state, jax.random.fold_in(key, _WARM),
                             n=1, thin=sampling.burn)
@@ -303,30 +346,47 @@ def beam_draws(prob, beams, spec, run: OpenRun, st: StageTimer, watch: Watch) ->
                                                  jax.random.fold_in(key, b), n=d.batch, thin=sampling.thin)
         take = min(d.batch, d.nsamples - b * d.batch)
         extra = {"beam_theta": np.asarray(states.theta)[:take], "beam_info/accept": np.asarray(accept)[:take]}
-        append_chain_batch(run, b, take, states.sky, info, extra, _state_arrays(state), t0)
+        sky = states.sky
+        if sampling.amplitude is not None:  # a = c a', q = u / c: c from the sky model's prior (module doc)
+            c = np.asarray(draw_c(jax.random.fold_in(jax.random.fold_in(key, b), _SCALE), sampling.amplitude.model_sd,
+                                  (d.batch,)))
+            u = np.exp(np.asarray(states.log_u))
+            sky = c[:, None, None] * np.asarray(sky)
+            extra.update({"amplitude_q": (u / c[:, None])[:take], "amplitude_u": u[:take], "amplitude_c": c[:take]})
+        append_chain_batch(run, b, take, sky, info, extra, _state_arrays(state), t0)
     return "beams+cholesky"
 
 
-def stored_response(h5) -> np.ndarray:
-    """The response (Nf, Nbl, n) at the beams of a beam run's Wiener filter (``beams/setup_response``)."""
+def beam_fit_problem(prob, h5):
+    """The problem at a beam run's set-up: the response (Nf, Nbl, n) at the beams (and amplitude) of its Wiener
+    filter (``beams/setup_response``), the sky part of the noise through that amplitude (``--band-limit
+    marginalise``): the goodness of fit's model."""
     import h5py
 
     with h5py.File(h5, "r") as h:
-        return h["beams/setup_response"][()]
+        response = h["beams/setup_response"][()]
+        log_u = h["beams/laplace_log_u"][()] if "beams/laplace_log_u" in h else None
+    base = prob if log_u is None else noise_at(prob, np.exp(log_u)[:, None, None])
+    return beamed_problem(base, response)
 
 
 def _read(h5) -> dict:
     out = read_chain(h5, ("beam_theta", "beam_info/accept"),
                      tuple(f"beams/{k}" for k in ("antenna_numbers", "orders", "basis_f", "radius_rad", "prior_inv_var",
-                                                  "laplace_theta", "log_z", "log_z_nominal", "laplace_converged")))
+                                                  "laplace_theta", "log_z", "log_z_nominal", "laplace_converged")),
+                     optional=("beams/log_u_nominal",))
     out["theta"] = out.pop("beam_theta")
     return out
 
 
-def _nominal_fit(prob) -> dict:
-    """The goodness of fit of the nominal beams (the same test as the run's, without the block)."""
+def _nominal_fit(prob, log_u=None) -> dict:
+    """The goodness of fit of the nominal beams (the same test as the run's, without the block), with the amplitude
+    at the nominal beams' maximum ``exp(log_u)`` (Nf,) where it is inferred."""
     from .fit import goodness_of_fit
 
+    if log_u is not None:
+        u = np.exp(np.asarray(log_u))
+        prob = beamed_problem(noise_at(prob, u[:, None, None]), np.asarray(prob.response) * u[:, None, None])
     options = choose_path(prob.system(), "auto", ndraws=1)
     prepared = prepare(prob, options=options)
     gof = goodness_of_fit(prob, np.asarray(prepared.a_wf), rank=getattr(prepared, "kept", None))
@@ -359,7 +419,7 @@ def beam_summary(prob, sampling, h5) -> dict:
                      "converged": bool(g["laplace_converged"]),
                      "verdict": "the data ask for the beam block" if lbf > 0 else
                                 "the nominal beams are preferred (the block is not needed)"},
-        "fit_nominal": _nominal_fit(prob),
+        "fit_nominal": _nominal_fit(prob, g.get("log_u_nominal")),
         "coefficients": [{"antenna": int(a), **{n: {"mean": float(th[:, i, k, 0].mean()),
                                                     "sd": float(th[:, i, k, 0].std(ddof=1)) if nd > 1 else 0.0}
                                                 for k, n in enumerate(names)}}

@@ -34,7 +34,7 @@ from ..model.gains import BASES
 from ..parallel.channels import CHANNEL_KEY_SCHEME
 from .amplitude import amplitude_draws, amplitude_summary
 from .amplitude import fit_problem as amplitude_fit_problem
-from .beams import beam_draws, beam_summary, beamed_problem, stored_response, write_beam_products
+from .beams import beam_draws, beam_fit_problem, beam_summary, write_beam_products
 from .channels import channel_draws, worker_channels
 from .draws import joint_draws
 from .frequency import channels_block, frequency_draws
@@ -441,6 +441,9 @@ class BeamSampling:
         freq_modes: Legendre modes per coefficient across the band (1: constant).
         burn: warm-up steps of the chain (discarded).
         thin: steps per kept draw.
+        amplitude: the overall amplitude per channel inferred with the beams and the sky
+            (:class:`AmplitudeSampling`, its ``gains`` None: the data as given are ``u X(theta) a`` with the sky
+            model's scale ``c``: DESIGN section 14), or None (the data are calibrated: ``u = 1``).
     """
 
     nmax: int = 2
@@ -450,6 +453,7 @@ class BeamSampling:
     freq_modes: int = 1
     burn: int = 20
     thin: int = 1
+    amplitude: AmplitudeSampling | None = None
 
     def __post_init__(self):
         check_integer(self, "nmax", "beams.nmax", 1, 4)
@@ -461,10 +465,17 @@ class BeamSampling:
         check_integer(self, "freq_modes", "beams.freq_modes", 1, 8)
         check_integer(self, "burn", "beams.burn", 0)
         check_integer(self, "thin", "beams.thin", 1)
+        if self.amplitude is not None and not isinstance(self.amplitude, AmplitudeSampling):
+            raise ValueError(f"beams.amplitude must be an AmplitudeSampling or None, got {self.amplitude!r}")
+        if self.amplitude is not None and self.amplitude.gains is not None:
+            raise ValueError("beams.amplitude.gains: the beam block is not combined with sampled gains yet (give "
+                             "AmplitudeSampling(gains=None))")
 
     def to_dict(self) -> dict:
         """The settings as a JSON-able dict (recorded with the run's settings as ``beams``)."""
-        return dataclasses.asdict(self)
+        out = dataclasses.asdict(self)
+        out["amplitude"] = None if self.amplitude is None else self.amplitude.to_dict()
+        return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -498,15 +509,18 @@ class Beams(DrawStage):
         return beam_draws(prob, self.nominal, spec, run, st, watch)
 
     def fit_problem(self, prob, h5):
-        """The problem with the beams of the Wiener filter's set-up (:func:`gcrsky.run.beams.beamed_problem`)."""
-        return beamed_problem(prob, stored_response(h5))
+        """The problem with the beams (and amplitude) of the Wiener filter's set-up
+        (:func:`gcrsky.run.beams.beam_fit_problem`)."""
+        return beam_fit_problem(prob, h5)
 
     def finish(self, prob, out, h5) -> dict:
         """``{"beams": block}`` (:func:`gcrsky.run.beams.beam_summary`) with ``beam_files``, the directory of
-        per-antenna UVBeam files written (:func:`gcrsky.run.beams.write_beam_products`)."""
+        per-antenna UVBeam files written (:func:`gcrsky.run.beams.write_beam_products`); with the amplitude
+        inferred also the ``flux_scale`` and ``amplitude`` blocks (:func:`gcrsky.run.amplitude.amplitude_summary`)."""
         block = beam_summary(prob, self.beams, h5)
         block["beam_files"] = write_beam_products(prob, self.nominal, self.beams, out, h5)
-        return {"beams": block}
+        amp = {} if self.beams.amplitude is None else amplitude_summary(prob, self.beams.amplitude, h5, markov=True)
+        return {"beams": block, **amp}
 
 
 #: The draw stages a run may hold (:attr:`gcrsky.run.RunSpec.sampling`).
