@@ -59,17 +59,26 @@ def pointed_twin(tmp_path_factory):
     return path, scatter
 
 
-def _run(path, out, *extra):
-    return cli.main(["run", "--data", str(path), "--dish-diameter", "14", "--lmax", str(LMAX), "--pol", "xx",
-                     "--band-limit", "truncate", "--beams", "sample", "--beam-modes", "1", "--beam-burn", "10",
-                     "--nsamples", "40", "--batch", "20", "--out", str(out), "--no-plots", "--no-progress", *extra])
+def _args(path, out, cache):
+    return ["run", "--data", str(path), "--dish-diameter", "14", "--lmax", str(LMAX), "--pol", "xx",
+            "--band-limit", "truncate", "--beams", "sample", "--beam-modes", "1", "--beam-burn", "10",
+            "--nsamples", "40", "--batch", "20", "--out", str(out), "--no-plots", "--no-progress",
+            "--compile-cache", str(cache)]
+
+
+@pytest.fixture(scope="module")
+def beam_run(pointed_twin, tmp_path_factory):
+    """The uninterrupted run (its compiled programs cached for the killed one)."""
+    base = tmp_path_factory.mktemp("beams_run")
+    out = base / "run"
+    assert cli.main(_args(pointed_twin[0], out, base / "cache")) == 0
+    return out, base / "cache"
 
 
 @pytest.mark.slow
-def test_beams_sample_fits_dishes_that_point_their_own_way(pointed_twin, tmp_path):
+def test_beams_sample_fits_dishes_that_point_their_own_way(pointed_twin, beam_run):
     path, scatter = pointed_twin
-    out = tmp_path / "run"
-    assert _run(path, out) == 0
+    out, _ = beam_run
     s = json.loads((out / "summary.json").read_text())
     b = s["beams"]
     # the negative control: the nominal beams are rejected by the same test ...
@@ -135,3 +144,26 @@ def test_a_problem_too_large_for_the_exact_marginal_is_refused_naming_lmax(point
                    "--no-plots", "--no-progress"])
     assert rc == 2
     assert "give --lmax 49 or less" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_killed_beam_run_resumes_to_the_uninterrupted_draws(pointed_twin, beam_run, tmp_path):
+    """Killed after its first batch (the test hook: SIGKILL once batch 1 is in results.h5), the run resumes from the
+    recorded proposal, chain state and amplitude (no new set-up) to the uninterrupted run's draws, bit for bit."""
+    import os
+    import subprocess
+    import sys
+
+    ref, cache = beam_run
+    out = tmp_path / "killed"
+    args = _args(pointed_twin[0], out, cache)
+    env = {**os.environ, "GCRSKY_TEST_KILL_AFTER_BATCH": "1", "JAX_ENABLE_X64": "1"}
+    p = subprocess.run([sys.executable, "-m", "gcrsky", *args], env=env, capture_output=True, text=True, timeout=900)
+    assert p.returncode != 0, p.stdout[-2000:]  # killed by the hook after the first batch
+    with h5py.File(out / "results.h5", "r") as h:
+        assert int(h.attrs["batches_complete"]) == 1 and h["beam_theta"].shape[0] == 20
+    assert cli.main([*args, "--resume"]) == 0
+    with h5py.File(ref / "results.h5", "r") as a, h5py.File(out / "results.h5", "r") as b:
+        for name in ("draws", "beam_theta", "beam_info/accept", "amplitude_q", "amplitude_u", "amplitude_c",
+                     "wiener_filter", "beams/proposal_chol"):
+            np.testing.assert_array_equal(a[name][()], b[name][()], err_msg=name)

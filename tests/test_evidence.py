@@ -175,6 +175,9 @@ def test_fit_recovers_the_noise_scale_and_agrees_with_scipy():
                             method="Nelder-Mead", options={"xatol": 1e-10, "fatol": 1e-12})
     assert abs(est - ref.x[0]) < 1e-5 * max(1.0, abs(ref.x[0]))
     assert fit.covariance.shape == (1, 1)
+    bare = gcrsky.fit_hyperparameters(make, {"log_noise": jnp.asarray(0.0)}, covariance=False)  # no Hessian
+    assert float(bare.theta["log_noise"]) == est and bool(bare.converged)
+    assert bool(jnp.all(jnp.isnan(bare.covariance))) and bool(jnp.isnan(bare.std["log_noise"]))
 
 
 # ---------------------------------------------------------------- the beam and the spectral template

@@ -67,9 +67,9 @@ from .gains import GainBlock, theta_draw
 __all__ = [
     "COARSE",
     "FINE",
-    "GH_NODES",
     "GRID_DROP",
     "LOG_U_RANGE",
+    "MAX_LOG_U_SD",
     "AmplitudeEigen",
     "AmplitudeEvidence",
     "AmplitudeFixed",
@@ -213,8 +213,9 @@ def log_marginal(fixed: AmplitudeFixed, eig: AmplitudeEigen, log_u) -> jax.Array
     return -0.5 * (quad + jnp.sum(jnp.log(den), axis=-1) + fixed.n_keep * jnp.log(2 * jnp.pi) - fixed.logdet_w)
 
 
-def _grid_draw(key, logp_fn, ndraws: int):
-    """``ndraws`` draws of a scalar from ``exp(logp_fn(x))`` on :data:`LOG_U_RANGE` by the two-level grid."""
+def _grid(logp_fn):
+    """The two-level grid of ``exp(logp_fn)`` on :data:`LOG_U_RANGE` (module docstring): ``(xf, lf)`` the fine grid
+    (:data:`FINE` points across the coarse cells within :data:`GRID_DROP` of the maximum) and its log density."""
     lo, hi = LOG_U_RANGE
     xc = jnp.linspace(lo, hi, COARSE)
     lc = logp_fn(xc)
@@ -225,7 +226,12 @@ def _grid_draw(key, logp_fn, ndraws: int):
     first = jnp.maximum(jnp.min(jnp.where(near, idx, COARSE)) - 1, 0)
     last = jnp.minimum(jnp.max(jnp.where(near, idx, -1)) + 1, COARSE - 1)
     xf = jnp.linspace(xc[first], xc[last], FINE)
-    lf = logp_fn(xf)
+    return xf, logp_fn(xf)
+
+
+def _grid_draw(key, logp_fn, ndraws: int):
+    """``ndraws`` draws of a scalar from ``exp(logp_fn(x))`` on :data:`LOG_U_RANGE` by the two-level grid."""
+    xf, lf = _grid(logp_fn)
     p = jnp.exp(lf - jnp.max(lf))
     cum = jnp.concatenate([jnp.zeros(1), jnp.cumsum(0.5 * (p[1:] + p[:-1]) * jnp.diff(xf))])  # un-normalised CDF
     mass = jax.random.uniform(key, (ndraws,), xf.dtype) * cum[-1]
@@ -347,77 +353,56 @@ class AmplitudeEvidence(NamedTuple):
 
     Attributes:
         log_z: ``log int p(d_f | u) p(ln u) d ln u`` (the prior :func:`amplitude_log_prior`'s).
-        log_u: the maximum of ``log p(d_f | u)`` in ``ln u``.
-        sd: ``(-d^2 log p / d ln u^2)^-1/2`` there (the Gauss-Hermite scale).
-        converged: Newton's steps reached the maximum (``|d log p / d ln u| sd < 1e-6``) at a negative curvature.
+        log_u: the maximum of ``p(d_f | u)`` in ``ln u`` (on the fine grid).
+        sd: the posterior standard deviation of ``ln u``.
+        identified: the data determine ``u``: ``sd`` < :data:`MAX_LOG_U_SD` and the maximum at least 4 ``sd``
+            inside the prior's range (else the modelled sky is below the noise and ``u`` runs to the range's
+            end, a plateau: nothing may be Laplace-approximated in it).
     """
 
     log_z: jax.Array
     log_u: jax.Array
     sd: jax.Array
-    converged: jax.Array
+    identified: jax.Array
 
 
-#: Gauss-Hermite nodes of :func:`log_evidence_over_u` (about the maximum, at the curvature's scale).
-GH_NODES = 24
+#: Posterior sd of ``ln u`` above which :func:`log_evidence_over_u` says the amplitude is not identified.
+MAX_LOG_U_SD = 1.0
 
 
-def log_evidence_over_u(system: LinearSystem, log_u0, *, options=None, nodes: int = GH_NODES,
-                        steps: int = 30) -> AmplitudeEvidence:
-    """The sky model's evidence with the overall amplitude per channel integrated out, in the primal form.
+def log_evidence_over_u(system: LinearSystem) -> AmplitudeEvidence:
+    """The sky model's evidence with the overall amplitude per channel integrated out, exactly.
 
-    ``log p(d_f) = log int p(d_f | u) p(ln u) d ln u`` with ``p(d_f | u)`` the exact sky evidence of the system
-    whose response is ``u X`` (:func:`scale_response`, :func:`gcrsky.inference.log_evidence_system`: dense
-    Cholesky by default) and the prior uniform in ``ln u`` (:func:`amplitude_log_prior`).  The channels are
-    independent: damped Newton steps per channel (the gradient and the curvature of the summed log evidence,
-    whose Hessian is diagonal) from ``log_u0`` find each maximum, then ``nodes``-point Gauss-Hermite quadrature
-    about it at the curvature's scale integrates (exact for a Gaussian integrand times a polynomial of degree
-    ``2 nodes - 1``; ``tests/test_beam_amplitude.py`` checks it against the data-space marginal
-    :func:`log_marginal` integrated on a fine grid).  Eager (a loop of jitted pieces), not differentiable.
+    ``log p(d_f) = log int p(d_f | u) p(ln u) d ln u`` with ``p(d_f | u)`` the exact marginal of the data-space
+    form (:func:`log_marginal`; one eigendecomposition of the whitened data-space Gram matrix per channel,
+    :func:`amplitude_setup`, then ``O(N_d)`` per value) and the prior uniform in ``ln u`` over :data:`LOG_U_RANGE`
+    (:func:`amplitude_log_prior`), integrated by the trapezoid rule on :func:`draw_log_u`'s two-level grid across
+    the whole range (the fine grid's spacing ``h``: ``O(h^2)``; ``tests/test_beam_amplitude.py`` checks it
+    against the primal evidence, :func:`gcrsky.inference.log_evidence_system` of :func:`scale_response`, on a
+    fine grid).  Costs ``O(N_d^3)`` per channel (memory ``8 Nf N_d^2`` bytes).
 
     Args:
-        system: the sky's system (raw data, noise, prior; its response the amplitude's ``u = 1``).
-        log_u0: (Nf,) or scalar: where Newton's steps start (e.g. the log of the autos' ratio).
-        options: the evidence path (default ``CholeskyOptions()``).
+        system: the sky's system (raw data, noise, prior; its response the amplitude's ``u = 1``; a proper prior).
     """
-    from ..solvers.options import CholeskyOptions
-    from .evidence import log_evidence_system
-
-    options = CholeskyOptions() if options is None else options
-    nf = system.data.shape[0]
-
-    @jax.jit
-    def f(x):
-        return log_evidence_system(scale_response(system, x), options=options, check=False)[0]
-
-    @jax.jit
-    def g_h(x):  # per channel: the log evidence's first and second derivative in ln u
-        grad = jax.grad(lambda y: jnp.sum(f(y)))
-        g, h = jax.jvp(grad, (x,), (jnp.ones_like(x),))
-        return g, h
-
-    x = jnp.broadcast_to(jnp.asarray(log_u0, jnp.float64), (nf,))
-    fx = f(x)
-    for _ in range(steps):
-        g, h = g_h(x)
-        step = jnp.where(h < 0, -g / jnp.where(h < 0, h, -1.0), jnp.sign(g))
-        step = jnp.clip(step, -2.0, 2.0)
-        t = jnp.ones(nf)
-        for _ in range(20):  # halve per channel until the log evidence does not decrease
-            fn = f(x + t * step)
-            bad = ~(fn >= fx)
-            if not bool(jnp.any(bad)):
-                break
-            t = jnp.where(bad, 0.5 * t, t)
-        x, fx = x + t * step, jnp.where(jnp.isfinite(fn), fn, fx)
-        if bool(jnp.all(jnp.abs(step * t) < 1e-9)):
-            break
-    g, h = g_h(x)
-    sd = 1.0 / jnp.sqrt(jnp.maximum(-h, 1e-300))
-    converged = (h < 0) & (jnp.abs(g) * sd < 1e-6)
-    t, w = np.polynomial.hermite.hermgauss(nodes)
-    vals = jnp.stack([f(x + np.sqrt(2.0) * sd * tk) for tk in t])  # (nodes, Nf)
-    log_int = (jax.scipy.special.logsumexp(vals + jnp.asarray(np.log(w) + t**2)[:, None], axis=0)
-               + jnp.log(np.sqrt(2.0) * sd))
+    fixed = amplitude_setup(system)
+    eig = amplitude_eigen(fixed)
     lo, hi = LOG_U_RANGE
-    return AmplitudeEvidence(log_int - np.log(hi - lo), x, sd, converged)
+
+    def one(lam, yt, mt, nk, lw):
+        e = AmplitudeEigen(lam[None], None, yt[None], mt[None], None)
+        f = AmplitudeFixed(None, None, None, None, nk[None], lw[None])
+        logp = lambda x: log_marginal(f, e, x[:, None])[:, 0]  # noqa: E731
+        xf, lf = _grid(logp)
+        top = jnp.max(lf)
+        p = jnp.exp(lf - top)
+        w = 0.5 * (p[1:] + p[:-1]) * jnp.diff(xf)
+        mass = jnp.sum(w)
+        mid = 0.5 * (xf[1:] + xf[:-1])
+        mean = jnp.sum(w * mid) / mass
+        sd = jnp.sqrt(jnp.maximum(jnp.sum(w * (mid - mean) ** 2) / mass, 0.0))
+        mode = xf[jnp.argmax(lf)]
+        ok = (sd < MAX_LOG_U_SD) & (mode - 4 * sd > lo) & (mode + 4 * sd < hi)
+        return top + jnp.log(mass) - jnp.log(hi - lo), mode, sd, ok
+
+    lz, mode, sd, ok = jax.jit(jax.vmap(one))(eig.lam, eig.yt, eig.mt, fixed.n_keep, fixed.logdet_w)
+    return AmplitudeEvidence(lz, mode, sd, ok)

@@ -77,6 +77,7 @@ __all__ = [
     "beam_sweep",
     "beam_system",
     "beam_warmup_step",
+    "check_amplitude_identified",
     "set_visibilities",
 ]
 
@@ -406,7 +407,7 @@ class BeamEvidence(NamedTuple):
         theta: (Nant, M, Q) the maximum of ``log p(d | theta) + log p(theta)``.
         covariance: (k, k) the Laplace covariance of the flattened ``theta`` (then ``log_u``, where inferred).
         converged: the optimiser converged and the Hessian is positive definite.
-        log_u: (Nf,) the amplitude at the maximum where it is inferred (``log_u0``), else None.
+        log_u: (Nf,) the amplitude at the maximum where it is inferred (``amplitude``), else None.
         log_u_nominal: (Nf,) the maximum of the nominal beams' ``log p(d | u)`` where inferred, else None.
     """
 
@@ -472,7 +473,7 @@ def _newton_polish(fun, x, steps: int):
     return x, f, h, g @ step
 
 
-def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, log_u0=None, options=None,
+def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, amplitude: bool = False, options=None,
                       max_steps: int = 200, newton_steps: int = 0) -> BeamEvidence:
     """Whether the data ask for the beam block: its evidence against the nominal beams'.
 
@@ -487,27 +488,31 @@ def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, lo
     inverse Hessian of ``-f``.  Laplace is exact for a Gaussian integrand; ``tests/test_beam_block.py`` checks
     it against importance sampling of the exact integrand.  The row factor is folded in as in :func:`beam_system`.
 
-    **The amplitude inferred** (``log_u0`` given): the response is ``u_f`` times the beams' (DESIGN section 14),
+    **The amplitude inferred** (``amplitude=True``): the response is ``u_f`` times the beams' (DESIGN section 14),
     ``u`` per channel with the prior uniform in ``ln u`` (:func:`gcrsky.inference.amplitude.amplitude_log_prior`),
     and both models integrate it out: the nominal one exactly per channel (:func:`gcrsky.inference.amplitude.
-    log_evidence_over_u`: Newton then Gauss-Hermite; eager), the block's by Laplace jointly with ``theta``
-    (``k = Nant M Q + Nf``; BFGS starts at the nominal's maximum ``u``).  Needs ``newton_steps > 0`` (eager).
+    log_evidence_over_u`: the data-space marginal on a grid across the prior's range), the block's by Laplace
+    jointly with ``theta`` (``k = Nant M Q + Nf``; BFGS starts at the nominal's most probable ``u``).  Needs
+    ``newton_steps > 0`` (eager), and data that determine ``u`` (else ``ValueError``: Laplace in ``ln u`` would
+    be meaningless where the posterior runs to the prior's end).
 
     Args:
         system: the sky's system (raw data, noise, prior; its response is replaced).
         block: :func:`beam_setup`'s block.
         theta0: the optimiser's start (default the prior mean; a start near the maximum, e.g. a few
             :func:`beam_warmup_step`'s, saves most of the steps).
-        log_u0: (Nf,) or scalar, the amplitude's starting ``ln u`` (e.g. of the autos' ratio): the amplitude is
-            inferred; None: it is the row factor's (fixed).
+        amplitude: infer the overall amplitude per channel (above); False: it is the row factor's (fixed).
         options: the evidence path's options (default ``CholeskyOptions()``).
         max_steps: BFGS's step cap.
         newton_steps: Newton steps after BFGS (each one Hessian: ``k`` Hessian-vector products); 0: none.
 
     Returns:
         :class:`BeamEvidence`; ``converged``: the Hessian of ``-f`` is positive definite and BFGS converged
-        or (with Newton steps) the Newton decrement is below :data:`NEWTON_DECREMENT_TOL` (and with the
-        amplitude, the nominal's Newton steps converged).
+        or (with Newton steps) the Newton decrement is below :data:`NEWTON_DECREMENT_TOL`.
+
+    Raises:
+        ValueError: ``amplitude`` without ``newton_steps``; the amplitude not identified by the data (naming
+            the channels and its posterior spread).
     """
     from jax.flatten_util import ravel_pytree
 
@@ -517,23 +522,24 @@ def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, lo
 
     options = CholeskyOptions() if options is None else options
     start = block.prior_mean if theta0 is None else jnp.asarray(theta0)
-    if log_u0 is not None:
+    if amplitude:
         if not newton_steps:
-            raise ValueError("beam_log_evidence with the amplitude (log_u0) integrates it out eagerly: give "
-                             "newton_steps > 0")
-        nom = log_evidence_over_u(beam_system(system, block, jnp.zeros_like(start)), log_u0, options=options)
+            raise ValueError("beam_log_evidence with the amplitude integrates it out eagerly: give newton_steps > 0")
+        nom = log_evidence_over_u(beam_system(system, block, jnp.zeros_like(start)))
+        check_amplitude_identified(nom)
         fit = fit_hyperparameters(lambda p: beam_system(system, block, p[0], p[1]), (start, nom.log_u),
                                   options=options, log_prior=lambda p: beam_log_prior(block, p[0])
-                                  + amplitude_log_prior(p[1]), max_steps=max_steps)
+                                  + amplitude_log_prior(p[1]), max_steps=max_steps, covariance=False)
         flat, unravel = ravel_pytree(fit.theta)
-        nominal, nom_ok = jnp.sum(nom.log_z), jnp.all(nom.converged)
+        nominal = jnp.sum(nom.log_z)
 
         def fun(x):
             th, lu = unravel(x)
             return beam_marginal_log_posterior(system, block, th, log_u=lu, options=options)
     else:
         fit = fit_hyperparameters(lambda th: beam_system(system, block, th), start, options=options,
-                                  log_prior=lambda th: beam_log_prior(block, th), max_steps=max_steps)
+                                  log_prior=lambda th: beam_log_prior(block, th), max_steps=max_steps,
+                                  covariance=not newton_steps)  # the Newton steps compute their own
         nominal = jnp.sum(log_evidence_system(beam_system(system, block, jnp.zeros_like(start)), options=options,
                                               check=False)[0])
         if not newton_steps:  # pure: BFGS's maximum and its Hessian
@@ -543,7 +549,7 @@ def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, lo
             return BeamEvidence(log_z, nominal, log_z - nominal, fit.theta, fit.covariance,
                                 fit.converged & (sign > 0))
         flat, unravel = ravel_pytree(fit.theta)
-        nom, nom_ok = None, True
+        nom = None
 
         def fun(x):
             return beam_marginal_log_posterior(system, block, unravel(x), options=options)
@@ -553,11 +559,23 @@ def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, lo
     evals, vecs = jnp.linalg.eigh(hess)
     cov = (vecs / evals) @ vecs.T
     log_z = obj + 0.5 * k * jnp.log(2 * jnp.pi) - 0.5 * jnp.sum(jnp.log(jnp.abs(evals)))
-    converged = jnp.all(evals > 0) & (decrement < NEWTON_DECREMENT_TOL) & nom_ok
+    converged = jnp.all(evals > 0) & (decrement < NEWTON_DECREMENT_TOL)
     best = unravel(flat)
     if nom is None:
         return BeamEvidence(log_z, nominal, log_z - nominal, best, cov, converged)
     return BeamEvidence(log_z, nominal, log_z - nominal, best[0], cov, converged, best[1], nom.log_u)
+
+
+def check_amplitude_identified(nom) -> None:
+    """Refuse an amplitude the data do not determine (:class:`gcrsky.inference.amplitude.AmplitudeEvidence`'s
+    ``identified``), naming the channels and the posterior spread of ``ln u``."""
+    bad = np.flatnonzero(~np.asarray(nom.identified))
+    if bad.size:
+        sd = ", ".join(f"{float(nom.sd[i]):.3g}" for i in bad[:5])
+        raise ValueError(f"the data do not determine the overall amplitude in channel(s) {bad.tolist()[:10]} (posterior "
+                         f"sd of ln u {sd}, or it runs to the prior's end): the modelled sky is below the noise "
+                         "there (e.g. a low lmax whose marginalised sky dominates the data); raise lmax, choose other "
+                         "channels, or give calibrated data with the amplitude fixed")
 
 
 def beam_conditional_mode(theta, block: BeamBlock, sets, data, inv_noise, *, iterations: int = 5) -> jax.Array:

@@ -68,6 +68,7 @@ from ..inference.beams import (
     beam_setup,
     beam_system,
     beam_warmup_step,
+    check_amplitude_identified,
 )
 from ..instrument.beammodes import beam_modes, combine_responses, disc_radius, mode_responses
 from ..model.gains import mode_basis
@@ -288,8 +289,8 @@ def _setup(prob, beams, spec, run: OpenRun, key) -> BeamChain:
         return chain._replace(proposal=proposal, state=state, system=system)
     t0 = time.perf_counter()
     if sampling.amplitude is not None:  # the nominal beams' amplitude: where the fit starts, and the sky noise's
-        nom = log_evidence_over_u(beam_system(chain.system, chain.block, jnp.zeros_like(chain.block.prior_mean)),
-                                  chain.state.log_u)
+        nom = log_evidence_over_u(beam_system(chain.system, chain.block, jnp.zeros_like(chain.block.prior_mean)))
+        check_amplitude_identified(nom)
         chain = chain._replace(system=_noise_system(prob, nom.log_u), state=chain.state._replace(log_u=nom.log_u))
         log.info("beams: the nominal beams' amplitude u per channel %s (started at the autos' ratio %s)",
                  np.array2string(np.exp(np.asarray(nom.log_u)), precision=4), autos_ratio(prob))
@@ -297,7 +298,7 @@ def _setup(prob, beams, spec, run: OpenRun, key) -> BeamChain:
     start = chain.state
     for k in jax.random.split(jax.random.fold_in(key, _START), WARM_START_STEPS):
         start = warm(k, start)
-    ev = beam_log_evidence(chain.system, chain.block, theta0=start.theta, log_u0=start.log_u,
+    ev = beam_log_evidence(chain.system, chain.block, theta0=start.theta, amplitude=start.log_u is not None,
                            newton_steps=NEWTON_STEPS)
     log.info("beams: Laplace fit of the marginal in %.1f s: log Bayes factor %.2f against the nominal beams "
              "(converged: %s)", time.perf_counter() - t0, float(ev.log_bayes_factor), bool(ev.converged))
