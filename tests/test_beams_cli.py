@@ -137,13 +137,24 @@ def test_beam_options_need_beams_sample_and_a_file(capsys):
     assert "give --data FILE" in capsys.readouterr().err
 
 
-def test_a_problem_too_large_for_the_exact_marginal_is_refused_naming_lmax(pointed_twin, tmp_path, capsys):
-    path, _ = pointed_twin
-    rc = cli.main(["run", "--data", str(path), "--dish-diameter", "14", "--lmax", "60", "--pol", "xx",
-                   "--band-limit", "truncate", "--beams", "sample", "--nsamples", "2", "--out", str(tmp_path / "r"),
-                   "--no-plots", "--no-progress"])
-    assert rc == 2
-    assert "give --lmax 49 or less" in capsys.readouterr().err
+def test_a_problem_too_large_for_both_forms_of_the_exact_marginal_is_refused_naming_them():
+    """The marginal's dense matrix is the smaller of the sky's precision (n) and the data space's (N_d = 2 Nt Nbl):
+    lmax 60 on H1C's 10 integrations takes the data space (N_d 560), and both large are refused."""
+    from types import SimpleNamespace
+
+    from gcrsky.run.beams import BEAM_DENSE_MAX_N, check_beam_problem, marginal_options
+    from gcrsky.solvers import CholeskyOptions, DataSpaceOptions
+
+    def prob(lmax, nt):
+        return SimpleNamespace(config=SimpleNamespace(compressed=False), antpos_enu_m=np.zeros((8, 3)),
+                               antpairs=np.array([[0, 1], [0, 2]]), n=(lmax + 1) ** 2, lmax=lmax,
+                               data=np.zeros((1, nt, 28)))
+
+    check_beam_problem(prob(60, 10), None)
+    assert isinstance(marginal_options(prob(60, 10)), DataSpaceOptions)
+    assert isinstance(marginal_options(prob(18, 10)), CholeskyOptions)
+    with pytest.raises(ValueError, match="give --lmax 49 or less, or fewer times"):
+        check_beam_problem(prob(60, 1 + BEAM_DENSE_MAX_N // 56), None)
 
 
 @pytest.mark.slow

@@ -297,7 +297,8 @@ def add_beam_options(g) -> None:
     g.add_argument("--beams", choices=("off", "sample"), default="off",
                    help="every antenna's beam perturbation sampled with the sky (Zernike modes over the main lobe; "
                    "docs/beams.md): off (default: the nominal beam for every antenna), sample (every baseline kept; "
-                   "the gains off, the amplitude inferred or fixed as --amplitude says; lmax <= 49)")
+                   "the gains off, the amplitude inferred or fixed as --amplitude says; the sky or data space per channel "
+                   "at most 2500)")
     g.add_argument("--beam-modes", type=int_at_least(1, "beam-modes", 4), default=None, metavar="NMAX",
                    help="the highest Zernike radial order of the perturbations (default 2: tilts, defocus, "
                    "astigmatisms; 1: tilts, i.e. pointing, only)")

@@ -81,6 +81,7 @@ __all__ = [
     "amplitude_sweep",
     "draw_log_u",
     "log_evidence_over_u",
+    "local_modes",
     "log_marginal",
     "scale_response",
     "sky_given",
@@ -358,12 +359,17 @@ class AmplitudeEvidence(NamedTuple):
         identified: the data determine ``u``: ``sd`` < :data:`MAX_LOG_U_SD` and the maximum at least 4 ``sd``
             inside the prior's range (else the modelled sky is below the noise and ``u`` runs to the range's
             end, a plateau: nothing may be Laplace-approximated in it).
+        grid: (COARSE,) the coarse grid of ``ln u`` across the prior's range.
+        grid_log_p: (Nf, COARSE) ``log p(d_f | u)`` on it (its local maxima: the modes a mis-specified model
+            may have, e.g. a sky far brighter than the model's mean where the instrument's model is wrong).
     """
 
     log_z: jax.Array
     log_u: jax.Array
     sd: jax.Array
     identified: jax.Array
+    grid: jax.Array | None = None
+    grid_log_p: jax.Array | None = None
 
 
 #: Posterior sd of ``ln u`` above which :func:`log_evidence_over_u` says the amplitude is not identified.
@@ -402,7 +408,23 @@ def log_evidence_over_u(system: LinearSystem) -> AmplitudeEvidence:
         sd = jnp.sqrt(jnp.maximum(jnp.sum(w * (mid - mean) ** 2) / mass, 0.0))
         mode = xf[jnp.argmax(lf)]
         ok = (sd < MAX_LOG_U_SD) & (mode - 4 * sd > lo) & (mode + 4 * sd < hi)
-        return top + jnp.log(mass) - jnp.log(hi - lo), mode, sd, ok
+        return top + jnp.log(mass) - jnp.log(hi - lo), mode, sd, ok, logp(jnp.linspace(lo, hi, COARSE))
 
-    lz, mode, sd, ok = jax.jit(jax.vmap(one))(eig.lam, eig.yt, eig.mt, fixed.n_keep, fixed.logdet_w)
-    return AmplitudeEvidence(lz, mode, sd, ok)
+    lz, mode, sd, ok, lc = jax.jit(jax.vmap(one))(eig.lam, eig.yt, eig.mt, fixed.n_keep, fixed.logdet_w)
+    return AmplitudeEvidence(lz, mode, sd, ok, jnp.linspace(lo, hi, COARSE), lc)
+
+
+def local_modes(ev: AmplitudeEvidence, near) -> np.ndarray:
+    """(Nf,) the ``ln u`` of each channel's local maximum of ``log p(d_f | u)`` on the coarse grid nearest to
+    ``near`` ((Nf,) or scalar ``ln u``, e.g. the autos' ratio's): where a search for the maximum of a richer
+    model should also start, when the global one may be a mis-specified model's."""
+    lc = np.asarray(ev.grid_log_p)
+    x = np.asarray(ev.grid)
+    near = np.broadcast_to(np.asarray(near, np.float64), lc.shape[:1])
+    out = np.empty(lc.shape[0])
+    for f in range(lc.shape[0]):
+        v = np.where(np.isfinite(lc[f]), lc[f], -np.inf)
+        peak = np.flatnonzero((v[1:-1] >= v[:-2]) & (v[1:-1] >= v[2:])) + 1
+        peak = peak if peak.size else np.array([int(np.argmax(v))])
+        out[f] = x[peak[np.argmin(np.abs(x[peak] - near[f]))]]
+    return out

@@ -59,8 +59,12 @@ from .gibbs import gcr_init, gcr_step
 __all__ = [
     "BeamBlock",
     "BeamEvidence",
+    "BeamGram",
     "BeamState",
     "beam_coefficients",
+    "beam_gram",
+    "beam_gram_bytes",
+    "beam_gram_log_evidence",
     "beam_collapsed_step",
     "beam_conditional",
     "beam_conditional_mode",
@@ -473,8 +477,9 @@ def _newton_polish(fun, x, steps: int):
     return x, f, h, g @ step
 
 
-def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, amplitude: bool = False, options=None,
-                      max_steps: int = 200, newton_steps: int = 0) -> BeamEvidence:
+def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, amplitude: bool = False, log_u0=None,
+                      options=None, max_steps: int = 200, newton_steps: int = 0,
+                      gram: BeamGram | None = None) -> BeamEvidence:
     """Whether the data ask for the beam block: its evidence against the nominal beams'.
 
     ``log p(d | block) = log int p(d | theta) p(theta) dtheta``, with ``p(d | theta)`` the exact evidence of
@@ -502,9 +507,14 @@ def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, am
         theta0: the optimiser's start (default the prior mean; a start near the maximum, e.g. a few
             :func:`beam_warmup_step`'s, saves most of the steps).
         amplitude: infer the overall amplitude per channel (above); False: it is the row factor's (fixed).
+        log_u0: (Nf,) where the search in ``ln u`` starts (default: the nominal beams' most probable ``u``; a
+            mis-specified nominal model may have its maximum far from the block's: start from each of its modes,
+            :func:`gcrsky.inference.amplitude.local_modes`, and keep the best).
         options: the evidence path's options (default ``CholeskyOptions()``).
         max_steps: BFGS's step cap.
         newton_steps: Newton steps after BFGS (each one Hessian: ``k`` Hessian-vector products); 0: none.
+        gram: the data-space Grams (:func:`beam_gram`): with ``newton_steps``, every evaluation of the marginal
+            from them and no BFGS (Newton's steps from ``theta0`` alone, each Hessian cheap).
 
     Returns:
         :class:`BeamEvidence`; ``converged``: the Hessian of ``-f`` is positive definite and BFGS converged
@@ -527,15 +537,26 @@ def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, am
             raise ValueError("beam_log_evidence with the amplitude integrates it out eagerly: give newton_steps > 0")
         nom = log_evidence_over_u(beam_system(system, block, jnp.zeros_like(start)))
         check_amplitude_identified(nom)
-        fit = fit_hyperparameters(lambda p: beam_system(system, block, p[0], p[1]), (start, nom.log_u),
-                                  options=options, log_prior=lambda p: beam_log_prior(block, p[0])
-                                  + amplitude_log_prior(p[1]), max_steps=max_steps, covariance=False)
-        flat, unravel = ravel_pytree(fit.theta)
+        lu0 = nom.log_u if log_u0 is None else jnp.broadcast_to(jnp.asarray(log_u0, jnp.float64), nom.log_u.shape)
+        if gram is None:
+            fit = fit_hyperparameters(lambda p: beam_system(system, block, p[0], p[1]), (start, lu0),
+                                      options=options, log_prior=lambda p: beam_log_prior(block, p[0])
+                                      + amplitude_log_prior(p[1]), max_steps=max_steps, covariance=False)
+            flat, unravel = ravel_pytree(fit.theta)
+        else:  # the Grams make Newton's steps cheap: no BFGS first
+            flat, unravel = ravel_pytree((start, lu0))
         nominal = jnp.sum(nom.log_z)
 
         def fun(x):
             th, lu = unravel(x)
-            return beam_marginal_log_posterior(system, block, th, log_u=lu, options=options)
+            return beam_marginal_log_posterior(system, block, th, log_u=lu, options=options, gram=gram)
+    elif gram is not None and newton_steps:  # the Grams make Newton's steps cheap: no BFGS first
+        nominal = jnp.sum(beam_gram_log_evidence(gram, block, jnp.zeros_like(start)))
+        flat, unravel = ravel_pytree(start)
+        nom = None
+
+        def fun(x):
+            return beam_marginal_log_posterior(system, block, unravel(x), gram=gram)
     else:
         fit = fit_hyperparameters(lambda th: beam_system(system, block, th), start, options=options,
                                   log_prior=lambda th: beam_log_prior(block, th), max_steps=max_steps,
@@ -552,7 +573,7 @@ def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, am
         nom = None
 
         def fun(x):
-            return beam_marginal_log_posterior(system, block, unravel(x), options=options)
+            return beam_marginal_log_posterior(system, block, unravel(x), options=options, gram=gram)
 
     flat, obj, hess, decrement = _newton_polish(fun, flat, newton_steps)
     k = flat.size
@@ -606,16 +627,101 @@ def beam_warmup_step(key: jax.Array, state: BeamState, system: LinearSystem, blo
     return state._replace(theta=theta), info
 
 
+class BeamGram(NamedTuple):
+    """The beams' exact marginal in the data space, precomputed (:func:`beam_gram`; a PyTree).
+
+    The response of row ``b = (i, j)`` is ``sum_p w_bp(theta) R_b^(p)`` with real weights ``w`` (:func:`gcrsky.
+    instrument.beammodes.pair_weights`), so the realified data's covariance given the beams and the amplitude is
+    ``u^2 sum_{p,p'} w_p w_p' G^(p,p') + N``, ``G^(p,p') = X^(p) S X^(p')T``, and its mean ``u sum_p w_p X^(p) a0``:
+    once the Grams are formed, the marginal costs ``O(Nf (P N_d)^2)`` for the weights and ``N_d^3 / 3`` for one
+    Cholesky, whatever ``n`` (H1C's 10 integrations at lmax 200: ``N_d = 560`` against ``n = 40401``).
+
+    Attributes:
+        grams: (Nf, Nt, 2, P, Nbl, Nt, 2, P, Nbl) the Grams of the response sets, rows in
+            :func:`gcrsky.solvers.dataspace.to_rows`' layout (time, real/imaginary, set, baseline).
+        means: (Nf, Nt, 2, P, Nbl) the sets' visibilities of the prior mean ``X^(p) a0``.
+        rows: (Nf, Nt, 2, Nbl) the data (the row factor divided out), realified.
+        sqrt_w: (Nf, Nt, 2, Nbl) the square-root inverse noise of each real component (0: flagged).
+    """
+
+    grams: jax.Array
+    means: jax.Array
+    rows: jax.Array
+    sqrt_w: jax.Array
+
+
+def beam_gram_bytes(system: LinearSystem, block: BeamBlock) -> float:
+    """Bytes of :func:`beam_gram`'s Grams (the largest part): ``8 Nf (2 Nt P Nbl)^2``."""
+    nf, npair, nbl = block.stack.shape[:3]
+    return 8.0 * nf * (2 * system.data.shape[1] * npair * nbl) ** 2
+
+
+def beam_gram(system: LinearSystem, block: BeamBlock) -> BeamGram:
+    """The data-space Grams of every pair of response sets (:class:`BeamGram`): one data-space matrix
+    (:func:`gcrsky.solvers.dataspace.dataspace_matrix`) of the system whose rows are the ``P`` sets' (``P Nbl``
+    rows, unit weights), ``O(Nf (2 Nt P Nbl)^2 n)`` once.  The row factor is folded into the data and noise as in
+    :func:`beam_system`; the system's prior must be proper."""
+    from ..solvers.dataspace import dataspace_matrix, sqrt_weights, to_rows
+
+    nf, npair, nbl, n = block.stack.shape
+    nt = system.data.shape[1]
+    folded = beam_system(system, block, jnp.zeros_like(block.prior_mean))
+    op = system.op._replace(response=jnp.reshape(block.stack, (nf, npair * nbl, n)))
+    # D = I + k^2 G: a weight k^2 that makes G's largest entries ~1e10 keeps G's digits when the I is taken off
+    # (a bound on its diagonal: the response's row norms (in its own basis, before the frame map) times S's largest)
+    diag = jnp.max(jnp.sum(jnp.abs(block.stack) ** 2, axis=-1)) * jnp.max(1.0 / system.prior.inv_var)
+    k2 = 1e10 / jnp.maximum(diag, jnp.finfo(diag.dtype).tiny)
+    stacked = system._replace(op=op, data=jnp.zeros((nf, nt, npair * nbl), system.data.dtype),
+                              inv_noise=jnp.full((nf, nt, npair * nbl), k2, system.inv_noise.dtype))
+    big = 2 * nt * npair * nbl
+    grams = (dataspace_matrix(stacked) - jnp.eye(big)) / k2
+    means = to_rows(apply(op, system.prior.mean)).reshape(nf, nt, 2, npair, nbl)
+    sw = sqrt_weights(folded)
+    return BeamGram(grams.reshape((nf, nt, 2, npair, nbl, nt, 2, npair, nbl)),
+                    means, to_rows(folded.data).reshape(nf, nt, 2, nbl),
+                    jnp.broadcast_to(sw[:, :, None, :], (nf, nt, 2, nbl)))
+
+
+def beam_gram_log_evidence(gram: BeamGram, block: BeamBlock, theta, log_u=None) -> jax.Array:
+    """``log p(d_f | theta [, u])`` (Nf,), the sky integrated out, from the Grams (:class:`BeamGram`): equal to
+    :func:`gcrsky.inference.log_evidence_system` of :func:`beam_system` (``tests/test_beam_amplitude.py``)."""
+    nant = theta.shape[0]
+    u = jnp.concatenate([jnp.ones((nant, block.basis_f.shape[0], 1)), beam_coefficients(block, theta)], axis=-1)
+    from ..instrument.beammodes import pair_weights
+
+    w = jnp.transpose(pair_weights(u[block.pairs[:, 0]], u[block.pairs[:, 1]]), (1, 2, 0))  # (Nf, P, Nbl)
+    if log_u is not None:
+        w = w * jnp.exp(jnp.asarray(log_u))[:, None, None]
+    nf, nt, _, nbl = gram.rows.shape
+    nd = 2 * nt * nbl
+    cov = jnp.einsum("fpb,ftcpbsdqe,fqe->ftcbsde", w, gram.grams, w).reshape(nf, nd, nd)
+    mean = jnp.einsum("fpb,ftcpb->ftcb", w, gram.means)
+    sw = gram.sqrt_w.reshape(nf, nd)
+    D = jnp.eye(nd) + sw[:, :, None] * cov * sw[:, None, :]
+    r = (sw * (gram.rows - mean).reshape(nf, nd))
+    L = jnp.linalg.cholesky(0.5 * (D + jnp.swapaxes(D, -1, -2)))
+    z = jax.scipy.linalg.solve_triangular(L, r[..., None], lower=True)[..., 0]
+    keep = sw > 0
+    logdet_w = 2.0 * jnp.sum(jnp.where(keep, jnp.log(jnp.where(keep, sw, 1.0)), 0.0), axis=-1)
+    n_keep = jnp.sum(keep, axis=-1)
+    return -0.5 * (jnp.sum(z**2, axis=-1) + 2.0 * jnp.sum(jnp.log(jnp.diagonal(L, axis1=-2, axis2=-1)), axis=-1)
+                   + n_keep * jnp.log(2 * jnp.pi) - logdet_w)
+
+
 def beam_marginal_log_posterior(system: LinearSystem, block: BeamBlock, theta, *, log_u=None,
-                                options=None) -> jax.Array:
+                                options=None, gram: BeamGram | None = None) -> jax.Array:
     """``log p(d | theta [, u]) + log p(theta) [+ log p(u)]``: the sky marginalised exactly (the sky evidence of the
     beams ``theta``'s response, times the amplitude ``exp(log_u)`` where given, :func:`gcrsky.inference.
-    log_evidence_system`, summed over channels) plus the beam prior (and :func:`amplitude_log_prior`)."""
+    log_evidence_system`, summed over channels; with ``gram`` the same from the data-space Grams,
+    :func:`beam_gram_log_evidence`) plus the beam prior (and :func:`amplitude_log_prior`)."""
     from .amplitude import amplitude_log_prior
     from .evidence import log_evidence_system
 
     options = CholeskyOptions() if options is None else options
-    lz = log_evidence_system(beam_system(system, block, theta, log_u), options=options, check=False)[0]
+    if gram is not None:
+        lz = beam_gram_log_evidence(gram, block, theta, log_u)
+    else:
+        lz = log_evidence_system(beam_system(system, block, theta, log_u), options=options, check=False)[0]
     prior = beam_log_prior(block, theta) + (0.0 if log_u is None else amplitude_log_prior(log_u))
     return jnp.sum(lz) + prior
 
@@ -626,7 +732,7 @@ def _flat(theta, log_u):
 
 
 def beam_collapsed_step(key: jax.Array, state: BeamState, system: LinearSystem, block: BeamBlock, proposal, *,
-                        options=None, with_info: bool = False):
+                        options=None, with_info: bool = False, gram: BeamGram | None = None):
     """One exact step of the collapsed chain: the beams from their marginal ``p(theta | d)`` (the sky integrated
     out exactly) by an independence Metropolis-Hastings move, then the sky given them (exact GCR).
 
@@ -637,6 +743,8 @@ def beam_collapsed_step(key: jax.Array, state: BeamState, system: LinearSystem, 
     evidences (a Cholesky of the dense precision each) and one sky draw.  With the amplitude inferred
     (``state.log_u`` not None) the move is joint in ``(theta, log_u)``: the proposal's ``K`` is then
     ``theta.size + Nf``, ``theta`` flattened first (:func:`beam_log_evidence`'s covariance, in that order).
+    With ``gram`` (:func:`beam_gram`) the marginal comes from the data-space Grams (the sky draw still takes
+    ``options``' path).
 
     Returns:
         ``(state, accepted)``; with ``with_info``, ``(state, (accepted, info))``, ``info`` the sky draw's
@@ -661,7 +769,7 @@ def beam_collapsed_step(key: jax.Array, state: BeamState, system: LinearSystem, 
 
     def log_p(x):
         th, lu = split(x)
-        return beam_marginal_log_posterior(system, block, th, log_u=lu, options=options)
+        return beam_marginal_log_posterior(system, block, th, log_u=lu, options=options, gram=gram)
 
     log_ratio = log_p(new) + log_q(old) - log_p(old) - log_q(new)
     accept = (jnp.log(jax.random.uniform(ku, (), log_ratio.dtype)) < log_ratio) & jnp.all(jnp.isfinite(new))

@@ -27,8 +27,11 @@ sample``) the run draws from the joint posterior of the sky ``a`` and each anten
    resumes where it stopped.  This is the kernel that passed simulation-based calibration
    (``tests/test_beam_block.py``); the alternating one (sky, then beams given the sky) did not.
 
-The exact marginal needs the sky's dense precision per channel: a beam run is limited to
-:data:`BEAM_DENSE_MAX_N` coefficients per channel (``lmax <= 49``).
+The exact marginal factorises a dense matrix per channel, in whichever form is smaller
+(:func:`marginal_options`): the sky's precision (``n x n``, :class:`~gcrsky.solvers.CholeskyOptions`) or the
+data-space matrix (``N_d x N_d``, ``N_d = 2 Nt Nbl`` real data values, :class:`~gcrsky.solvers.DataSpaceOptions`:
+the whole sky to a file's reach, e.g. H1C's 10 integrations at lmax 200); a beam run is limited to
+:data:`BEAM_DENSE_MAX_N` for the smaller.
 
 Key scheme (:data:`BEAM_KEY_SCHEME`): warm-up ``fold_in(key, 2**31 - 1)``, batch ``b`` ``fold_in(key, b)``,
 each split into one key per kept state, that into one per step.
@@ -58,7 +61,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..inference.amplitude import log_evidence_over_u
+from ..inference.amplitude import local_modes, log_evidence_over_u
 from ..inference.api import prepare
 from ..inference.beams import (
     beam_coefficients,
@@ -85,8 +88,9 @@ __all__ = ["BEAM_DENSE_MAX_N", "BEAM_KEY_SCHEME", "PROPOSAL_WIDEN", "BeamChain",
 
 log = logging.getLogger(__name__)
 
-#: Coefficients per channel up to which a beam run goes (the beams' exact marginal factorises the sky's dense
-#: precision, ``~Nf n^3 / 3`` flop, twice per step): ``lmax <= 49``.
+#: The size of the dense matrix per channel up to which a beam run goes (the beams' exact marginal factorises it,
+#: ``~Nf N^3 / 3`` flop, twice per step): the sky's precision (``n``, ``lmax <= 49``) or the data space's
+#: (``N_d = 2 Nt Nbl``), whichever is smaller (:func:`marginal_options`).
 BEAM_DENSE_MAX_N = 2500
 #: The key scheme of a beam run's chain (module doc).
 BEAM_KEY_SCHEME = ("beams-v2: Laplace fit from conditional modes fold_in(key, 2**31-2); start a proposal draw "
@@ -106,7 +110,7 @@ _SCALE = 2**31 - 1  # folded into a batch's key: the sky model's scale c of its 
 WARM_START_STEPS = 5
 #: Newton steps after BFGS in the Laplace fit (:func:`gcrsky.inference.beam_log_evidence`; it stops earlier once
 #: at the maximum).
-NEWTON_STEPS = 10
+NEWTON_STEPS = 30
 #: Relative difference between the response sets' unperturbed set and the problem's response that is refused.
 RESPONSE_RTOL = 1e-8
 
@@ -125,6 +129,11 @@ class BeamChain(NamedTuple):
         proposal: ``(mean (K,), chol (K, K))`` of the independence move.
         state: the :class:`gcrsky.inference.BeamState`.
         radius: (Nf,) the modes' disc radius, radians.
+        options: the marginal's path (:func:`marginal_options`) for the sky draws (and BFGS).
+        gram: the data-space Grams of the response sets (:func:`gcrsky.inference.beam_gram`): the marginal of every
+            MH step and Newton step from them; None where they do not fit the memory (then ``options``' path).
+        noise_log_u: (Nf,) the amplitude at which the sky part of the system's noise is evaluated (the fit's
+            start), or None (the amplitude not inferred).
     """
 
     system: object
@@ -132,6 +141,9 @@ class BeamChain(NamedTuple):
     proposal: tuple
     state: object
     radius: np.ndarray
+    options: object = None
+    gram: object = None
+    noise_log_u: object = None
 
 
 def _site_latitude(prob) -> float:
@@ -141,9 +153,23 @@ def _site_latitude(prob) -> float:
     return float(conv["site_lat_lon_alt"][0])
 
 
+def data_values(prob) -> int:
+    """``N_d``: the real data values per channel (``2 Nt Nbl``), the data-space matrix's size."""
+    return 2 * int(prob.data.shape[1]) * int(prob.data.shape[2])
+
+
+def marginal_options(prob):
+    """The path of the beams' exact marginal (and the sky draws given the beams): the dense Cholesky of the sky's
+    precision where ``n <= N_d``, else the data space (:data:`BEAM_DENSE_MAX_N` bounds the smaller)."""
+    from ..solvers.options import CholeskyOptions, DataSpaceOptions
+
+    return CholeskyOptions() if prob.n <= data_values(prob) else DataSpaceOptions()
+
+
 def check_beam_problem(prob, sampling) -> None:
     """Refuse what the beam block cannot model, naming it: redundant groups as rows, autocorrelation rows, a
-    problem without antenna positions, or more than :data:`BEAM_DENSE_MAX_N` coefficients per channel."""
+    problem without antenna positions, or both the coefficients and the data values per channel more than
+    :data:`BEAM_DENSE_MAX_N` (:func:`marginal_options`)."""
     if getattr(prob.config, "compressed", False):
         raise ValueError("beams are per antenna, but the problem's rows are redundant groups (averages of baselines "
                          "whose beams differ): read the file without compression (--no-compress)")
@@ -152,11 +178,14 @@ def check_beam_problem(prob, sampling) -> None:
     pairs = np.asarray(prob.antpairs)
     if np.any(pairs[:, 0] == pairs[:, 1]):
         raise ValueError("the beam block models cross-correlations only, but the problem has autocorrelation rows")
-    if prob.n > BEAM_DENSE_MAX_N:
+    nd = data_values(prob)
+    if min(prob.n, nd) > BEAM_DENSE_MAX_N:
         lmax = int(np.floor(np.sqrt(BEAM_DENSE_MAX_N))) - 1
-        raise ValueError(f"--beams sample integrates the sky out exactly (its dense precision per channel): at most "
-                         f"{BEAM_DENSE_MAX_N} coefficients per channel (lmax <= {lmax}), but lmax {prob.lmax} has "
-                         f"{prob.n}: give --lmax {lmax} or less")
+        raise ValueError(f"--beams sample integrates the sky out exactly (a dense matrix per channel: the sky's "
+                         f"precision or the data space's, whichever is smaller): at most {BEAM_DENSE_MAX_N}, but lmax "
+                         f"{prob.lmax} has {prob.n} coefficients and the data {nd} values per channel "
+                         f"({prob.data.shape[1]} times x {prob.data.shape[2]} baselines x 2): give --lmax {lmax} or "
+                         "less, or fewer times or baselines (--lst-range, --antennas)")
 
 
 def beam_chain_setup(prob, beams, sampling) -> BeamChain:
@@ -196,7 +225,7 @@ def beam_chain_setup(prob, beams, sampling) -> BeamChain:
     log_u = None if sampling.amplitude is None else jnp.full(freqs.size, np.log(autos_ratio(prob) or 1.0))
     system = _noise_system(prob, log_u)
     return BeamChain(system, block, zero, beam_init(system.prior.mean, block, log_u=log_u),
-                     disc_radius(beams[0], freqs, modes))
+                     disc_radius(beams[0], freqs, modes), marginal_options(prob))
 
 
 def _noise_system(prob, log_u):
@@ -205,6 +234,69 @@ def _noise_system(prob, log_u):
     if log_u is None:
         return prob.system()
     return noise_at(prob, np.exp(np.asarray(log_u))[:, None, None]).system()
+
+
+#: Fraction of the free memory the data-space Grams of a beam run may take (else the marginal takes the sky draws'
+#: path at every step).
+GRAM_MEMORY_FRACTION = 0.25
+
+
+def _gram(chain: BeamChain):
+    """The data-space Grams of the chain's system and block (:func:`gcrsky.inference.beam_gram`), or None with a log
+    line where they would take more than :data:`GRAM_MEMORY_FRACTION` of the free memory."""
+    from ..base.memory import available_memory_bytes, format_bytes
+    from ..inference.beams import beam_gram, beam_gram_bytes
+
+    need = beam_gram_bytes(chain.system, chain.block)
+    if need > GRAM_MEMORY_FRACTION * available_memory_bytes():
+        log.info("beams: the data-space Grams (%s) do not fit; the marginal takes the %s path at every step",
+                 format_bytes(need), _path_name(chain.options))
+        return None
+    t0 = time.perf_counter()
+    gram = jax.block_until_ready(jax.jit(beam_gram)(chain.system, chain.block))
+    log.info("beams: data-space Grams of the response sets (%s) in %.1f s", format_bytes(need), time.perf_counter() - t0)
+    return gram
+
+
+def _fit_from(prob, chain: BeamChain, key, log_u):
+    """The Laplace fit (:func:`gcrsky.inference.beam_log_evidence`) from :data:`WARM_START_STEPS` conditional-mode
+    steps, the amplitude started (and the sky part of the noise evaluated) at ``log_u`` (None: not inferred)."""
+    if log_u is not None:
+        chain = chain._replace(system=_noise_system(prob, log_u), state=chain.state._replace(log_u=jnp.asarray(log_u)),
+                               noise_log_u=np.asarray(log_u))
+    chain = chain._replace(gram=_gram(chain))
+    warm = jax.jit(lambda k, st: beam_warmup_step(k, st, chain.system, chain.block, options=chain.options)[0])
+    start = chain.state
+    for k in jax.random.split(jax.random.fold_in(key, _START), WARM_START_STEPS):
+        start = warm(k, start)
+    ev = beam_log_evidence(chain.system, chain.block, theta0=start.theta, amplitude=log_u is not None, log_u0=log_u,
+                           options=chain.options, newton_steps=NEWTON_STEPS, gram=chain.gram)
+    return ev, chain
+
+
+def _laplace_fit(prob, chain: BeamChain, key):
+    """The Laplace fit of the beams' marginal; with the amplitude inferred, from the nominal beams' most probable
+    ``u`` and, where it differs, from the nominal's mode nearest the autos' ratio (a mis-specified nominal model
+    can prefer an amplitude far from the truth: a sky far brighter than the prior's mean): the fit whose
+    maximum is higher is kept, and the other's logged.  Returns ``(evidence, chain, log_u_fit)``: ``log_u_fit`` the
+    nominal beams' mode nearest the block's amplitude (their goodness of fit's: :func:`beam_summary`), or None."""
+    if chain.state.log_u is None:
+        return (*_fit_from(prob, chain, key, None), None)
+    nom = log_evidence_over_u(beam_system(chain.system, chain.block, jnp.zeros_like(chain.block.prior_mean)))
+    check_amplitude_identified(nom)
+    top = np.asarray(nom.log_u)
+    near = local_modes(nom, np.log(autos_ratio(prob) or 1.0))
+    log.info("beams: the nominal beams' amplitude u per channel %s (the mode nearest the autos' ratio %s: %s)",
+             np.array2string(np.exp(top), precision=4), autos_ratio(prob), np.array2string(np.exp(near), precision=4))
+    fits = [_fit_from(prob, chain, key, top)]
+    if np.max(np.abs(near - top)) > 4 * float(np.max(np.asarray(nom.sd))):
+        fits.append(_fit_from(prob, chain, key, near))
+    scores = [float(ev.log_z) if np.isfinite(float(ev.log_z)) else -np.inf for ev, _ in fits]
+    if len(fits) > 1:
+        log.info("beams: Laplace log evidence from the nominal's maximum %.2f, from its mode nearest the autos' %.2f: "
+                 "kept the %s", scores[0], scores[1], "first" if scores[0] >= scores[1] else "second")
+    ev, chain = fits[int(np.argmax(scores))]
+    return ev, chain, local_modes(nom, np.asarray(ev.log_u))
 
 
 def beamed_problem(prob, response):
@@ -223,12 +315,12 @@ def _proposal(mean, cov):
     return jnp.asarray(np.asarray(mean).reshape(-1)), jnp.asarray(chol)
 
 
-@functools.partial(jax.jit, static_argnames=("n", "thin"))
-def _segment(system, block, proposal, state, key, *, n: int, thin: int):
+@functools.partial(jax.jit, static_argnames=("n", "thin", "options"))
+def _segment(system, block, proposal, state, key, gram=None, *, n: int, thin: int, options=None):
     """``n`` kept states, one every ``thin`` steps: (last state, (states, mean acceptance, sky SolveInfo))."""
 
     def step(s, k):
-        return beam_collapsed_step(k, s, system, block, proposal, with_info=True)
+        return beam_collapsed_step(k, s, system, block, proposal, options=options, with_info=True, gram=gram)
 
     def keep(s, k):
         s, (acc, info) = jax.lax.scan(step, s, jax.random.split(k, thin))
@@ -269,7 +361,8 @@ def _layout_arrays(prob, chain: BeamChain, sampling, ev, response) -> dict:
             "beams/log_z": np.asarray(ev.log_z), "beams/log_z_nominal": np.asarray(ev.log_z_nominal),
             "beams/laplace_converged": np.asarray(bool(ev.converged)), "beams/setup_response": np.asarray(response),
             **({} if ev.log_u is None else {"beams/laplace_log_u": np.asarray(ev.log_u),
-                                             "beams/log_u_nominal": np.asarray(ev.log_u_nominal)})}
+                                             "beams/log_u_nominal": np.asarray(ev.log_u_nominal),
+                                             "beams/noise_log_u": np.asarray(chain.noise_log_u)})}
 
 
 def _setup(prob, beams, spec, run: OpenRun, key) -> BeamChain:
@@ -285,21 +378,11 @@ def _setup(prob, beams, spec, run: OpenRun, key) -> BeamChain:
             log_u = None if sampling.amplitude is None else jnp.asarray(h["beams/state/log_u"][()])
             state = chain.state._replace(sky=jnp.asarray(h["beams/state/sky"][()]),
                                          theta=jnp.asarray(h["beams/state/theta"][()]), log_u=log_u)
-            system = chain.system if log_u is None else _noise_system(prob, h["beams/log_u_nominal"][()])
-        return chain._replace(proposal=proposal, state=state, system=system)
+            system = chain.system if log_u is None else _noise_system(prob, h["beams/noise_log_u"][()])
+        chain = chain._replace(proposal=proposal, state=state, system=system)
+        return chain._replace(gram=_gram(chain))
     t0 = time.perf_counter()
-    if sampling.amplitude is not None:  # the nominal beams' amplitude: where the fit starts, and the sky noise's
-        nom = log_evidence_over_u(beam_system(chain.system, chain.block, jnp.zeros_like(chain.block.prior_mean)))
-        check_amplitude_identified(nom)
-        chain = chain._replace(system=_noise_system(prob, nom.log_u), state=chain.state._replace(log_u=nom.log_u))
-        log.info("beams: the nominal beams' amplitude u per channel %s (started at the autos' ratio %s)",
-                 np.array2string(np.exp(np.asarray(nom.log_u)), precision=4), autos_ratio(prob))
-    warm = jax.jit(lambda k, st: beam_warmup_step(k, st, chain.system, chain.block)[0])
-    start = chain.state
-    for k in jax.random.split(jax.random.fold_in(key, _START), WARM_START_STEPS):
-        start = warm(k, start)
-    ev = beam_log_evidence(chain.system, chain.block, theta0=start.theta, amplitude=start.log_u is not None,
-                           newton_steps=NEWTON_STEPS)
+    ev, chain, log_u_fit = _laplace_fit(prob, chain, key)
     log.info("beams: Laplace fit of the marginal in %.1f s: log Bayes factor %.2f against the nominal beams "
              "(converged: %s)", time.perf_counter() - t0, float(ev.log_bayes_factor), bool(ev.converged))
     best = ev.theta.reshape(-1) if ev.log_u is None else jnp.concatenate([ev.theta.reshape(-1), ev.log_u])
@@ -320,11 +403,12 @@ def _setup(prob, beams, spec, run: OpenRun, key) -> BeamChain:
                       log_u=None if ev.log_u is None else x[k:])
     if sampling.burn:
         state, _ = _segment(chain.system, chain.block, chain.proposal, state, jax.random.fold_in(key, _WARM),
-                            n=1, thin=sampling.burn)
+                            chain.gram, n=1, thin=sampling.burn, options=chain.options)
     chain = chain._replace(state=state)
-    record_setup(prob, spec, run, a_wf, prepared.wiener, rank=getattr(prepared, "kept", None), method="beams+cholesky",
+    record_setup(prob, spec, run, a_wf, prepared.wiener, rank=getattr(prepared, "kept", None), method=_method(chain),
                  options=options, key_scheme=BEAM_KEY_SCHEME, per_draw=_per_draw(chain),
-                 arrays={**_layout_arrays(prob, chain, sampling, ev, response), **_state_arrays(state)})
+                 arrays={**_layout_arrays(prob, chain, sampling, ev, response), **_state_arrays(state),
+                         **({} if log_u_fit is None else {"beams/log_u_nominal_fit": np.asarray(log_u_fit)})})
     log.info("beam chain: Wiener filter given the beams at the marginal's maximum by %s (%s); warm-up of %d steps",
              prepared.method, options_json(options), sampling.burn)
     return chain
@@ -332,7 +416,8 @@ def _setup(prob, beams, spec, run: OpenRun, key) -> BeamChain:
 
 def beam_draws(prob, beams, spec, run: OpenRun, st: StageTimer, watch: Watch) -> str:
     """The ``wiener`` stage (set-up, Laplace fit, Wiener filter, warm-up) and the chain's batches from
-    ``run.start``; returns ``"beams+cholesky"`` and leaves the ``draws`` stage running."""
+    ``run.start``; returns ``"beams+cholesky"`` or ``"beams+dataspace"`` (:func:`marginal_options`) and leaves
+    the ``draws`` stage running."""
     d, sampling = spec.draws, spec.sampling.beams
     key = jax.random.PRNGKey(d.seed)
     st.start("wiener")
@@ -344,7 +429,8 @@ def beam_draws(prob, beams, spec, run: OpenRun, st: StageTimer, watch: Watch) ->
     for b in watch.progress(batches) if watch.progress is not None else batches:
         t0 = time.perf_counter()
         state, (states, accept, info) = _segment(chain.system, chain.block, chain.proposal, state,
-                                                 jax.random.fold_in(key, b), n=d.batch, thin=sampling.thin)
+                                                 jax.random.fold_in(key, b), chain.gram, n=d.batch,
+                                                 thin=sampling.thin, options=chain.options)
         take = min(d.batch, d.nsamples - b * d.batch)
         extra = {"beam_theta": np.asarray(states.theta)[:take], "beam_info/accept": np.asarray(accept)[:take]}
         sky = states.sky
@@ -355,7 +441,18 @@ def beam_draws(prob, beams, spec, run: OpenRun, st: StageTimer, watch: Watch) ->
             sky = c[:, None, None] * np.asarray(sky)
             extra.update({"amplitude_q": (u / c[:, None])[:take], "amplitude_u": u[:take], "amplitude_c": c[:take]})
         append_chain_batch(run, b, take, sky, info, extra, _state_arrays(state), t0)
-    return "beams+cholesky"
+    return _method(chain) if chain is not None else "beams+" + _path_name(marginal_options(prob))
+
+
+def _path_name(options) -> str:
+    from ..solvers.options import DataSpaceOptions
+
+    return "dataspace" if isinstance(options, DataSpaceOptions) else "cholesky"
+
+
+def _method(chain: BeamChain) -> str:
+    """What ran: ``beams+cholesky`` or ``beams+dataspace`` (the marginal's path)."""
+    return "beams+" + _path_name(chain.options)
 
 
 def beam_fit_problem(prob, h5):
@@ -375,14 +472,15 @@ def _read(h5) -> dict:
     out = read_chain(h5, ("beam_theta", "beam_info/accept"),
                      tuple(f"beams/{k}" for k in ("antenna_numbers", "orders", "basis_f", "radius_rad", "prior_inv_var",
                                                   "laplace_theta", "log_z", "log_z_nominal", "laplace_converged")),
-                     optional=("beams/log_u_nominal",))
+                     optional=("beams/log_u_nominal", "beams/log_u_nominal_fit"))
     out["theta"] = out.pop("beam_theta")
     return out
 
 
 def _nominal_fit(prob, log_u=None) -> dict:
     """The goodness of fit of the nominal beams (the same test as the run's, without the block), with the amplitude
-    at the nominal beams' maximum ``exp(log_u)`` (Nf,) where it is inferred."""
+    ``exp(log_u)`` (Nf,) where it is inferred: the nominal beams' most probable amplitude near the block's (their
+    global maximum may be far away, where a sky far brighter than the model's explains the beams' misfit)."""
     from .fit import goodness_of_fit
 
     if log_u is not None:
@@ -420,7 +518,7 @@ def beam_summary(prob, sampling, h5) -> dict:
                      "converged": bool(g["laplace_converged"]),
                      "verdict": "the data ask for the beam block" if lbf > 0 else
                                 "the nominal beams are preferred (the block is not needed)"},
-        "fit_nominal": _nominal_fit(prob, g.get("log_u_nominal")),
+        "fit_nominal": _nominal_fit(prob, g.get("log_u_nominal_fit")),
         "coefficients": [{"antenna": int(a), **{n: {"mean": float(th[:, i, k, 0].mean()),
                                                     "sd": float(th[:, i, k, 0].std(ddof=1)) if nd > 1 else 0.0}
                                                 for k, n in enumerate(names)}}
@@ -432,6 +530,9 @@ def beam_summary(prob, sampling, h5) -> dict:
                  "over the beam coefficients, exact over the sky; fit_nominal: the goodness of fit without the block "
                  "(goodness_of_fit: with it, at the marginal's maximum)."),
     }
+    if "log_u_nominal" in g:  # the amplitude inferred: where the nominal beams' evidence peaks, and their fit's
+        out["evidence"]["u_nominal_max"] = np.exp(np.asarray(g["log_u_nominal"], float)).tolist()
+        out["evidence"]["u_nominal_fit"] = np.exp(np.asarray(g["log_u_nominal_fit"], float)).tolist()
     out["chain"] = chain_diagnostics({"beam_theta": th.reshape(nd, -1)})
     warnings = []
     line = diagnostics_warning(out["chain"], "the beam chain")
