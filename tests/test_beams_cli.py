@@ -11,7 +11,8 @@ scattered by 6 mrad rms).  The run reads it as a user would, with the nominal 14
 Measured (2-core CPU): the nominal beams' fit chi2/dof 5.75 (rejected: the negative control, computed by the
 run as ``beams.fit_nominal`` at the nominal beams' amplitude mode nearest the block's), with the block 1.00; log
 Bayes factor +700 for the block (the nominal evidence integrates the amplitude over its whole range, including
-a mode at u = 874 where a sky far brighter than the prior's mean absorbs the beams' misfit); the posterior-mean
+a mode at u = 874, where the prior no longer constrains the sky, u^2 S far above the data's scale, and an
+unconstrained sky absorbs the beams' misfit); the posterior-mean
 tilts correlate with the true pointing offsets (East 0.88, North 0.97 measured); the independence move accepted
 57 %; the run 3 min, its kill and resume 1.3 min more (the marginal from the data-space Grams).
 

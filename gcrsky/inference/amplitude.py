@@ -361,7 +361,8 @@ class AmplitudeEvidence(NamedTuple):
             end, a plateau: nothing may be Laplace-approximated in it).
         grid: (COARSE,) the coarse grid of ``ln u`` across the prior's range.
         grid_log_p: (Nf, COARSE) ``log p(d_f | u)`` on it (its local maxima: the modes a mis-specified model
-            may have, e.g. a sky far brighter than the model's mean where the instrument's model is wrong).
+            may have, e.g. a large ``u`` where the sky model no longer constrains the sky and an unconstrained
+            sky absorbs what a wrong instrument model misses).
     """
 
     log_z: jax.Array

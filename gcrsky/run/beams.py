@@ -277,7 +277,8 @@ def _fit_from(prob, chain: BeamChain, key, log_u):
 def _laplace_fit(prob, chain: BeamChain, key):
     """The Laplace fit of the beams' marginal; with the amplitude inferred, from the nominal beams' most probable
     ``u`` and, where it differs, from the nominal's mode nearest the autos' ratio (a mis-specified nominal model
-    can prefer an amplitude far from the truth: a sky far brighter than the prior's mean): the fit whose
+    can prefer an amplitude far from the truth: a large ``u``, where the prior no longer constrains the sky and
+    an unconstrained sky absorbs the beams' misfit): the fit whose
     maximum is higher is kept, and the other's logged.  Returns ``(evidence, chain, log_u_fit)``: ``log_u_fit`` the
     nominal beams' mode nearest the block's amplitude (their goodness of fit's: :func:`beam_summary`), or None."""
     if chain.state.log_u is None:
@@ -480,7 +481,7 @@ def _read(h5) -> dict:
 def _nominal_fit(prob, log_u=None) -> dict:
     """The goodness of fit of the nominal beams (the same test as the run's, without the block), with the amplitude
     ``exp(log_u)`` (Nf,) where it is inferred: the nominal beams' most probable amplitude near the block's (their
-    global maximum may be far away, where a sky far brighter than the model's explains the beams' misfit)."""
+    global maximum may be far away, where an unconstrained sky absorbs the beams' misfit)."""
     from .fit import goodness_of_fit
 
     if log_u is not None:
