@@ -51,6 +51,13 @@ def raw():
     return _raw(0.1)
 
 
+@pytest.fixture(scope="module")
+def laplace(raw):
+    """The block's Laplace evidence with the amplitude, BFGS then Newton on the primal path (computed once)."""
+    system, block, _ = raw
+    return beam_log_evidence(system, block, amplitude=True, newton_steps=10)
+
+
 def test_the_nominal_evidence_over_the_amplitude_equals_the_primal_evidence_on_a_grid(raw):
     """Pointwise the data-space marginal at ``u`` equals the primal evidence (to 1e-7 of ~300 nats: two
     algebras in float64); integrated over ``ln u`` across the prior's range (the two-level grid) it equals
@@ -95,13 +102,13 @@ def test_an_amplitude_the_data_do_not_determine_is_refused(raw):
         beam_log_evidence(empty, block, amplitude=True, newton_steps=2)
 
 
-def test_the_block_s_laplace_evidence_with_the_amplitude_against_importance_sampling(raw):
+def test_the_block_s_laplace_evidence_with_the_amplitude_against_importance_sampling(raw, laplace):
     """Laplace over ``(theta, ln u)`` (k = 9) against importance sampling of ``p(d | theta, u) p(theta) p(ln u)``
     (4000 draws from the Laplace Gaussian widened 1.3x): within 0.05 + 3 standard errors.  The block is asked
     for (log Bayes factor > 10; measured 153.5, as without the amplitude: 154); dishes that share the nominal
     beam: < 0 (the Occam penalty)."""
     system, block, theta = raw
-    ev = beam_log_evidence(system, block, amplitude=True, newton_steps=10)
+    ev = laplace
     assert bool(ev.converged)
     assert ev.covariance.shape == (theta.size + 1,) * 2
     mean = np.concatenate([np.asarray(ev.theta).ravel(), np.asarray(ev.log_u)])
@@ -125,12 +132,12 @@ def test_the_block_s_laplace_evidence_with_the_amplitude_against_importance_samp
     assert float(beam_log_evidence(system0, block0, amplitude=True, newton_steps=10).log_bayes_factor) < 0.0
 
 
-def test_the_collapsed_chain_with_the_amplitude_covers_the_truth(raw):
+def test_the_collapsed_chain_with_the_amplitude_covers_the_truth(raw, laplace):
     """300 steps of the collapsed chain over ``(theta, ln u)`` with the Laplace proposal widened 1.1x, from a
     proposal draw: every coefficient's and ``ln u``'s truth within 4.5 posterior sd (9 parameters; for an exact
     Gaussian posterior a false alarm has probability ~6e-5); acceptance above 30 % (measured ~60 %)."""
     system, block, theta = raw
-    ev = beam_log_evidence(system, block, amplitude=True, newton_steps=10)
+    ev = laplace
     mean = jnp.concatenate([ev.theta.reshape(-1), ev.log_u])
     chol = 1.1 * jnp.linalg.cholesky(ev.covariance)
     x0 = mean + chol @ jax.random.normal(jax.random.PRNGKey(1), mean.shape)
@@ -161,7 +168,7 @@ def test_the_evidence_with_the_amplitude_needs_the_eager_newton_steps(raw):
         beam_log_evidence(system, block, amplitude=True)
 
 
-def test_the_data_space_grams_give_the_exact_marginal_and_the_same_laplace_evidence(raw):
+def test_the_data_space_grams_give_the_exact_marginal_and_the_same_laplace_evidence(raw, laplace):
     """:func:`beam_gram_log_evidence` (the marginal from the response sets' data-space Grams) equals the primal
     evidence of :func:`beam_system` (dense Cholesky of the precision) with flagged samples, any beams and any
     amplitude (measured: 2e-6 nats of ~1200 apart at most, rounding of two algebras at signal-to-noise ~1e3);
@@ -179,7 +186,7 @@ def test_the_data_space_grams_give_the_exact_marginal_and_the_same_laplace_evide
         b = float(log_evidence_system(beam_system(flagged, block, jnp.asarray(th), lu), options=CholeskyOptions(),
                                       check=False)[0][0])
         assert abs(a - b) < 1e-5 * max(1.0, abs(b) / 1000), (a, b)
-    ref = beam_log_evidence(system, block, amplitude=True, newton_steps=10)
+    ref = laplace
     fast = beam_log_evidence(system, block, amplitude=True, newton_steps=30, gram=beam_gram(system, block))
     assert bool(fast.converged)
     assert abs(float(fast.log_z) - float(ref.log_z)) < 1e-4 and abs(float(fast.log_z_nominal) - float(ref.log_z_nominal)) < 1e-6

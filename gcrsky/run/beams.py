@@ -264,7 +264,8 @@ def _fit_from(prob, chain: BeamChain, key, log_u):
     if log_u is not None:
         chain = chain._replace(system=_noise_system(prob, log_u), state=chain.state._replace(log_u=jnp.asarray(log_u)),
                                noise_log_u=np.asarray(log_u))
-    chain = chain._replace(gram=_gram(chain))
+    if chain.gram is None or prob.sigma_sky is not None:  # the Grams fold in the noise, which then depends on u
+        chain = chain._replace(gram=_gram(chain))
     warm = jax.jit(lambda k, st: beam_warmup_step(k, st, chain.system, chain.block, options=chain.options)[0])
     start = chain.state
     for k in jax.random.split(jax.random.fold_in(key, _START), WARM_START_STEPS):
@@ -291,7 +292,7 @@ def _laplace_fit(prob, chain: BeamChain, key):
              np.array2string(np.exp(top), precision=4), autos_ratio(prob), np.array2string(np.exp(near), precision=4))
     fits = [_fit_from(prob, chain, key, top)]
     if np.max(np.abs(near - top)) > 4 * float(np.max(np.asarray(nom.sd))):
-        fits.append(_fit_from(prob, chain, key, near))
+        fits.append(_fit_from(prob, chain._replace(gram=fits[0][1].gram), key, near))
     scores = [float(ev.log_z) if np.isfinite(float(ev.log_z)) else -np.inf for ev, _ in fits]
     if len(fits) > 1:
         log.info("beams: Laplace log evidence from the nominal's maximum %.2f, from its mode nearest the autos' %.2f: "
