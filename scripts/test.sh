@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Set up, then run the whole test suite: one pytest worker per core, each test file on one
-# worker (module fixtures are built once); about 35 minutes on 2 cores (the 25 slowest tests are
+# worker (module fixtures are built once); about 40 minutes on 2 cores (the 25 slowest tests are
 # listed at the end: where to look when CI nears its time).  Extra arguments go to pytest, e.g.
 # -m "not slow" for the fast subset, or -n 0 for a single process.
 set -euo pipefail
