@@ -196,3 +196,24 @@ def test_the_data_space_grams_give_the_exact_marginal_and_the_same_laplace_evide
     ref0 = beam_log_evidence(system1, block1, newton_steps=10)
     fast0 = beam_log_evidence(system1, block1, newton_steps=30, gram=beam_gram(system1, block1))
     assert bool(fast0.converged) and abs(float(fast0.log_bayes_factor) - float(ref0.log_bayes_factor)) < 1e-4
+
+
+def test_the_grams_marginal_has_the_gradient_of_finite_differences(raw):
+    """``jax.grad`` of :func:`beam_gram_log_evidence` in ``(theta, ln u)`` (what Newton's steps and the Laplace
+    covariance use) against central differences of step 1e-5 (relative agreement 1e-5: the differences' own
+    truncation and rounding at values ~300)."""
+    from gcrsky.inference.beams import beam_gram, beam_gram_log_evidence
+
+    system, block, theta = raw
+    gram = beam_gram(system, block)
+    shape = block.prior_mean.shape
+
+    @jax.jit
+    def f(x):
+        return beam_gram_log_evidence(gram, block, x[:-1].reshape(shape), x[-1:])[0]
+
+    x0 = jnp.concatenate([jnp.asarray(theta).ravel(), jnp.array([np.log(U) + 0.1])])
+    g = np.asarray(jax.grad(f)(x0))
+    h = 1e-5
+    fd = np.array([(float(f(x0.at[i].add(h))) - float(f(x0.at[i].add(-h)))) / (2 * h) for i in range(x0.size)])
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-5 * np.max(np.abs(fd)))
