@@ -2,7 +2,8 @@
 
 * float64 everywhere: x64 is enabled at import, before any array is created
   (gcrsky's normal matrices reach condition numbers ~1e9).
-* no persistent JAX compilation cache (``GCRSKY_COMPILE_CACHE=off``; see ``_no_compile_cache``), and
+* one persistent JAX compilation cache per test session, for the command line's runs (a fresh directory; see
+  ``_session_compile_cache``), and
   JAX's compiled programs dropped after each test file (``_release_compiled_programs``).
 * XLA's backend optimisation off (``JAX_DISABLE_MOST_OPTIMIZATIONS=1``; see ``_cheap_compiles``): most of the
   suite's time is compilation of programs that then run once or a few times.
@@ -47,21 +48,38 @@ def _safe_threading():
 _safe_threading()
 
 
-def _no_compile_cache():
-    """No persistent JAX compilation cache in the tests (``GCRSKY_COMPILE_CACHE=off``, inherited by the
-    subprocess tests; tests/test_compile_cache.py sets its own).
+#: Environment variable naming the test session's compilation cache directory (``off``: none); set by the
+#: controlling pytest process (:func:`_session_compile_cache`) and inherited by its workers and subprocesses.
+TEST_CACHE_ENV = "GCRSKY_TEST_COMPILE_CACHE"
 
-    The CLI turns the cache on for the rest of its process (``gcrsky.parallel.use_compile_cache``); the
-    tests must not read or fill the user's cache.  (The worker crashes first blamed on it, inside JAX's
-    cache read and write, recurred with the cache off: they were the exhaustion of memory mappings that
-    ``_release_compiled_programs`` prevents.)
+
+def _session_compile_cache():
+    """One persistent JAX compilation cache for the whole test session, in a fresh temporary directory removed at
+    its end: ``GCRSKY_COMPILE_CACHE`` names it, inherited by the xdist workers and the subprocess tests.
+
+    The command line turns JAX's persistent cache on for its process (``gcrsky.parallel.use_compile_cache``), and
+    the suite runs ``gcrsky run`` in ~100 subprocesses that compile the same programs: sharing them cut
+    tests/test_gains_cli.py from 151 to 108 s.  The tests never read or fill the user's cache (a fresh directory
+    per session; ``GCRSKY_TEST_COMPILE_CACHE=off`` turns it off; tests/test_compile_cache.py sets its own).
+    (The worker crashes first blamed on the cache, inside JAX's cache read and write, recurred with the cache
+    off: they were the exhaustion of memory mappings that ``_release_compiled_programs`` prevents.)
     """
+    import atexit
     import os
+    import shutil
+    import tempfile
 
-    os.environ["GCRSKY_COMPILE_CACHE"] = "off"
+    if TEST_CACHE_ENV not in os.environ:  # the controlling process (or a single one): make the session's
+        if os.environ.get("PYTEST_XDIST_WORKER"):
+            os.environ[TEST_CACHE_ENV] = "off"
+        else:
+            path = tempfile.mkdtemp(prefix="gcrsky-test-jax-cache-")
+            os.environ[TEST_CACHE_ENV] = path
+            atexit.register(shutil.rmtree, path, True)
+    os.environ["GCRSKY_COMPILE_CACHE"] = os.environ[TEST_CACHE_ENV]
 
 
-_no_compile_cache()
+_session_compile_cache()
 
 
 def _cheap_compiles():

@@ -211,21 +211,21 @@ def test_the_beam_evidence_by_laplace_against_importance_sampling_and_it_says_wh
     assert float(beam_log_evidence(system0, block0).log_bayes_factor) < 0.0
 
 
-def _sbc_world(nt=16, noise=0.02):
-    """4 dishes (6 rows), 1 channel, ``nt`` LSTs over 3 rad, lmax 2, nside 16; noise 2 % of the prior's rms
-    visibility; the two tilts per dish (k = 8), prior sd 0.2."""
+def _sbc_world(nt=16, noise=0.02, nf=1):
+    """4 dishes (6 rows), ``nf`` channels (100, 104, .. MHz), ``nt`` LSTs over 3 rad, lmax 2, nside 16; noise 2 % of
+    the prior's rms visibility; the two tilts per dish (k = 8), prior sd 0.2.  (tests/test_beam_gains.py's too.)"""
     pos = np.array([[0.0, 0.0, 0.0], [14.6, 0.0, 0.0], [7.3, 12.6, 0.0], [21.9, 12.6, 0.0]])
     array = make_array(pos, HERA_LATITUDE_DEG, DipoleGaussianBeam(diameter=14.0))
     lmax = 2
-    prior = isotropic_prior((50.0 / (1.0 + np.arange(lmax + 1)) ** 2)[None], (lmax + 1) ** 2)
-    prob = build_problem(array, FREQS[:1], np.linspace(0.0, 3.0, nt), lmax, 16, a_true=np.zeros((1, 9)), sigma=1.0,
+    prior = isotropic_prior(np.stack([50.0 / (1.0 + np.arange(lmax + 1)) ** 2] * nf), (lmax + 1) ** 2)
+    prob = build_problem(array, FREQS[:nf], np.linspace(0.0, 3.0, nt), lmax, 16, a_true=np.zeros((nf, 9)), sigma=1.0,
                          prior=prior, key=jax.random.PRNGKey(0))
     system = prob.system()
     rms = float(jnp.sqrt(jnp.mean(jnp.abs(apply(system.op, np.asarray(prior.inv_var) ** -0.5)) ** 2)))
     sigma = noise * rms
     system = system._replace(inv_noise=jnp.full(system.data.shape, sigma**-2))
     pairs = np.asarray(prob.antpairs)
-    stack = mode_responses(array, pairs, FREQS[:1], lmax, 16, MODES)
+    stack = mode_responses(array, pairs, FREQS[:nf], lmax, 16, MODES)
     return system, stack, pairs, sigma
 
 

@@ -2,8 +2,8 @@
 
 The twin (:func:`gcrsky.checks.twin.make_twin`) has H1C's 8 antennas, site, 10 integrations and one channel
 (162.5 MHz), as the real file is: uncalibrated (``vis_units`` "uncalib", the bandpass q = 0.003: the run infers
-the overall amplitude with the beams and the sky), unit gains (the block is not yet combined with sampled
-gains), radiometer noise from its autos, and a sky that is not the prior's (the GSM brightened and modulated,
+the overall amplitude with the beams and the sky), unit gains (the gains sampled with the beams:
+tests/test_beam_gains_cli.py), radiometer noise from its autos, and a sky that is not the prior's (the GSM brightened and modulated,
 with small-scale structure, to l = 18, the run's lmax: the beam block's exact marginal needs a dense problem).
 matvis simulates each dish with its own beam (:class:`gcrsky.checks.beamsim.PerturbedDishBeam`: pointings
 scattered by 6 mrad rms).  The run reads it as a user would, with the nominal 14 m dish.
@@ -121,7 +121,6 @@ def test_beams_sample_fits_dishes_that_point_their_own_way(pointed_twin, beam_ru
 
 
 @pytest.mark.parametrize("extra, says", [
-    (["--gains", "sample"], "not yet combined"),
     (["--by-channel"], "one chain over all channels"),
 ])
 def test_beams_sample_refuses_what_it_does_not_combine_with(extra, says, capsys):

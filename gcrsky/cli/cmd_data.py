@@ -121,8 +121,8 @@ BEAM_ONLY = (("beam_modes", "--beam-modes"), ("beam_sigma", "--beam-sigma"), ("b
 
 
 def check_beam_options(parser, args) -> None:
-    """The beam block's options need ``--beams sample``; ``--beams sample`` needs ``--data``, the gains off (not
-    composed with them yet; the amplitude may be inferred), and a joint run (one chain over the channels)."""
+    """The beam block's options need ``--beams sample``; ``--beams sample`` needs ``--data`` and a joint run (one
+    chain over the channels); the gains may be sampled with it (``--gains sample``), the amplitude inferred."""
     if args.beams != "sample":
         used = [opt for dest, opt in BEAM_ONLY if getattr(args, dest) is not None]
         if used:
@@ -130,10 +130,6 @@ def check_beam_options(parser, args) -> None:
         return
     if args.data is None:
         parser.error("--beams sample samples the beams of a file's antennas: give --data FILE")
-    if args.gains == "sample":
-        parser.error("--beams sample is not yet combined with sampled gains: give --gains off (the file's or --cal's "
-                     "gains; the overall amplitude per channel may still be inferred, --amplitude infer), or drop "
-                     "--beams sample")
     from .options import channel_mode
 
     if channel_mode(args) is not None or getattr(args, "freq_prior", "independent") != "independent":
@@ -143,14 +139,14 @@ def check_beam_options(parser, args) -> None:
 
 def _beam_inputs(args) -> None:
     """``--beams sample`` keeps every baseline (two baselines of one separation no longer share a response once
-    their antennas' beams differ) and holds the gains at the file's (``--gains auto`` resolves to off; the
+    their antennas' beams differ) and holds the gains at the file's unless ``--gains sample`` asks for them
+    (``--gains auto`` resolves to off: the gains' burn-in costs ``--gain-burn`` steps of the beam chain; the
     amplitude's ``auto`` is resolved as in any run, from the headers)."""
     if args.beams != "sample":
         return
     if args.gains == "auto":
         args.gains = "off"
-        print("gcrsky: --beams sample: the gains are the file's (or --cal's): the beam block is not yet combined with "
-              "sampled gains")
+        print("gcrsky: --beams sample: the gains are the file's (or --cal's); --gains sample samples them with the beams")
     if not args.no_compress:
         print("gcrsky: --beams sample: every baseline kept (beams are per antenna; redundant compression would "
               "average baselines whose beams differ)")
@@ -301,12 +297,17 @@ def _run_data(args) -> int:
         from ..run.sampling import Beams
 
         spec = run_spec(args, nsamples=spec.draws.nsamples, method=spec.solver.method, tol=spec.solver.tol,
-                        extra=spec.extra, sampling=Beams(beam_sampling(args, amplitude_sampling(args) if infer else None),
-                                                         nominal=nominal))
+                        extra=spec.extra,
+                        sampling=Beams(beam_sampling(args, amplitude_sampling(args) if infer else None,
+                                                     gain_sampling(args, prob=prob)), nominal=nominal))
         b = spec.sampling.beams
+        g = b.gains
         print(f"gcrsky: beams sampled with the sky: Zernike orders 1-{b.nmax} ({b.freq_modes} frequency mode(s)) per "
               f"antenna, prior sd {b.sigma:g} (array mean {b.mean_sigma:g}), warm-up {b.burn} steps"
-              + ("; the overall amplitude per channel with them" if infer else "") + "; the draws are a Markov chain's")
+              + ("; the overall amplitude per channel with them" if infer else "")
+              + ("" if g is None else f"; gains with them: {g.modes[0]} x {g.modes[1]} {g.basis} modes per gain, prior "
+                                      f"sd {g.sigma:g}, fitted with the beams (no burn-in), thinned by {g.thin}")
+              + "; the draws are a Markov chain's")
     elif infer:
         spec = run_spec(args, nsamples=spec.draws.nsamples, method=spec.solver.method, tol=spec.solver.tol,
                         extra=spec.extra, gains=gain_sampling(args, prob=prob), amplitude=amplitude_sampling(args))

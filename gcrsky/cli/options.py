@@ -297,7 +297,7 @@ def add_beam_options(g) -> None:
     g.add_argument("--beams", choices=("off", "sample"), default="off",
                    help="every antenna's beam perturbation sampled with the sky (Zernike modes over the main lobe; "
                    "docs/beams.md): off (default: the nominal beam for every antenna), sample (every baseline kept; "
-                   "the gains off, the amplitude inferred or fixed as --amplitude says; the sky or data space per channel "
+                   "the gains the file's unless --gains sample, the amplitude inferred or fixed as --amplitude says; the sky or data space per channel "
                    "at most 2500)")
     g.add_argument("--beam-modes", type=int_at_least(1, "beam-modes", 4), default=None, metavar="NMAX",
                    help="the highest Zernike radial order of the perturbations (default 2: tilts, defocus, "
@@ -311,17 +311,17 @@ def add_beam_options(g) -> None:
                    help="warm-up steps of the beam chain (default 20)")
 
 
-def beam_sampling(args, amplitude=None):
+def beam_sampling(args, amplitude=None, gains=None):
     """The :class:`gcrsky.run.BeamSampling` of the options (its defaults where not given), with the amplitude
-    inferred where ``amplitude`` (an :class:`gcrsky.run.AmplitudeSampling`) is given, or None without
-    ``--beams sample``."""
+    inferred where ``amplitude`` (an :class:`gcrsky.run.AmplitudeSampling`) is given and the gains sampled where
+    ``gains`` (a :class:`gcrsky.run.GainSampling`) is, or None without ``--beams sample``."""
     if args.beams != "sample":
         return None
     from ..run.spec import BeamSampling
 
     kw = {k: v for k, v in (("nmax", args.beam_modes), ("sigma", args.beam_sigma),
                             ("freq_modes", args.beam_freq_modes), ("burn", args.beam_burn)) if v is not None}
-    return BeamSampling(**kw, amplitude=amplitude)
+    return BeamSampling(**kw, amplitude=amplitude, gains=gains)
 
 
 def add_frequency_options(g) -> None:

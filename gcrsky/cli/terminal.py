@@ -125,10 +125,16 @@ def fit_line(gof: dict) -> str:
 
 
 def gains_line(g: dict) -> str:
-    """One line on a gain run: the crosses' flux scale (first channel) against the autos', the phase gradients."""
-    f = g["flux_scale"][0]
-    lo, hi = f["ci95"]
-    text = f"  gains: {g['units']} units; flux scale {f['mean']:.4g} +- {f['sd']:.2g} (95 %: {lo:.4g}-{hi:.4g})"
+    """One line on a gain run: the crosses' flux scale (first channel) against the autos', the phase gradients; for
+    gains sampled with the beams (no flux scale of their own: the amplitude's) the fit with the file's gains."""
+    text = f"  gains: {g['units']} units"
+    if "flux_scale" in g:
+        f = g["flux_scale"][0]
+        lo, hi = f["ci95"]
+        text += f"; flux scale {f['mean']:.4g} +- {f['sd']:.2g} (95 %: {lo:.4g}-{hi:.4g})"
+    if g.get("fit_file_gains"):
+        chi = ", ".join(f"{c:.3g}" for c in g["fit_file_gains"]["chi2_per_dof"])
+        text += f"; with the file's gains chi2/dof {chi}" + (" (rejected)" if g["fit_file_gains"]["rejected"] else "")
     if g.get("autos_flux_ratio") is not None:
         text += f" against the autos' {g['autos_flux_ratio']:.4g}"
     if g.get("flux_scale_ess") is not None:

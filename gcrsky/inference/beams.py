@@ -82,6 +82,8 @@ __all__ = [
     "beam_system",
     "beam_warmup_step",
     "check_amplitude_identified",
+    "fold_row_factor",
+    "refold_gram",
     "set_visibilities",
 ]
 
@@ -197,11 +199,17 @@ def beam_system(system: LinearSystem, block: BeamBlock, theta, log_u=None) -> Li
     from .amplitude import scale_response
 
     resp = combine_responses(block.stack, block.pairs, beam_coefficients(block, theta))
-    D = jnp.broadcast_to(block.row_factor, system.data.shape).astype(system.data.dtype)
-    w = system.inv_noise * jnp.abs(D) ** 2
-    data = jnp.where(D == 0, 0.0, system.data / jnp.where(D == 0, 1.0, D))
+    data, w = fold_row_factor(system, block.row_factor)
     out = system._replace(op=system.op._replace(response=resp), data=data, inv_noise=w)
     return out if log_u is None else scale_response(out, log_u)
+
+
+def fold_row_factor(system: LinearSystem, row_factor):
+    """The data ``d / D`` (0 where ``D = 0``) and inverse noise ``W |D|^2`` (Nf, Nt, Nbl) of the model ``d = D X a + n``
+    with the row factor ``D`` (Nf, Nt, Nbl) complex or a scalar folded in: ``|d - D X a|^2 W = |d / D - X a|^2 W |D|^2``."""
+    D = jnp.broadcast_to(row_factor, system.data.shape).astype(system.data.dtype)
+    w = system.inv_noise * jnp.abs(D) ** 2
+    return jnp.where(D == 0, 0.0, system.data / jnp.where(D == 0, 1.0, D)), w
 
 
 def set_visibilities(system: LinearSystem, block: BeamBlock, sky) -> jax.Array:
@@ -442,14 +450,17 @@ def beam_log_prior(block: BeamBlock, theta) -> jax.Array:
 NEWTON_DECREMENT_TOL = 1e-6
 
 
-def _newton_polish(fun, x, steps: int):
+def _newton_polish(fun, x, steps: int, *, jit: bool = False):
     """``steps`` damped Newton steps maximising ``fun`` (flat -> scalar) from ``x``: the step
-    ``|-H|^-1 g`` (eigenvalues of ``-H`` taken in modulus: a saddle is left, not approached), halved up to 9
-    times until ``fun`` increases (else the step is not taken, and the polish ends).  Eager (the same
-    pieces jitted, or in ``lax`` loops, stalled XLA's CPU runtime here: jax 0.10.2).  Returns ``(x, fun(x), Hessian of
-    -fun at x, Newton decrement at x)``."""
+    ``|-H|^-1 g`` (eigenvalues of ``-H`` taken in modulus: a saddle is left, not approached), halved up to 29
+    times until ``fun`` increases (else the step is not taken, and the polish ends).  The loop is eager; ``jit``:
+    its pieces (value and gradient, Hessian, value) each compiled once (the primal path's pieces jitted stalled
+    XLA's CPU runtime once, jax 0.10.2, and it stays eager; the Grams' are small and compile).  Returns ``(x, fun(x),
+    Hessian of -fun at x, Newton decrement at x)``."""
     value_grad = jax.value_and_grad(fun)
     hess = jax.hessian(fun)
+    if jit:
+        value_grad, hess, fun = jax.jit(value_grad), jax.jit(hess), jax.jit(fun)
 
     def direction(x):
         f, g = value_grad(x)
@@ -465,7 +476,7 @@ def _newton_polish(fun, x, steps: int):
         if float(g @ step) < NEWTON_DECREMENT_TOL:
             break
         t = 1.0
-        while t > 2.0**-10:
+        while t > 2.0**-30:
             fx = float(value(x + t * step))
             if np.isfinite(fx) and fx > float(f):
                 break
@@ -575,7 +586,7 @@ def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, am
         def fun(x):
             return beam_marginal_log_posterior(system, block, unravel(x), options=options, gram=gram)
 
-    flat, obj, hess, decrement = _newton_polish(fun, flat, newton_steps)
+    flat, obj, hess, decrement = _newton_polish(fun, flat, newton_steps, jit=gram is not None)
     k = flat.size
     evals, vecs = jnp.linalg.eigh(hess)
     cov = (vecs / evals) @ vecs.T
@@ -661,11 +672,10 @@ def beam_gram(system: LinearSystem, block: BeamBlock) -> BeamGram:
     (:func:`gcrsky.solvers.dataspace.dataspace_matrix`) of the system whose rows are the ``P`` sets' (``P Nbl``
     rows, unit weights), ``O(Nf (2 Nt P Nbl)^2 n)`` once.  The row factor is folded into the data and noise as in
     :func:`beam_system`; the system's prior must be proper."""
-    from ..solvers.dataspace import dataspace_matrix, sqrt_weights, to_rows
+    from ..solvers.dataspace import dataspace_matrix, to_rows
 
     nf, npair, nbl, n = block.stack.shape
     nt = system.data.shape[1]
-    folded = beam_system(system, block, jnp.zeros_like(block.prior_mean))
     op = system.op._replace(response=jnp.reshape(block.stack, (nf, npair * nbl, n)))
     # D = I + k^2 G: a weight k^2 that makes G's largest entries ~1e10 keeps G's digits when the I is taken off
     # (a bound on its diagonal: the response's row norms (in its own basis, before the frame map) times S's largest)
@@ -676,10 +686,22 @@ def beam_gram(system: LinearSystem, block: BeamBlock) -> BeamGram:
     big = 2 * nt * npair * nbl
     grams = (dataspace_matrix(stacked) - jnp.eye(big)) / k2
     means = to_rows(apply(op, system.prior.mean)).reshape(nf, nt, 2, npair, nbl)
-    sw = sqrt_weights(folded)
-    return BeamGram(grams.reshape((nf, nt, 2, npair, nbl, nt, 2, npair, nbl)),
-                    means, to_rows(folded.data).reshape(nf, nt, 2, nbl),
-                    jnp.broadcast_to(sw[:, :, None, :], (nf, nt, 2, nbl)))
+    return refold_gram(BeamGram(grams.reshape((nf, nt, 2, npair, nbl, nt, 2, npair, nbl)), means, None, None),
+                       system, block)
+
+
+def refold_gram(gram: BeamGram, system: LinearSystem, block: BeamBlock) -> BeamGram:
+    """``gram`` with the data and noise of ``system`` under ``block``'s row factor (:func:`fold_row_factor`): the Grams
+    ``X^(p) S X^(p')T`` do not depend on the row factor, so a new one (e.g. the gains of a chain's step,
+    :mod:`gcrsky.inference.beam_gains`) costs ``O(Nf Nt Nbl)``, not a new :func:`beam_gram`."""
+    from ..solvers.dataspace import to_rows
+
+    nf, nt, nbl = system.data.shape
+    data, w = fold_row_factor(system, block.row_factor)
+    pos = w > 0
+    sw = jnp.where(pos, jnp.sqrt(jnp.where(pos, w, 1.0)), 0.0)
+    return gram._replace(rows=to_rows(data).reshape(nf, nt, 2, nbl),
+                         sqrt_w=jnp.broadcast_to(sw[:, :, None, :], (nf, nt, 2, nbl)))
 
 
 def beam_gram_log_evidence(gram: BeamGram, block: BeamBlock, theta, log_u=None) -> jax.Array:

@@ -376,12 +376,13 @@ def _ess(x: np.ndarray) -> float | None:
     return float(effective_sample_size(np.asarray(x)[None])) if x.shape[0] > 3 and np.std(x) > 0 else None
 
 
-def amplitude_summary(prob, amp, h5, *, markov: bool | None = None) -> dict:
+def amplitude_summary(prob, amp, h5, *, markov: bool | None = None, gain_theta: bool = True) -> dict:
     """``summary.json``'s blocks: ``flux_scale`` (per channel median and 95 % interval of ``q``, the autos' ratio
     beside it, the source) and ``amplitude`` (settings, ESS of every sampled scalar against :data:`ESS_FLOOR`).
 
     ``markov``: the draws are a Markov chain's (default: with gains; a beam run's are, without them), so
-    every sampled scalar's chain diagnostics and their WARNING are given."""
+    every sampled scalar's chain diagnostics and their WARNING are given.  ``gain_theta`` False: the gains'
+    draws (where recorded) are left to another block's diagnostics (a beam run's ``gains`` block)."""
     import h5py
 
     markov = amp.gains is not None if markov is None else markov
@@ -389,7 +390,7 @@ def amplitude_summary(prob, amp, h5, *, markov: bool | None = None) -> dict:
     with h5py.File(h5, "r") as h:
         rows = int(h["draws"].shape[1])
         q, u, c = h["amplitude_q"][:rows], h["amplitude_u"][:rows], h["amplitude_c"][:rows]
-        theta = h["gain_theta"][:rows] if "gain_theta" in h else None
+        theta = h["gain_theta"][:rows] if "gain_theta" in h and gain_theta else None
     checks = (getattr(prob.config, "checks", None) or {}).get("flux_scale") or {}
     autos = checks.get("ratio_per_channel") or [None] * q.shape[1]
     chans = []

@@ -63,6 +63,7 @@ import numpy as np
 
 from ..inference.amplitude import local_modes, log_evidence_over_u
 from ..inference.api import prepare
+from ..inference.beam_gains import BeamGainState, beam_gain_log_evidence, beam_gain_step, gain_row_factor, with_gains
 from ..inference.beams import (
     beam_coefficients,
     beam_collapsed_step,
@@ -72,19 +73,22 @@ from ..inference.beams import (
     beam_system,
     beam_warmup_step,
     check_amplitude_identified,
+    refold_gram,
 )
+from ..inference.gains import GainState, gain_setup, recentre
 from ..instrument.beammodes import beam_modes, combine_responses, disc_radius, mode_responses
-from ..model.gains import mode_basis
+from ..model.gains import gain_model, mode_basis, n_gain_params, perturbations, unit_gains
 from ..solvers.plan import choose_path
 from .amplitude import autos_ratio, draw_c
 from .draws import append_chain_batch, read_chain, record_setup
-from .gains import noise_at
+from .gains import gain_layout_arrays, gained_problem, noise_at
 from .output import BEAM_DIR, OpenRun
 from .resume import options_json
 from .stages import StageTimer, Watch
 
-__all__ = ["BEAM_DENSE_MAX_N", "BEAM_KEY_SCHEME", "PROPOSAL_WIDEN", "BeamChain", "beam_chain_setup", "beam_draws",
-           "beam_fit_problem", "beam_summary", "beamed_problem", "modes_of", "write_beam_products"]
+__all__ = ["BEAM_DENSE_MAX_N", "BEAM_GAIN_KEYS", "BEAM_KEY_SCHEME", "PROPOSAL_WIDEN", "BeamChain", "beam_chain_setup",
+           "beam_draws", "beam_fit_problem", "beam_summary", "beamed_problem", "fit_without_gains", "modes_of",
+           "write_beam_products"]
 
 log = logging.getLogger(__name__)
 
@@ -97,6 +101,11 @@ BEAM_KEY_SCHEME = ("beams-v2: Laplace fit from conditional modes fold_in(key, 2*
                    "fold_in(key, 2**31-3); warm-up fold_in(key, 2**31-1); batch b fold_in(key, b); each split per "
                    "kept state, then per step; collapsed independence MH; with the amplitude the sky model's scale c "
                    "of batch b from fold_in(fold_in(key, b), 2**31-1)")
+#: What a beam run that samples the gains adds to :data:`BEAM_KEY_SCHEME`.
+BEAM_GAIN_KEYS = ("; gains: fitted with the beams (no keys), the start and every move joint in (theta, log_u, gains)")
+#: Joint Laplace fits of the beams, amplitude and gains in a run that samples the gains, the gains' linearisation
+#: point moved to each fit's maximum before the next (:func:`_gain_fit`).
+GAIN_FITS = 3
 #: The proposal's covariance is the Laplace covariance times ``PROPOSAL_WIDEN**2`` (heavier than the marginal's
 #: bulk, so that the importance weights stay bounded where the marginal is not quite Gaussian).
 PROPOSAL_WIDEN = 1.1
@@ -134,6 +143,10 @@ class BeamChain(NamedTuple):
             MH step and Newton step from them; None where they do not fit the memory (then ``options``' path).
         noise_log_u: (Nf,) the amplitude at which the sky part of the system's noise is evaluated (the fit's
             start), or None (the amplitude not inferred).
+        gains: the gain block (:class:`gcrsky.inference.gains.GainBlock`) about the linearisation point where the
+            gains are sampled, else None; ``block`` is then the beams' own, the gains' factor folded in per step.
+        lin: (Nf, Nt, U) complex, the units' gains at the linearisation point (None without gains).
+        gain_theta: (P,) the gain perturbations of the chain's state (None without gains).
     """
 
     system: object
@@ -144,6 +157,9 @@ class BeamChain(NamedTuple):
     options: object = None
     gram: object = None
     noise_log_u: object = None
+    gains: object = None
+    lin: object = None
+    gain_theta: object = None
 
 
 def _site_latitude(prob) -> float:
@@ -224,16 +240,44 @@ def beam_chain_setup(prob, beams, sampling) -> BeamChain:
     zero = (jnp.zeros(k), jnp.eye(k))
     log_u = None if sampling.amplitude is None else jnp.full(freqs.size, np.log(autos_ratio(prob) or 1.0))
     system = _noise_system(prob, log_u)
-    return BeamChain(system, block, zero, beam_init(system.prior.mean, block, log_u=log_u),
-                     disc_radius(beams[0], freqs, modes), marginal_options(prob))
+    chain = BeamChain(system, block, zero, beam_init(system.prior.mean, block, log_u=log_u),
+                      disc_radius(beams[0], freqs, modes), marginal_options(prob))
+    if sampling.gains is None:
+        return chain
+    g = sampling.gains
+    nt = prob.data.shape[1]
+    model = gain_model(prob.antpairs, freqs.size, nt, g.modes, basis=g.basis, pols=prob.pols)
+    lin = np.ones((freqs.size, nt, model.units.shape[0]), complex)
+    return chain._replace(gains=gain_setup(model, sigma=g.sigma, gbar=lin), lin=lin,
+                          gain_theta=jnp.zeros(n_gain_params(model)))
 
 
-def _noise_system(prob, log_u):
+def _noise_system(prob, log_u, factor=None):
     """The sky's system, the sky part of its noise (``--band-limit marginalise``) through the amplitude ``exp(log_u)``
-    (Nf,) where inferred (it is the sky's: :func:`gcrsky.run.gains.noise_at`)."""
-    if log_u is None:
+    (Nf,) where inferred and the gains' factor (Nf, Nt, Nbl) where sampled (it is the sky's:
+    :func:`gcrsky.run.gains.noise_at`)."""
+    if log_u is None and factor is None:
         return prob.system()
-    return noise_at(prob, np.exp(np.asarray(log_u))[:, None, None]).system()
+    u = 1.0 if log_u is None else np.exp(np.asarray(log_u))[:, None, None]
+    return noise_at(prob, u * (1.0 if factor is None else np.asarray(factor))).system()
+
+
+def _gain_factor(chain: BeamChain):
+    """The gains' factor (Nf, Nt, Nbl) at the linearisation point, or None without gains."""
+    return None if chain.gains is None else np.asarray(chain.gains.pair_gains)
+
+
+def _fit_block(chain: BeamChain):
+    """The beam block with the gains' factor at their linearisation point folded in (the Laplace fit's and the Wiener
+    filter's model); the block itself without gains."""
+    if chain.gains is None:
+        return chain.block
+    return with_gains(chain.block, chain.gains, jnp.zeros_like(chain.gain_theta))
+
+
+def _joint_state(chain: BeamChain):
+    """The chain's state as its kernel takes it: the :class:`BeamState`, or with gains a :class:`BeamGainState`."""
+    return chain.state if chain.gains is None else BeamGainState(chain.state, chain.gain_theta)
 
 
 #: Fraction of the free memory the data-space Grams of a beam run may take (else the marginal takes the sky draws'
@@ -262,10 +306,12 @@ def _fit_from(prob, chain: BeamChain, key, log_u):
     """The Laplace fit (:func:`gcrsky.inference.beam_log_evidence`) from :data:`WARM_START_STEPS` conditional-mode
     steps, the amplitude started (and the sky part of the noise evaluated) at ``log_u`` (None: not inferred)."""
     if log_u is not None:
-        chain = chain._replace(system=_noise_system(prob, log_u), state=chain.state._replace(log_u=jnp.asarray(log_u)),
-                               noise_log_u=np.asarray(log_u))
-    if chain.gram is None or prob.sigma_sky is not None:  # the Grams fold in the noise, which then depends on u
+        chain = chain._replace(system=_noise_system(prob, log_u, _gain_factor(chain)),
+                               state=chain.state._replace(log_u=jnp.asarray(log_u)), noise_log_u=np.asarray(log_u))
+    if chain.gram is None:
         chain = chain._replace(gram=_gram(chain))
+    elif prob.sigma_sky is not None:  # the noise depends on u: the Grams' data and noise folded again (not the Grams)
+        chain = chain._replace(gram=refold_gram(chain.gram, chain.system, chain.block))
     warm = jax.jit(lambda k, st: beam_warmup_step(k, st, chain.system, chain.block, options=chain.options)[0])
     start = chain.state
     for k in jax.random.split(jax.random.fold_in(key, _START), WARM_START_STEPS):
@@ -318,10 +364,14 @@ def _proposal(mean, cov):
 
 
 @functools.partial(jax.jit, static_argnames=("n", "thin", "options"))
-def _segment(system, block, proposal, state, key, gram=None, *, n: int, thin: int, options=None):
-    """``n`` kept states, one every ``thin`` steps: (last state, (states, mean acceptance, sky SolveInfo))."""
+def _segment(system, block, proposal, state, key, gram=None, gains=None, *, n: int, thin: int, options=None):
+    """``n`` kept states, one every ``thin`` steps: (last state, (states, mean acceptance, sky SolveInfo)); with
+    ``gains`` (a GainBlock; ``state`` a BeamGainState) the joint kernel with the gains
+    (:func:`gcrsky.inference.beam_gains.beam_gain_step`), else the collapsed beam chain's."""
 
     def step(s, k):
+        if gains is not None:
+            return beam_gain_step(k, s, system, block, gains, proposal, options=options, gram=gram, with_info=True)
         return beam_collapsed_step(k, s, system, block, proposal, options=options, with_info=True, gram=gram)
 
     def keep(s, k):
@@ -332,9 +382,15 @@ def _segment(system, block, proposal, state, key, gram=None, *, n: int, thin: in
 
 
 def _state_arrays(state) -> dict:
+    """The chain's state as ``results.h5`` keeps it (``beams/state/``), a BeamState or a BeamGainState."""
+    gain_theta = None
+    if isinstance(state, BeamGainState):
+        state, gain_theta = state.beam, state.gain_theta
     out = {"beams/state/sky": np.asarray(state.sky), "beams/state/theta": np.asarray(state.theta)}
     if state.log_u is not None:
         out["beams/state/log_u"] = np.asarray(state.log_u)
+    if gain_theta is not None:
+        out["beams/state/gain_theta"] = np.asarray(gain_theta)
     return out
 
 
@@ -348,10 +404,15 @@ def _per_draw(chain: BeamChain) -> dict:
                                                  "in K through the beams"),
                     "amplitude_u": ((nf,), "f8", "(ndraws, Nf): u = q c, what the data measure"),
                     "amplitude_c": ((), "f8", "(ndraws,): the sky model's scale, a = c (a0 + delta)")})
+    if chain.gains is not None:
+        nf, nt, nu = chain.lin.shape
+        out.update({"gain_draws": ((nf, nt, nu), "c16", "(ndraws, Nf, Nt, U) complex: g_u = gbar_u sqrt(q) (1 + x_u), "
+                                                        "q the amplitude (1 where not inferred)"),
+                    "gain_theta": ((int(chain.gain_theta.size),), "f8", "(ndraws, P)")})
     return out
 
 
-def _layout_arrays(prob, chain: BeamChain, sampling, ev, response) -> dict:
+def _layout_arrays(prob, chain: BeamChain, sampling, ev, response, factor=None) -> dict:
     conv = getattr(prob.config, "conventions", None) or {}
     nant = chain.block.prior_mean.shape[0]
     nums = np.asarray(conv.get("antenna_numbers", np.arange(nant)))
@@ -364,62 +425,139 @@ def _layout_arrays(prob, chain: BeamChain, sampling, ev, response) -> dict:
             "beams/laplace_converged": np.asarray(bool(ev.converged)), "beams/setup_response": np.asarray(response),
             **({} if ev.log_u is None else {"beams/laplace_log_u": np.asarray(ev.log_u),
                                              "beams/log_u_nominal": np.asarray(ev.log_u_nominal),
-                                             "beams/noise_log_u": np.asarray(chain.noise_log_u)})}
+                                             "beams/noise_log_u": np.asarray(chain.noise_log_u)}),
+            **({} if chain.gains is None else gain_layout_arrays(prob, chain.gains, chain.lin, factor))}
 
 
 def _setup(prob, beams, spec, run: OpenRun, key) -> BeamChain:
-    """New run: set up, fit the marginal (Laplace), record the Wiener filter given its maximum, warm up;
-    resumed: the recorded proposal and state."""
-    import h5py
-
+    """New run: set up, fit the marginal (Laplace), with gains burn them in and fit it again at their linearisation
+    point, record the Wiener filter given its maximum, warm up; resumed: the recorded proposal and state."""
     sampling = spec.sampling.beams
     chain = beam_chain_setup(prob, beams, sampling)
     if run.state is not None:
-        with h5py.File(run.h5, "r") as h:
-            proposal = (jnp.asarray(h["beams/proposal_mean"][()]), jnp.asarray(h["beams/proposal_chol"][()]))
-            log_u = None if sampling.amplitude is None else jnp.asarray(h["beams/state/log_u"][()])
-            state = chain.state._replace(sky=jnp.asarray(h["beams/state/sky"][()]),
-                                         theta=jnp.asarray(h["beams/state/theta"][()]), log_u=log_u)
-            system = chain.system if log_u is None else _noise_system(prob, h["beams/noise_log_u"][()])
-        chain = chain._replace(proposal=proposal, state=state, system=system)
-        return chain._replace(gram=_gram(chain))
+        return _read_chain(prob, chain, run.h5)
     t0 = time.perf_counter()
-    ev, chain, log_u_fit = _laplace_fit(prob, chain, key)
+    ev, fitted, log_u_fit = _laplace_fit(prob, chain._replace(block=_fit_block(chain)), key)
+    chain = fitted._replace(block=chain.block, proposal=_proposal(_best(ev), ev.covariance))
     log.info("beams: Laplace fit of the marginal in %.1f s: log Bayes factor %.2f against the nominal beams "
              "(converged: %s)", time.perf_counter() - t0, float(ev.log_bayes_factor), bool(ev.converged))
-    best = ev.theta.reshape(-1) if ev.log_u is None else jnp.concatenate([ev.theta.reshape(-1), ev.log_u])
-    chain = chain._replace(proposal=_proposal(best, ev.covariance))
+    factor = nominal_factor = None
+    if chain.gains is not None:
+        chain, ev = _gain_fit(prob, chain, ev)
+        log_u_fit = None if ev.log_u is None else np.asarray(ev.log_u_nominal)
+        factor = np.asarray(gain_row_factor(chain.gains, ev.gain_theta))  # the gains at the joint maximum
+        nominal_factor = np.asarray(gain_row_factor(chain.gains, ev.gain_theta_nominal))
     response = combine_responses(chain.block.stack, chain.block.pairs, beam_coefficients(chain.block, ev.theta))
     if ev.log_u is not None:
         response = response * jnp.exp(ev.log_u)[:, None, None]
-    prob_b = beamed_problem(prob if ev.log_u is None else noise_at(prob, np.exp(np.asarray(ev.log_u))[:, None, None]),
-                            response)
+    prob_b = _model_problem(prob, response, ev.log_u, factor)
     options = choose_path(prob_b.system(), spec.solver.method, tol=spec.solver.tol, ndraws=1)
     prepared = prepare(prob_b, options=options)
     a_wf = np.asarray(jax.block_until_ready(prepared.a_wf))
     mean, chol = chain.proposal  # start from a proposal draw, not the maximum: the maximum has the largest
     z = jax.random.normal(jax.random.fold_in(key, _START - 1), mean.shape, mean.dtype)  # weight p/q of all (by
     x = mean + chol @ z  # ~e^{0.2 K})
-    k = ev.theta.size
-    state = beam_init(jnp.asarray(a_wf), chain.block, theta=x[:k].reshape(ev.theta.shape),
-                      log_u=None if ev.log_u is None else x[k:])
+    k, nu = ev.theta.size, 0 if ev.log_u is None else ev.log_u.size
+    chain = chain._replace(state=beam_init(jnp.asarray(a_wf), chain.block, theta=x[:k].reshape(ev.theta.shape),
+                                           log_u=None if ev.log_u is None else x[k:k + nu]))
+    if chain.gains is not None:
+        chain = chain._replace(gain_theta=x[k + nu:])
     if sampling.burn:
-        state, _ = _segment(chain.system, chain.block, chain.proposal, state, jax.random.fold_in(key, _WARM),
-                            chain.gram, n=1, thin=sampling.burn, options=chain.options)
-    chain = chain._replace(state=state)
+        state, _ = _segment(chain.system, chain.block, chain.proposal, _joint_state(chain),
+                            jax.random.fold_in(key, _WARM), chain.gram, chain.gains, n=1, thin=sampling.burn,
+                            options=chain.options)
+        chain = _with_state(chain, state)
     record_setup(prob, spec, run, a_wf, prepared.wiener, rank=getattr(prepared, "kept", None), method=_method(chain),
-                 options=options, key_scheme=BEAM_KEY_SCHEME, per_draw=_per_draw(chain),
-                 arrays={**_layout_arrays(prob, chain, sampling, ev, response), **_state_arrays(state),
-                         **({} if log_u_fit is None else {"beams/log_u_nominal_fit": np.asarray(log_u_fit)})})
+                 options=options, key_scheme=BEAM_KEY_SCHEME + ("" if chain.gains is None else BEAM_GAIN_KEYS),
+                 per_draw=_per_draw(chain),
+                 arrays={**_layout_arrays(prob, chain, sampling, ev, response, factor),
+                         **_state_arrays(_joint_state(chain)),
+                         **({} if log_u_fit is None else {"beams/log_u_nominal_fit": np.asarray(log_u_fit)}),
+                         **({} if nominal_factor is None else {"beams/nominal_gain_factor": nominal_factor})})
     log.info("beam chain: Wiener filter given the beams at the marginal's maximum by %s (%s); warm-up of %d steps",
              prepared.method, options_json(options), sampling.burn)
     return chain
 
 
+def _best(ev):
+    """The Laplace maximum as the proposal's mean: ``theta`` flattened, then ``log_u`` where inferred, then the gains'
+    perturbations where sampled (a :class:`gcrsky.inference.beam_gains.BeamGainEvidence`)."""
+    parts = [ev.theta.reshape(-1)] + ([] if ev.log_u is None else [ev.log_u])
+    return jnp.concatenate(parts + ([ev.gain_theta] if hasattr(ev, "gain_theta") else []))
+
+
+def _with_state(chain: BeamChain, state) -> BeamChain:
+    """``chain`` with the kernel's state (a BeamState, or a BeamGainState with gains) as its own."""
+    if isinstance(state, BeamGainState):
+        return chain._replace(state=state.beam, gain_theta=state.gain_theta)
+    return chain._replace(state=state)
+
+
+def _read_chain(prob, chain: BeamChain, h5) -> BeamChain:
+    """A resumed run's chain: the recorded proposal, state, amplitude of the noise and (with gains) linearisation."""
+    import h5py
+
+    with h5py.File(h5, "r") as h:
+        proposal = (jnp.asarray(h["beams/proposal_mean"][()]), jnp.asarray(h["beams/proposal_chol"][()]))
+        inferred = chain.state.log_u is not None
+        state = chain.state._replace(sky=jnp.asarray(h["beams/state/sky"][()]),
+                                     theta=jnp.asarray(h["beams/state/theta"][()]),
+                                     log_u=jnp.asarray(h["beams/state/log_u"][()]) if inferred else None)
+        noise_log_u = h["beams/noise_log_u"][()] if inferred else None
+        if chain.gains is not None:
+            gains = chain.gains._replace(pair_gains=jnp.asarray(h["gains/pair_gains"][()]),
+                                         prior_mean=jnp.asarray(h["gains/prior_mean"][()]))
+            chain = chain._replace(gains=gains, lin=h["gains/linearisation"][()],
+                                   gain_theta=jnp.asarray(h["beams/state/gain_theta"][()]))
+    chain = chain._replace(proposal=proposal, state=state, noise_log_u=noise_log_u,
+                           system=_noise_system(prob, noise_log_u, _gain_factor(chain)))
+    return chain._replace(gram=_gram(chain))
+
+
+def _gain_fit(prob, chain: BeamChain, ev):
+    """The beams, the amplitude (where inferred) and the gains fitted jointly (:func:`gcrsky.inference.beam_gains.
+    beam_gain_log_evidence`: Laplace by Newton on their exact marginal, the sky integrated out), from the beams-only
+    fit ``ev`` and the gains at their linearisation point; :data:`GAIN_FITS` times, the linearisation point moved
+    to the maximum's gains before each further fit (:func:`gcrsky.inference.gains.recentre`: the linearised
+    model's error is then second order in what is left).  Returns ``(chain, evidence)``: the chain's proposal the
+    last fit's Gaussian, widened."""
+    theta, log_u, gain_theta = ev.theta, ev.log_u, chain.gain_theta
+    t0 = time.perf_counter()
+    for i in range(GAIN_FITS):
+        if i:  # the linearisation point to the last maximum's gains
+            block, _ = recentre(chain.gains, GainState(None, gain_theta, None))
+            lin = np.asarray(chain.lin * (1.0 + perturbations(block.model, gain_theta)))
+            chain = chain._replace(gains=block, lin=lin)
+            gain_theta = jnp.zeros_like(gain_theta)
+            if prob.sigma_sky is not None:  # the sky part of the noise through the gains found
+                chain = chain._replace(system=_noise_system(prob, chain.noise_log_u, _gain_factor(chain)))
+        ev = beam_gain_log_evidence(chain.system, chain.block, chain.gains, theta0=theta, gain_theta0=gain_theta,
+                                    log_u0=log_u, options=chain.options, gram=chain.gram, newton_steps=NEWTON_STEPS)
+        theta, log_u, gain_theta = ev.theta, ev.log_u, ev.gain_theta
+        log.info("beams: joint fit %d/%d of the beams%s and gains: log Bayes factor %.2f against the nominal beams "
+                 "(with gains), largest gain perturbation %.3g (converged: %s)", i + 1, GAIN_FITS,
+                 "" if log_u is None else ", amplitude", float(ev.log_bayes_factor),
+                 float(jnp.max(jnp.abs(gain_theta))), bool(ev.converged))
+    log.info("beams: joint fits with the gains in %.1f s", time.perf_counter() - t0)
+    return chain._replace(proposal=_proposal(_best(ev), ev.covariance), gain_theta=ev.gain_theta), ev
+
+
+def _model_problem(prob, response, log_u=None, factor=None):
+    """``prob`` with the response (Nf, Nbl, n) of the beams (times the amplitude ``exp(log_u)`` where inferred) and the
+    gains' factor (Nf, Nt, Nbl) divided out where sampled; the sky part of the noise through both: the sky's
+    likelihood given them (the Wiener filter's and the goodness of fit's model)."""
+    u = None if log_u is None else np.exp(np.asarray(log_u))
+    if factor is not None:
+        base = gained_problem(prob, factor, u)
+    else:
+        base = prob if u is None else noise_at(prob, u[:, None, None])
+    return beamed_problem(base, response)
+
+
 def beam_draws(prob, beams, spec, run: OpenRun, st: StageTimer, watch: Watch) -> str:
-    """The ``wiener`` stage (set-up, Laplace fit, Wiener filter, warm-up) and the chain's batches from
-    ``run.start``; returns ``"beams+cholesky"`` or ``"beams+dataspace"`` (:func:`marginal_options`) and leaves
-    the ``draws`` stage running."""
+    """The ``wiener`` stage (set-up, Laplace fit, with gains their burn-in, Wiener filter, warm-up) and the chain's
+    batches from ``run.start``; returns ``"beams+cholesky"`` or ``"beams+dataspace"`` (``"beams+gains+..."`` with
+    gains; :func:`marginal_options`) and leaves the ``draws`` stage running."""
     d, sampling = spec.draws, spec.sampling.beams
     key = jax.random.PRNGKey(d.seed)
     st.start("wiener")
@@ -427,23 +565,33 @@ def beam_draws(prob, beams, spec, run: OpenRun, st: StageTimer, watch: Watch) ->
     st.stop()
     st.start("draws")
     batches = range(run.start, d.n_batches)
-    state = None if chain is None else chain.state
+    state = None if chain is None else _joint_state(chain)
+    thin = sampling.thin if sampling.gains is None else sampling.gains.thin
     for b in watch.progress(batches) if watch.progress is not None else batches:
         t0 = time.perf_counter()
         state, (states, accept, info) = _segment(chain.system, chain.block, chain.proposal, state,
-                                                 jax.random.fold_in(key, b), chain.gram, n=d.batch,
-                                                 thin=sampling.thin, options=chain.options)
+                                                 jax.random.fold_in(key, b), chain.gram, chain.gains, n=d.batch,
+                                                 thin=thin, options=chain.options)
         take = min(d.batch, d.nsamples - b * d.batch)
-        extra = {"beam_theta": np.asarray(states.theta)[:take], "beam_info/accept": np.asarray(accept)[:take]}
-        sky = states.sky
+        beam_states = states.beam if chain.gains is not None else states
+        extra = {"beam_theta": np.asarray(beam_states.theta)[:take], "beam_info/accept": np.asarray(accept)[:take]}
+        sky = beam_states.sky
+        q = np.ones((d.batch, prob.data.shape[0]))
         if sampling.amplitude is not None:  # a = c a', q = u / c: c from the sky model's prior (module doc)
             c = np.asarray(draw_c(jax.random.fold_in(jax.random.fold_in(key, b), _SCALE), sampling.amplitude.model_sd,
                                   (d.batch,)))
-            u = np.exp(np.asarray(states.log_u))
+            u = np.exp(np.asarray(beam_states.log_u))
             sky = c[:, None, None] * np.asarray(sky)
-            extra.update({"amplitude_q": (u / c[:, None])[:take], "amplitude_u": u[:take], "amplitude_c": c[:take]})
+            q = u / c[:, None]
+            extra.update({"amplitude_q": q[:take], "amplitude_u": u[:take], "amplitude_c": c[:take]})
+        if chain.gains is not None:
+            g = jax.vmap(lambda t: unit_gains(chain.gains.model, t, 1.0, chain.lin))(states.gain_theta[:take])
+            extra.update({"gain_draws": np.sqrt(q[:take])[:, :, None, None] * np.asarray(g),
+                          "gain_theta": np.asarray(states.gain_theta)[:take]})
         append_chain_batch(run, b, take, sky, info, extra, _state_arrays(state), t0)
-    return _method(chain) if chain is not None else "beams+" + _path_name(marginal_options(prob))
+    if chain is None:
+        return "beams+" + ("gains+" if sampling.gains is not None else "") + _path_name(marginal_options(prob))
+    return _method(chain)
 
 
 def _path_name(options) -> str:
@@ -453,41 +601,58 @@ def _path_name(options) -> str:
 
 
 def _method(chain: BeamChain) -> str:
-    """What ran: ``beams+cholesky`` or ``beams+dataspace`` (the marginal's path)."""
-    return "beams+" + _path_name(chain.options)
+    """What ran: ``beams+cholesky`` or ``beams+dataspace`` (the marginal's path), ``beams+gains+...`` with gains."""
+    return "beams+" + ("gains+" if chain.gains is not None else "") + _path_name(chain.options)
 
 
 def beam_fit_problem(prob, h5):
     """The problem at a beam run's set-up: the response (Nf, Nbl, n) at the beams (and amplitude) of its Wiener
-    filter (``beams/setup_response``), the sky part of the noise through that amplitude (``--band-limit
-    marginalise``): the goodness of fit's model."""
+    filter (``beams/setup_response``), the gains' factor there divided out where they are sampled
+    (``gains/setup_factor``), the sky part of the noise through both (``--band-limit marginalise``): the goodness
+    of fit's model."""
     import h5py
 
     with h5py.File(h5, "r") as h:
         response = h["beams/setup_response"][()]
         log_u = h["beams/laplace_log_u"][()] if "beams/laplace_log_u" in h else None
-    base = prob if log_u is None else noise_at(prob, np.exp(log_u)[:, None, None])
-    return beamed_problem(base, response)
+        factor = h["gains/setup_factor"][()] if "gains/setup_factor" in h else None
+    return _model_problem(prob, response, log_u, factor)
 
 
 def _read(h5) -> dict:
     out = read_chain(h5, ("beam_theta", "beam_info/accept"),
                      tuple(f"beams/{k}" for k in ("antenna_numbers", "orders", "basis_f", "radius_rad", "prior_inv_var",
                                                   "laplace_theta", "log_z", "log_z_nominal", "laplace_converged")),
-                     optional=("beams/log_u_nominal", "beams/log_u_nominal_fit"))
+                     optional=("beams/log_u_nominal", "beams/log_u_nominal_fit", "beams/nominal_gain_factor"))
     out["theta"] = out.pop("beam_theta")
     return out
 
 
-def _nominal_fit(prob, log_u=None) -> dict:
+def _nominal_fit(prob, log_u=None, factor=None) -> dict:
     """The goodness of fit of the nominal beams (the same test as the run's, without the block), with the amplitude
     ``exp(log_u)`` (Nf,) where it is inferred: the nominal beams' most probable amplitude near the block's (their
-    global maximum may be far away, where an unconstrained sky absorbs the beams' misfit)."""
+    global maximum may be far away, where an unconstrained sky absorbs the beams' misfit); with the gains' factor
+    (Nf, Nt, Nbl) where they are sampled: the gains the run found (with the beams)."""
+    u = 1.0 if log_u is None else np.exp(np.asarray(log_u))[:, None, None]
+    return _fit_of(_model_problem(prob, np.asarray(prob.response) * u, log_u, factor))
+
+
+def fit_without_gains(prob, h5) -> dict:
+    """The goodness of fit of a beam run that samples the gains, at its set-up's beams and amplitude but the file's
+    gains (the gains' factor not divided out): whether the data ask for the gains, as ``fit_nominal`` says for the
+    beams."""
+    import h5py
+
+    with h5py.File(h5, "r") as h:
+        response = h["beams/setup_response"][()]
+        log_u = h["beams/laplace_log_u"][()] if "beams/laplace_log_u" in h else None
+    return _fit_of(_model_problem(prob, response, log_u, None))
+
+
+def _fit_of(prob) -> dict:
+    """:func:`gcrsky.run.fit.goodness_of_fit` of ``prob``'s Wiener filter (the automatic path), its headline keys."""
     from .fit import goodness_of_fit
 
-    if log_u is not None:
-        u = np.exp(np.asarray(log_u))
-        prob = beamed_problem(noise_at(prob, u[:, None, None]), np.asarray(prob.response) * u[:, None, None])
     options = choose_path(prob.system(), "auto", ndraws=1)
     prepared = prepare(prob, options=options)
     gof = goodness_of_fit(prob, np.asarray(prepared.a_wf), rank=getattr(prepared, "kept", None))
@@ -520,7 +685,7 @@ def beam_summary(prob, sampling, h5) -> dict:
                      "converged": bool(g["laplace_converged"]),
                      "verdict": "the data ask for the beam block" if lbf > 0 else
                                 "the nominal beams are preferred (the block is not needed)"},
-        "fit_nominal": _nominal_fit(prob, g.get("log_u_nominal_fit")),
+        "fit_nominal": _nominal_fit(prob, g.get("log_u_nominal_fit"), g.get("nominal_gain_factor")),
         "coefficients": [{"antenna": int(a), **{n: {"mean": float(th[:, i, k, 0].mean()),
                                                     "sd": float(th[:, i, k, 0].std(ddof=1)) if nd > 1 else 0.0}
                                                 for k, n in enumerate(names)}}
@@ -530,7 +695,10 @@ def beam_summary(prob, sampling, h5) -> dict:
         "note": ("coefficients: the constant frequency mode of theta per antenna and mode (fractional change of the "
                  "voltage beam at the disc's edge); evidence: log p(d | block) - log p(d | nominal beams), Laplace "
                  "over the beam coefficients, exact over the sky; fit_nominal: the goodness of fit without the block "
-                 "(goodness_of_fit: with it, at the marginal's maximum)."),
+                 "(goodness_of_fit: with it, at the marginal's maximum)"
+                 + ("; with gains sampled both models have them: the evidence integrates them (Laplace) in each, "
+                    "fit_nominal is at the nominal model's own maximum (gains and amplitude)." if "nominal_gain_factor"
+                    in g else ".")),
     }
     if "log_u_nominal" in g:  # the amplitude inferred: where the nominal beams' evidence peaks, and their fit's
         out["evidence"]["u_nominal_max"] = np.exp(np.asarray(g["log_u_nominal"], float)).tolist()

@@ -162,14 +162,16 @@ def append_chain_batch(run: OpenRun, b: int, take: int, sky, info, extra: dict, 
                            replace=state_arrays))
 
 
-def read_chain(h5, per_draw, fixed=(), optional=()) -> dict:
+def read_chain(h5, per_draw, fixed=(), optional=(), optional_per_draw=()) -> dict:
     """A chain's datasets in ``results.h5``: the kept rows of the ``per_draw`` ones and the whole ``fixed`` ones,
-    each under its last path component; of the ``optional`` fixed ones those present."""
+    each under its last path component; of the ``optional`` fixed ones and the ``optional_per_draw`` ones those
+    present."""
     import h5py
 
     with h5py.File(h5, "r") as h:
         rows = int(h["draws"].shape[1]) if "draws" in h else 0
         out = {k.split("/")[-1]: h[k][:rows] for k in per_draw}
+        out.update({k.split("/")[-1]: h[k][:rows] for k in optional_per_draw if k in h})
         out.update({k.split("/")[-1]: h[k][()] for k in fixed})
         out.update({k.split("/")[-1]: h[k][()] for k in optional if k in h})
     return out

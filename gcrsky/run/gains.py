@@ -64,9 +64,9 @@ from .output import GAIN_FILE, OpenRun
 from .resume import options_json
 from .stages import StageTimer, Watch
 
-__all__ = ["DEFAULT_GAIN_BASIS", "GAIN_DENSE_MAX_N", "GAIN_KEY_SCHEME", "GainChain", "burn_in", "default_gain_modes",
-           "gain_chain_setup", "gain_draws", "gain_summary", "gained_problem", "noise_at", "read_gain_chain",
-           "stored_gain_factor", "write_gain_products"]
+__all__ = ["DEFAULT_GAIN_BASIS", "GAIN_DENSE_MAX_N", "GAIN_KEY_SCHEME", "GainChain", "beam_gain_summary", "burn_in",
+           "default_gain_modes", "gain_chain_setup", "gain_draws", "gain_layout_arrays", "gain_summary", "gained_problem",
+           "noise_at", "read_gain_chain", "stored_gain_factor", "write_gain_products"]
 
 log = logging.getLogger(__name__)
 
@@ -226,28 +226,36 @@ def burn_in(key: jax.Array, chain: GainChain, gains, prob=None) -> GainChain:
     return GainChain(fixed, block, lin, state)
 
 
-def gained_problem(prob, factor):
+def gained_problem(prob, factor, amplitude=None):
     """``prob`` with the gain factor ``D`` (Nf, Nt, Nbl) divided out: data ``d / D``, noise
     ``sigma_rad / |D|`` for the radiometer part and ``sigma_sky`` unchanged for the sky part
     (:func:`noise_at`; weight 0 where ``D = 0``): the sky's likelihood given those gains, for the
-    Wiener filter and the fit."""
+    Wiener filter and the fit.  ``amplitude`` (Nf,): a further factor ``u`` of the model kept in its response
+    (a beam run's), through which the sky part of the noise goes too (``|u|`` times ``sigma_sky``)."""
     D = np.asarray(factor, complex)
     zero = np.abs(D) == 0
     Ds = np.where(zero, 1.0, D)
     data = np.where(zero, 0.0, np.asarray(prob.data) / Ds)
-    sigma = np.asarray(noise_at(prob, Ds).sigma) / np.abs(Ds)
+    sky = Ds if amplitude is None else Ds * np.asarray(amplitude)[:, None, None]
+    sigma = np.asarray(noise_at(prob, sky).sigma) / np.abs(Ds)
     weights = np.where(zero, 0.0, np.asarray(prob.weights))
     return eqx.tree_at(lambda p: (p.data, p.sigma, p.weights), prob,
                        (jnp.asarray(data), jnp.asarray(sigma), jnp.asarray(weights)))
 
 
 def _layout_arrays(prob, chain: GainChain, setup_factor) -> dict:
-    model, block = chain.block.model, chain.block
+    return gain_layout_arrays(prob, chain.block, chain.lin, setup_factor)
+
+
+def gain_layout_arrays(prob, block, lin, setup_factor) -> dict:
+    """The ``gains/`` layout datasets of a run that samples the gains (module doc): the units, bases, linearisation
+    point ``lin`` (Nf, Nt, U), ``block``'s pair gains and prior, and the Wiener filter's gain factor."""
+    model = block.model
     nums = np.asarray((getattr(prob.config, "conventions", None) or {}).get("antenna_numbers",
                                                                              np.arange(prob.antpairs.max() + 1)))
     return {"gains/units": np.asarray(model.units), "gains/antenna_numbers": nums[np.asarray(model.units)[:, 0]],
             "gains/basis_f": np.asarray(model.basis_f), "gains/basis_t": np.asarray(model.basis_t),
-            "gains/linearisation": np.asarray(chain.lin), "gains/pair_gains": np.asarray(block.pair_gains),
+            "gains/linearisation": np.asarray(lin), "gains/pair_gains": np.asarray(block.pair_gains),
             "gains/prior_mean": np.asarray(block.prior_mean), "gains/prior_inv_var": np.asarray(block.prior_inv_var),
             "gains/param_mode": np.asarray(model.param_mode), "gains/setup_factor": np.asarray(setup_factor)}
 
@@ -340,8 +348,11 @@ def stored_gain_factor(h5) -> np.ndarray:
 
 
 def _read_gain_draws(h5) -> dict:
-    return read_chain(h5, ("gain_draws", "gain_theta", "gain_scale", "gain_info/gauge_accept"),
-                      ("gains/units", "gains/basis_f", "gains/prior_inv_var", "gains/basis_t", "gains/param_mode"))
+    """The gain chain's draws and layout (``gain_scale`` and the gauge acceptance only where the gains carry the
+    amplitude: a beam run's do not, :mod:`gcrsky.run.beams`)."""
+    return read_chain(h5, ("gain_draws", "gain_theta"),
+                      ("gains/units", "gains/basis_f", "gains/prior_inv_var", "gains/basis_t", "gains/param_mode"),
+                      optional_per_draw=("gain_scale", "gain_info/gauge_accept"))
 
 
 def _interval(x) -> dict:
@@ -361,8 +372,6 @@ def gain_summary(prob, gains, h5) -> dict:
     logged), which the run adds to the summary's warnings.
     """
     from ..inference.collapsed import effective_sample_size
-    from ..inference.diagnostics import chain_diagnostics, diagnostics_warning
-    from ..model.gains import phase_gradient_directions
 
     g = _read_gain_draws(h5)
     nd = g["gain_scale"].shape[0]
@@ -384,21 +393,53 @@ def gain_summary(prob, gains, h5) -> dict:
                  "first channel's; chain: that of every sampled scalar against a floor; warnings: the chain's, when "
                  "below it)."),
     }
-    out["chain"] = chain_diagnostics({"flux_scale": q, "scale_modes": g["gain_scale"], "gain_theta": g["gain_theta"]})
+    return _chain_and_gradients(out, prob, gains, g, {"flux_scale": q, "scale_modes": g["gain_scale"],
+                                                      "gain_theta": g["gain_theta"]})
+
+
+def _chain_and_gradients(out: dict, prob, gains, g, scalars: dict) -> dict:
+    """``out`` with ``chain`` (:func:`gcrsky.inference.chain_diagnostics` of ``scalars``), ``warnings`` (its line,
+    also logged) and, where they can be computed, ``phase_gradients``."""
+    from ..inference.diagnostics import chain_diagnostics, diagnostics_warning
+
+    out["chain"] = chain_diagnostics(scalars)
     line = diagnostics_warning(out["chain"], "the gain chain")
     out["warnings"] = [] if line is None else [line]
     if line is not None:
         log.warning(line.removeprefix("WARNING: "))
-    if prob.antpos_enu_m is not None and nd > 1:
-        nf, nt = g["basis_f"].shape[0], g["basis_t"].shape[0]
-        model = gain_model(prob.antpairs, nf, nt, gains.modes, basis=gains.basis, pols=prob.pols)
-        T = phase_gradient_directions(model, np.asarray(prob.antpos_enu_m)[g["units"][:, 0]])
-        prior_sd = np.sqrt(np.sum(T**2 / g["prior_inv_var"][None, :], axis=1))
-        proj = g["gain_theta"] @ T.T
-        out["phase_gradients"] = [{"direction": name, "posterior_sd": float(proj[:, i].std(ddof=1)),
-                                   "prior_sd": float(prior_sd[i]), "ratio": float(proj[:, i].std(ddof=1) / prior_sd[i])}
-                                  for i, name in enumerate(("east", "north"))]
+    gradients = _phase_gradients(prob, gains, g)
+    if gradients is not None:
+        out["phase_gradients"] = gradients
     return out
+
+
+def _phase_gradients(prob, gains, g) -> list | None:
+    """The posterior sd of the gains' tip-tilt (phase gradient) directions against their prior sd, East and North
+    (None: the problem has no antenna positions, or fewer than two draws)."""
+    from ..model.gains import phase_gradient_directions
+
+    if prob.antpos_enu_m is None or g["gain_theta"].shape[0] < 2:
+        return None
+    nf, nt = g["basis_f"].shape[0], g["basis_t"].shape[0]
+    model = gain_model(prob.antpairs, nf, nt, gains.modes, basis=gains.basis, pols=prob.pols)
+    T = phase_gradient_directions(model, np.asarray(prob.antpos_enu_m)[g["units"][:, 0]])
+    prior_sd = np.sqrt(np.sum(T**2 / g["prior_inv_var"][None, :], axis=1))
+    proj = g["gain_theta"] @ T.T
+    return [{"direction": name, "posterior_sd": float(proj[:, i].std(ddof=1)), "prior_sd": float(prior_sd[i]),
+             "ratio": float(proj[:, i].std(ddof=1) / prior_sd[i])} for i, name in enumerate(("east", "north"))]
+
+
+def beam_gain_summary(prob, gains, h5) -> dict:
+    """``summary.json``'s ``gains`` block of a beam run that samples the gains (:mod:`gcrsky.run.beams`): the settings,
+    the phase gradients' posterior against their prior, and :func:`gcrsky.inference.chain_diagnostics` of every gain
+    coefficient with its warning (the amplitude is the ``flux_scale`` block's)."""
+    g = _read_gain_draws(h5)
+    out = {"settings": gains.to_dict(), "units": int(g["units"].shape[0]), "parameters": int(g["gain_theta"].shape[1]),
+           "ndraws": int(g["gain_theta"].shape[0]), "calibration_file": GAIN_FILE,
+           "note": ("gains sampled with the beams and the sky, about the linearisation point found in the burn-in "
+                    "(gains/linearisation); the overall amplitude is the flux_scale block's (or 1: calibrated data); "
+                    "phase_gradients: posterior sd of the tip-tilt directions against their prior sd")}
+    return _chain_and_gradients(out, prob, gains, g, {"gain_theta": g["gain_theta"]})
 
 
 

@@ -34,11 +34,18 @@ from ..model.gains import BASES
 from ..parallel.channels import CHANNEL_KEY_SCHEME
 from .amplitude import amplitude_draws, amplitude_summary
 from .amplitude import fit_problem as amplitude_fit_problem
-from .beams import beam_draws, beam_fit_problem, beam_summary, write_beam_products
+from .beams import beam_draws, beam_fit_problem, beam_summary, fit_without_gains, write_beam_products
 from .channels import channel_draws, worker_channels
 from .draws import joint_draws
 from .frequency import channels_block, frequency_draws
-from .gains import gain_draws, gain_summary, gained_problem, stored_gain_factor, write_gain_products
+from .gains import (
+    beam_gain_summary,
+    gain_draws,
+    gain_summary,
+    gained_problem,
+    stored_gain_factor,
+    write_gain_products,
+)
 from .output import BEAM_DIR, GAIN_FILE
 
 __all__ = ["AMPLITUDE_MODEL_SD", "Amplitude", "AmplitudeSampling", "BeamSampling", "Beams", "CHANNEL_MODES", "FIXED_SCALE_SD", "DEFAULT_NUGGET", "FREQ_PRIORS", "DrawStage", "FrequencyModel", "GainSampling", "Gains",
@@ -444,6 +451,12 @@ class BeamSampling:
         amplitude: the overall amplitude per channel inferred with the beams and the sky
             (:class:`AmplitudeSampling`, its ``gains`` None: the data as given are ``u X(theta) a`` with the sky
             model's scale ``c``: DESIGN section 14), or None (the data are calibrated: ``u = 1``).
+        gains: per-antenna gains sampled with the beams and the sky, in the same collapsed move
+            (:mod:`gcrsky.inference.beam_gains`; :class:`GainSampling`: its ``modes``, ``basis``, ``sigma`` and
+            ``thin``, the steps per kept draw, which replaces ``thin`` above).  The gains are fitted with the beams
+            (Newton, the linearisation point moved to the maximum) rather than burnt in, so ``burn`` does not apply
+            (``burn`` above does); the overall amplitude is ``amplitude``'s, so ``applied`` must be 1 and
+            ``scale_sd`` and ``gauge_moves`` do not apply.  None: the gains are the file's.
     """
 
     nmax: int = 2
@@ -454,6 +467,7 @@ class BeamSampling:
     burn: int = 20
     thin: int = 1
     amplitude: AmplitudeSampling | None = None
+    gains: GainSampling | None = None
 
     def __post_init__(self):
         check_integer(self, "nmax", "beams.nmax", 1, 4)
@@ -468,13 +482,22 @@ class BeamSampling:
         if self.amplitude is not None and not isinstance(self.amplitude, AmplitudeSampling):
             raise ValueError(f"beams.amplitude must be an AmplitudeSampling or None, got {self.amplitude!r}")
         if self.amplitude is not None and self.amplitude.gains is not None:
-            raise ValueError("beams.amplitude.gains: the beam block is not combined with sampled gains yet (give "
-                             "AmplitudeSampling(gains=None))")
+            raise ValueError("beams.amplitude.gains: give the gains as beams.gains (the beams' own gain block), and "
+                             "AmplitudeSampling(gains=None)")
+        if self.gains is not None and not isinstance(self.gains, GainSampling):
+            raise ValueError(f"beams.gains must be a GainSampling or None, got {self.gains!r}")
+        if self.gains is not None and self.gains.applied != 1.0:
+            raise ValueError(f"beams.gains.applied is {self.gains.applied:g}: with the beams the gains start at the "
+                             "file's (1) and the overall amplitude is beams.amplitude's (give applied=1)")
 
     def to_dict(self) -> dict:
         """The settings as a JSON-able dict (recorded with the run's settings as ``beams``)."""
         out = dataclasses.asdict(self)
         out["amplitude"] = None if self.amplitude is None else self.amplitude.to_dict()
+        if self.gains is None:  # what runs recorded before the gains could be sampled with the beams: they resume
+            del out["gains"]
+        else:
+            out["gains"] = self.gains.to_dict()
         return out
 
 
@@ -489,7 +512,7 @@ class Beams(DrawStage):
     """
 
     name: ClassVar[str] = "beams"
-    files: ClassVar[tuple[str, ...]] = (BEAM_DIR,)
+    files: ClassVar[tuple[str, ...]] = (BEAM_DIR, GAIN_FILE)
     beams: BeamSampling = BeamSampling()
     nominal: tuple = dataclasses.field(default=(), compare=False, repr=False)
 
@@ -516,11 +539,18 @@ class Beams(DrawStage):
     def finish(self, prob, out, h5) -> dict:
         """``{"beams": block}`` (:func:`gcrsky.run.beams.beam_summary`) with ``beam_files``, the directory of
         per-antenna UVBeam files written (:func:`gcrsky.run.beams.write_beam_products`); with the amplitude
-        inferred also the ``flux_scale`` and ``amplitude`` blocks (:func:`gcrsky.run.amplitude.amplitude_summary`)."""
+        inferred also the ``flux_scale`` and ``amplitude`` blocks (:func:`gcrsky.run.amplitude.amplitude_summary`);
+        with gains the ``gains`` block (:func:`gcrsky.run.gains.beam_gain_summary`) and its calh5."""
         block = beam_summary(prob, self.beams, h5)
         block["beam_files"] = write_beam_products(prob, self.nominal, self.beams, out, h5)
-        amp = {} if self.beams.amplitude is None else amplitude_summary(prob, self.beams.amplitude, h5, markov=True)
-        return {"beams": block, **amp}
+        amp = {} if self.beams.amplitude is None else amplitude_summary(prob, self.beams.amplitude, h5, markov=True,
+                                                                        gain_theta=False)
+        if self.beams.gains is None:
+            return {"beams": block, **amp}
+        gains = beam_gain_summary(prob, self.beams.gains, h5)
+        gains["fit_file_gains"] = fit_without_gains(prob, h5)
+        gains["calibration_file"] = write_gain_products(prob, self.beams.gains, out, h5)
+        return {"beams": block, **amp, "gains": gains}
 
 
 #: The draw stages a run may hold (:attr:`gcrsky.run.RunSpec.sampling`).
