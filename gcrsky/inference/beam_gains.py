@@ -200,9 +200,32 @@ class BeamGainEvidence(NamedTuple):
     gain_theta_nominal: jax.Array
 
 
-def _laplace(fun, x0, steps: int, jit: bool):
-    """Newton's maximum of ``fun`` from ``x0`` and Laplace's ``log int exp(fun)``: (x, log Z, covariance, converged)."""
-    x, obj, hess, decrement = _newton_polish(fun, x0, steps, jit=jit)
+def _flat_log_posterior(x, system, block, gains, gram, *, theta_shape, nf, options, nominal: bool):
+    """:func:`beam_gain_log_posterior` of the flat vector ``x`` (:func:`_pack`'s order); ``nominal``: ``x`` holds
+    ``(log_u, gain_theta)`` only, the beams at 0 (not integrated: their prior's density there taken off)."""
+    p = gains.prior_mean.shape[0]
+    if nominal:
+        _, lu, tg = _unpacker((0,), nf, p)(x)
+        zero = jnp.zeros(theta_shape, x.dtype)
+        return (beam_gain_log_posterior(system, block, gains, zero, tg, log_u=lu, options=options, gram=gram)
+                - beam_log_prior(block, zero))
+    th, lu, tg = _unpacker(theta_shape, nf, p)(x)
+    return beam_gain_log_posterior(system, block, gains, th, tg, log_u=lu, options=options, gram=gram)
+
+
+_STATIC = ("theta_shape", "nf", "options", "nominal")
+#: The Newton fits' pieces compiled once per shape (closures would recompile at every fit: minutes on H1C).
+_VALUE = jax.jit(_flat_log_posterior, static_argnames=_STATIC)
+_VALUE_GRAD = jax.jit(jax.value_and_grad(_flat_log_posterior), static_argnames=_STATIC)
+_HESSIAN = jax.jit(jax.hessian(_flat_log_posterior), static_argnames=_STATIC)
+
+
+def _laplace(args, kw, x0, steps: int):
+    """Newton's maximum of :func:`_flat_log_posterior` (``args``, ``kw``) from ``x0`` and Laplace's
+    ``log int exp(f)``: (x, log Z, covariance, converged)."""
+    x, obj, hess, decrement = _newton_polish(lambda y: _VALUE(y, *args, **kw), x0, steps,
+                                             value_grad=lambda y: _VALUE_GRAD(y, *args, **kw),
+                                             hess=lambda y: _HESSIAN(y, *args, **kw))
     evals, vecs = jnp.linalg.eigh(hess)
     cov = (vecs / evals) @ vecs.T
     log_z = obj + 0.5 * x.size * jnp.log(2 * jnp.pi) - 0.5 * jnp.sum(jnp.log(jnp.abs(evals)))
@@ -210,12 +233,12 @@ def _laplace(fun, x0, steps: int, jit: bool):
 
 
 def beam_gain_log_evidence(system, block: BeamBlock, gains: GainBlock, *, theta0=None, gain_theta0=None,
-                           log_u0=None, options=None, gram: BeamGram | None = None,
-                           newton_steps: int = 30) -> BeamGainEvidence:
+                           log_u0=None, options=None, gram: BeamGram | None = None, newton_steps: int = 30,
+                           nominal: bool = True) -> BeamGainEvidence:
     """Laplace's approximation of the joint marginal of the beams, the amplitude (where ``log_u0`` is given: it is
     inferred) and the gains (:func:`beam_gain_log_posterior`, the sky integrated out exactly), and of the nominal
     beams' model with the same gains and amplitude: each by damped Newton steps with the exact Hessian (an eager
-    loop, as :func:`gcrsky.inference.beam_log_evidence`'s; with ``gram`` its pieces compiled), the nominal one
+    loop, as :func:`gcrsky.inference.beam_log_evidence`'s, its pieces compiled once per shape), the nominal one
     started from the joint maximum's gains and amplitude.  ``log Z = f* + K/2 log 2 pi - 1/2 log det(-H)``.
 
     Args:
@@ -223,6 +246,8 @@ def beam_gain_log_evidence(system, block: BeamBlock, gains: GainBlock, *, theta0
         theta0: the beams' start (default the prior mean); ``gain_theta0`` the gains' (default 0);
             ``log_u0`` (Nf,) the amplitude's start, or None (not inferred).
         newton_steps: the most Newton steps of each fit (each one Hessian of ``K`` columns).
+        nominal: also fit the nominal model (False: its fields are NaN, its maximum the joint one's; e.g. for a fit
+            whose only use is to move the gains' linearisation point).
 
     Returns:
         :class:`BeamGainEvidence`.
@@ -232,23 +257,13 @@ def beam_gain_log_evidence(system, block: BeamBlock, gains: GainBlock, *, theta0
     g0 = jnp.zeros_like(gains.prior_mean) if gain_theta0 is None else jnp.asarray(gain_theta0)
     lu0 = None if log_u0 is None else jnp.asarray(log_u0, jnp.float64)
     nf = None if lu0 is None else lu0.shape[0]
-    p = g0.shape[0]
-    unpack = _unpacker(theta0.shape, nf, p)
-
-    def joint(x):
-        th, lu, tg = unpack(x)
-        return beam_gain_log_posterior(system, block, gains, th, tg, log_u=lu, options=options, gram=gram)
-
-    x, log_z, cov, ok = _laplace(joint, _pack(theta0, lu0, g0), newton_steps, gram is not None)
-    th, lu, tg = unpack(x)
-    zero = jnp.zeros_like(theta0)
-    unpack_nom = _unpacker((0,), nf, p)
-
-    def nominal(y):  # the beams held at 0, not integrated: their prior's density there is taken off again
-        _, lu_n, tg_n = unpack_nom(y)
-        return (beam_gain_log_posterior(system, block, gains, zero, tg_n, log_u=lu_n, options=options, gram=gram)
-                - beam_log_prior(block, zero))
-
-    y, log_z_nom, _, ok_nom = _laplace(nominal, _pack(zero[:0], lu, tg), newton_steps, gram is not None)
-    _, lu_n, tg_n = unpack_nom(y)
+    args = (system, block, gains, gram)
+    kw = dict(theta_shape=tuple(theta0.shape), nf=nf, options=options)
+    x, log_z, cov, ok = _laplace(args, {**kw, "nominal": False}, _pack(theta0, lu0, g0), newton_steps)
+    th, lu, tg = _unpacker(theta0.shape, nf, g0.shape[0])(x)
+    if not nominal:
+        nan = jnp.asarray(jnp.nan)
+        return BeamGainEvidence(log_z, nan, nan, th, lu, tg, cov, ok, lu, tg)
+    y, log_z_nom, _, ok_nom = _laplace(args, {**kw, "nominal": True}, _pack(jnp.zeros(0), lu, tg), newton_steps)
+    _, lu_n, tg_n = _unpacker((0,), nf, g0.shape[0])(y)
     return BeamGainEvidence(log_z, log_z_nom, log_z - log_z_nom, th, lu, tg, cov, ok & ok_nom, lu_n, tg_n)

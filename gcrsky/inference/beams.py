@@ -450,15 +450,16 @@ def beam_log_prior(block: BeamBlock, theta) -> jax.Array:
 NEWTON_DECREMENT_TOL = 1e-6
 
 
-def _newton_polish(fun, x, steps: int, *, jit: bool = False):
+def _newton_polish(fun, x, steps: int, *, jit: bool = False, value_grad=None, hess=None):
     """``steps`` damped Newton steps maximising ``fun`` (flat -> scalar) from ``x``: the step
     ``|-H|^-1 g`` (eigenvalues of ``-H`` taken in modulus: a saddle is left, not approached), halved up to 29
     times until ``fun`` increases (else the step is not taken, and the polish ends).  The loop is eager; ``jit``:
     its pieces (value and gradient, Hessian, value) each compiled once (the primal path's pieces jitted stalled
-    XLA's CPU runtime once, jax 0.10.2, and it stays eager; the Grams' are small and compile).  Returns ``(x, fun(x),
-    Hessian of -fun at x, Newton decrement at x)``."""
-    value_grad = jax.value_and_grad(fun)
-    hess = jax.hessian(fun)
+    XLA's CPU runtime once, jax 0.10.2, and it stays eager; the Grams' are small and compile).  ``value_grad`` and
+    ``hess``: those of ``fun``, given (e.g. module-level compiled functions that a closure would recompile per fit).
+    Returns ``(x, fun(x), Hessian of -fun at x, Newton decrement at x)``."""
+    value_grad = jax.value_and_grad(fun) if value_grad is None else value_grad
+    hess = jax.hessian(fun) if hess is None else hess
     if jit:
         value_grad, hess, fun = jax.jit(value_grad), jax.jit(hess), jax.jit(fun)
 

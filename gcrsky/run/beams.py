@@ -105,7 +105,7 @@ BEAM_KEY_SCHEME = ("beams-v2: Laplace fit from conditional modes fold_in(key, 2*
 BEAM_GAIN_KEYS = ("; gains: fitted with the beams (no keys), the start and every move joint in (theta, log_u, gains)")
 #: Joint Laplace fits of the beams, amplitude and gains in a run that samples the gains, the gains' linearisation
 #: point moved to each fit's maximum before the next (:func:`_gain_fit`).
-GAIN_FITS = 3
+GAIN_FITS = 2
 #: The proposal's covariance is the Laplace covariance times ``PROPOSAL_WIDEN**2`` (heavier than the marginal's
 #: bulk, so that the importance weights stay bounded where the marginal is not quite Gaussian).
 PROPOSAL_WIDEN = 1.1
@@ -532,11 +532,12 @@ def _gain_fit(prob, chain: BeamChain, ev):
             if prob.sigma_sky is not None:  # the sky part of the noise through the gains found
                 chain = chain._replace(system=_noise_system(prob, chain.noise_log_u, _gain_factor(chain)))
         ev = beam_gain_log_evidence(chain.system, chain.block, chain.gains, theta0=theta, gain_theta0=gain_theta,
-                                    log_u0=log_u, options=chain.options, gram=chain.gram, newton_steps=NEWTON_STEPS)
+                                    log_u0=log_u, options=chain.options, gram=chain.gram, newton_steps=NEWTON_STEPS,
+                                    nominal=i == GAIN_FITS - 1)  # the nominal model's fit only where it is used
         theta, log_u, gain_theta = ev.theta, ev.log_u, ev.gain_theta
-        log.info("beams: joint fit %d/%d of the beams%s and gains: log Bayes factor %.2f against the nominal beams "
-                 "(with gains), largest gain perturbation %.3g (converged: %s)", i + 1, GAIN_FITS,
-                 "" if log_u is None else ", amplitude", float(ev.log_bayes_factor),
+        log.info("beams: joint fit %d/%d of the beams%s and gains: log evidence %.2f (against the nominal beams with "
+                 "gains: %.2f), largest gain perturbation %.3g (converged: %s)", i + 1, GAIN_FITS,
+                 "" if log_u is None else ", amplitude", float(ev.log_z), float(ev.log_bayes_factor),
                  float(jnp.max(jnp.abs(gain_theta))), bool(ev.converged))
     log.info("beams: joint fits with the gains in %.1f s", time.perf_counter() - t0)
     return chain._replace(proposal=_proposal(_best(ev), ev.covariance), gain_theta=ev.gain_theta), ev
