@@ -42,7 +42,7 @@ from .beams import (
     BeamBlock,
     BeamGram,
     BeamState,
-    _newton_polish,
+    newton_polish,
     beam_log_prior,
     beam_marginal_log_posterior,
     beam_sky_step,
@@ -223,7 +223,7 @@ _HESSIAN = jax.jit(jax.hessian(_flat_log_posterior), static_argnames=_STATIC)
 def _laplace(args, kw, x0, steps: int):
     """Newton's maximum of :func:`_flat_log_posterior` (``args``, ``kw``) from ``x0`` and Laplace's
     ``log int exp(f)``: (x, log Z, covariance, converged)."""
-    x, obj, hess, decrement = _newton_polish(lambda y: _VALUE(y, *args, **kw), x0, steps,
+    x, obj, hess, decrement = newton_polish(lambda y: _VALUE(y, *args, **kw), x0, steps,
                                              value_grad=lambda y: _VALUE_GRAD(y, *args, **kw),
                                              hess=lambda y: _HESSIAN(y, *args, **kw))
     evals, vecs = jnp.linalg.eigh(hess)

@@ -83,6 +83,7 @@ __all__ = [
     "beam_warmup_step",
     "check_amplitude_identified",
     "fold_row_factor",
+    "newton_polish",
     "refold_gram",
     "set_visibilities",
 ]
@@ -450,7 +451,7 @@ def beam_log_prior(block: BeamBlock, theta) -> jax.Array:
 NEWTON_DECREMENT_TOL = 1e-6
 
 
-def _newton_polish(fun, x, steps: int, *, jit: bool = False, value_grad=None, hess=None):
+def newton_polish(fun, x, steps: int, *, jit: bool = False, value_grad=None, hess=None):
     """``steps`` damped Newton steps maximising ``fun`` (flat -> scalar) from ``x``: the step
     ``|-H|^-1 g`` (eigenvalues of ``-H`` taken in modulus: a saddle is left, not approached), halved up to 29
     times until ``fun`` increases (else the step is not taken, and the polish ends).  The loop is eager; ``jit``:
@@ -587,7 +588,7 @@ def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, am
         def fun(x):
             return beam_marginal_log_posterior(system, block, unravel(x), options=options, gram=gram)
 
-    flat, obj, hess, decrement = _newton_polish(fun, flat, newton_steps, jit=gram is not None)
+    flat, obj, hess, decrement = newton_polish(fun, flat, newton_steps, jit=gram is not None)
     k = flat.size
     evals, vecs = jnp.linalg.eigh(hess)
     cov = (vecs / evals) @ vecs.T
