@@ -42,10 +42,10 @@ from .beams import (
     BeamBlock,
     BeamGram,
     BeamState,
-    newton_polish,
     beam_log_prior,
     beam_marginal_log_posterior,
     beam_sky_step,
+    newton_polish,
     refold_gram,
 )
 from .gains import GainBlock
