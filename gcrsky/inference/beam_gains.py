@@ -138,8 +138,11 @@ def beam_gain_step(key: jax.Array, state: BeamGainState, system, block: BeamBloc
         gains: :func:`gcrsky.inference.gain_setup`'s block about the linearisation point.
         proposal: ``(mean (K,), chol (K, K))``, ``K = theta_b.size [+ Nf] + P`` in that order (theta flattened;
             ``log_u`` where inferred): e.g. :func:`beam_gain_log_evidence`'s maximum and covariance, widened.
-        options: the sky draw's path (and, without ``gram``, the marginal's; default Cholesky).
-        gram: the data-space Grams of ``system`` and ``block`` (:func:`gcrsky.inference.beams.beam_gram`), or None.
+        options: without ``gram``, the marginal's and the sky draw's path (default Cholesky); with it, the sky
+            draw's ``tol``.
+        gram: the data-space Grams of ``system`` and ``block`` (:func:`gcrsky.inference.beams.beam_gram`), or None:
+            with them the marginal and the sky draw (:func:`gcrsky.inference.beams.beam_gram_sky_draw`, at the
+            step's gains: :func:`gcrsky.inference.beams.refold_gram`) cost no factorisation of size ``n``.
         with_info: also return the sky draw's SolveInfo.
 
     Returns:
@@ -167,8 +170,9 @@ def beam_gain_step(key: jax.Array, state: BeamGainState, system, block: BeamBloc
     log_ratio = log_p(new) + log_q(old) - log_p(old) - log_q(new)
     accept = (jnp.log(jax.random.uniform(ku, (), log_ratio.dtype)) < log_ratio) & jnp.all(jnp.isfinite(new))
     th, lu, tg = unpack(jnp.where(accept, new, old))
-    beam, info = beam_sky_step(ka, beam._replace(theta=th, log_u=lu), system, with_gains(block, gains, tg),
-                               options=options)
+    blk = with_gains(block, gains, tg)
+    beam, info = beam_sky_step(ka, beam._replace(theta=th, log_u=lu), system, blk, options=options,
+                               gram=None if gram is None else refold_gram(gram, system, blk))
     out = BeamGainState(beam, tg)
     return (out, (accept, info)) if with_info else (out, accept)
 

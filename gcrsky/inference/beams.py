@@ -53,7 +53,7 @@ from ..instrument.beammodes import combine_responses, mode_pairs
 from ..model.operator import apply
 from ..model.system import LinearSystem
 from ..solvers.info import SolveInfo
-from ..solvers.options import CholeskyOptions
+from ..solvers.options import DEFAULT_TOL, CholeskyOptions
 from .gibbs import gcr_init, gcr_step
 
 __all__ = [
@@ -65,6 +65,7 @@ __all__ = [
     "beam_gram",
     "beam_gram_bytes",
     "beam_gram_log_evidence",
+    "beam_gram_sky_draw",
     "beam_collapsed_step",
     "beam_conditional",
     "beam_conditional_mode",
@@ -379,9 +380,14 @@ def beam_joint_move(key: jax.Array, theta, block: BeamBlock, sets, data, inv_noi
 
 
 def beam_sky_step(key: jax.Array, state: BeamState, system: LinearSystem, block: BeamBlock, *,
-                  options=None) -> tuple[BeamState, SolveInfo]:
-    """One exact draw of the sky given the beams (:func:`beam_system`, then :func:`gcrsky.inference.gcr_step`;
-    default the Cholesky path)."""
+                  options=None, gram: BeamGram | None = None) -> tuple[BeamState, SolveInfo]:
+    """One exact draw of the sky given the beams: with ``gram`` (:func:`beam_gram`, folded with ``block``'s row
+    factor) in the data space from the Grams (:func:`beam_gram_sky_draw`, ``options``' ``tol`` where it has one);
+    else :func:`beam_system`, then :func:`gcrsky.inference.gcr_step` on ``options``' path (default Cholesky)."""
+    if gram is not None:
+        tol = getattr(options, "tol", DEFAULT_TOL)
+        sky, info = beam_gram_sky_draw(key, gram, system, block, state.theta, state.log_u, tol=tol)
+        return state._replace(sky=sky), info
     sys_b = beam_system(system, block, state.theta, state.log_u)
     new, info = gcr_step(key, gcr_init(state.sky), sys_b, options=CholeskyOptions() if options is None else options)
     return state._replace(sky=new.position), info
@@ -628,11 +634,12 @@ def beam_conditional_mode(theta, block: BeamBlock, sets, data, inv_noise, *, ite
 
 
 def beam_warmup_step(key: jax.Array, state: BeamState, system: LinearSystem, block: BeamBlock, *, iterations: int = 3,
-                     options=None) -> tuple[BeamState, SolveInfo]:
-    """One warm-up sweep: the sky given the beams (exact), then the beams moved to their conditional mode given
-    that sky (:func:`beam_conditional_mode`).  Run a few before :func:`beam_step` and discard them (not a valid
+                     options=None, gram: BeamGram | None = None) -> tuple[BeamState, SolveInfo]:
+    """One warm-up sweep: the sky given the beams (exact; from the Grams where ``gram`` is given,
+    :func:`beam_sky_step`), then the beams moved to their conditional mode given that sky
+    (:func:`beam_conditional_mode`).  Run a few before :func:`beam_step` and discard them (not a valid
     Markov-chain step: it optimises the beams).  With the amplitude (``state.log_u``) it is held where it is."""
-    state, info = beam_sky_step(key, state, system, block, options=options)
+    state, info = beam_sky_step(key, state, system, block, options=options, gram=gram)
     sets = set_visibilities(system, block, state.sky)
     if state.log_u is not None:  # the response sets are linear in the response: the amplitude scales them
         sets = sets * jnp.exp(state.log_u)[:, None, None, None].astype(sets.dtype)
@@ -706,13 +713,14 @@ def refold_gram(gram: BeamGram, system: LinearSystem, block: BeamBlock) -> BeamG
                          sqrt_w=jnp.broadcast_to(sw[:, :, None, :], (nf, nt, 2, nbl)))
 
 
-def beam_gram_log_evidence(gram: BeamGram, block: BeamBlock, theta, log_u=None) -> jax.Array:
-    """``log p(d_f | theta [, u])`` (Nf,), the sky integrated out, from the Grams (:class:`BeamGram`): equal to
-    :func:`gcrsky.inference.log_evidence_system` of :func:`beam_system` (``tests/test_beam_amplitude.py``)."""
-    nant = theta.shape[0]
-    u = jnp.concatenate([jnp.ones((nant, block.basis_f.shape[0], 1)), beam_coefficients(block, theta)], axis=-1)
+def _gram_whitened(gram: BeamGram, block: BeamBlock, theta, log_u=None):
+    """The whitened data-space matrix ``D = I + W^1/2 X S X^T W^1/2`` (Nf, N_d, N_d) of the beams ``theta`` (and the
+    amplitude ``exp(log_u)``) from the Grams, the whitened residual ``W^1/2 (d - X a0)`` (Nf, N_d) and ``W^1/2``
+    (Nf, N_d), in :func:`gcrsky.solvers.dataspace.to_rows`' layout."""
     from ..instrument.beammodes import pair_weights
 
+    nant = theta.shape[0]
+    u = jnp.concatenate([jnp.ones((nant, block.basis_f.shape[0], 1)), beam_coefficients(block, theta)], axis=-1)
     w = jnp.transpose(pair_weights(u[block.pairs[:, 0]], u[block.pairs[:, 1]]), (1, 2, 0))  # (Nf, P, Nbl)
     if log_u is not None:
         w = w * jnp.exp(jnp.asarray(log_u))[:, None, None]
@@ -722,14 +730,77 @@ def beam_gram_log_evidence(gram: BeamGram, block: BeamBlock, theta, log_u=None) 
     mean = jnp.einsum("fpb,ftcpb->ftcb", w, gram.means)
     sw = gram.sqrt_w.reshape(nf, nd)
     D = jnp.eye(nd) + sw[:, :, None] * cov * sw[:, None, :]
-    r = (sw * (gram.rows - mean).reshape(nf, nd))
-    L = jnp.linalg.cholesky(0.5 * (D + jnp.swapaxes(D, -1, -2)))
+    r = jnp.where(sw > 0, sw * (gram.rows - mean).reshape(nf, nd), 0.0)  # flagged samples may hold anything
+    return 0.5 * (D + jnp.swapaxes(D, -1, -2)), r, sw
+
+
+def beam_gram_log_evidence(gram: BeamGram, block: BeamBlock, theta, log_u=None) -> jax.Array:
+    """``log p(d_f | theta [, u])`` (Nf,), the sky integrated out, from the Grams (:class:`BeamGram`): equal to
+    :func:`gcrsky.inference.log_evidence_system` of :func:`beam_system` (``tests/test_beam_amplitude.py``)."""
+    D, r, sw = _gram_whitened(gram, block, theta, log_u)
+    L = jnp.linalg.cholesky(D)
     z = jax.scipy.linalg.solve_triangular(L, r[..., None], lower=True)[..., 0]
     keep = sw > 0
     logdet_w = 2.0 * jnp.sum(jnp.where(keep, jnp.log(jnp.where(keep, sw, 1.0)), 0.0), axis=-1)
     n_keep = jnp.sum(keep, axis=-1)
     return -0.5 * (jnp.sum(z**2, axis=-1) + 2.0 * jnp.sum(jnp.log(jnp.diagonal(L, axis1=-2, axis2=-1)), axis=-1)
                    + n_keep * jnp.log(2 * jnp.pi) - logdet_w)
+
+
+def beam_gram_sky_draw(key: jax.Array, gram: BeamGram, system: LinearSystem, block: BeamBlock, theta, log_u=None, *,
+                       tol: float = DEFAULT_TOL) -> tuple[jax.Array, SolveInfo]:
+    """One exact draw of the sky given the beams ``theta`` (and ``exp(log_u)``), in the data space, from the Grams.
+
+    Matheron's rule (Hoffman & Ribak), as :func:`gcrsky.solvers.dataspace.draw_dataspace`:
+    ``a = a0 + delta + S Y^T D^-1 (r - Y delta - z)``, ``Y = W^1/2 X`` the whitened response of :func:`beam_system`,
+    ``delta ~ N(0, S)``, ``z ~ N(0, I)`` on the rows with data, ``r = W^1/2 (d - X a0)``.  ``D = I + Y S Y^T`` is the
+    Grams' weighted sum (:func:`_gram_whitened`, what the marginal already forms), so the draw needs only ``Y`` and
+    ``Y^T`` on vectors: ``O(Nf Nt Nbl n)`` and one ``N_d``-sized Cholesky, not the ``O(Nf N_d^2 n)`` of forming ``D``
+    anew from the response (:func:`beam_sky_step` with ``options``).
+
+    The draw's accuracy is measured, not assumed: it solves ``P (a - a0) = S^-1 delta + Y^T (r - z)`` exactly, so
+    the true residual ``rho`` of that equation gives ``err = sqrt(rho^T P^-1 rho)`` (posterior sigma; ``P^-1``
+    through the same factor).
+
+    Args:
+        key: PRNG key (``k_a, k_n = split(key)``: ``delta`` from ``k_a``, ``z`` from ``k_n``).
+        gram: :func:`beam_gram` of ``system`` under ``block`` (its row factor folded: :func:`refold_gram`).
+        system: the sky's system with the raw data, noise and a proper prior.
+        block, theta, log_u: the beams (and the amplitude, or None).
+        tol: the accuracy (posterior sigma) the draw must reach to count as converged.
+
+    Returns:
+        the sky (Nf, n) K and its :class:`~gcrsky.solvers.SolveInfo` ((Nf,) fields; no iterations).
+    """
+    from ..solvers.dataspace import sqrt_weights, whitened_adjoint, whitened_apply
+    from ..solvers.info import direct_info
+
+    sys_b = beam_system(system, block, theta, log_u)
+    D, r, sw = _gram_whitened(gram, block, theta, log_u)
+    L = jnp.linalg.cholesky(D)
+    sw3 = sqrt_weights(sys_b)
+    s = 1.0 / sys_b.prior.inv_var
+    a0 = sys_b.prior.mean
+    ka, kn = jax.random.split(key)
+    delta = jnp.sqrt(s) * jax.random.normal(ka, a0.shape, a0.dtype)
+    z = jnp.where(sw > 0, jax.random.normal(kn, sw.shape, a0.dtype), 0.0)
+
+    def solve(b):
+        return jax.vmap(lambda l, v: jax.scipy.linalg.cho_solve((l, True), v))(L, b)
+
+    def y(v):
+        return whitened_apply(sys_b, sw3, v)
+
+    def yt(u):
+        return whitened_adjoint(sys_b, sw3, u)
+
+    x = a0 + delta + s * yt(solve(r - y(delta) - z))
+    b = delta / s + yt(r - z)
+    rho = b - ((x - a0) / s + yt(y(x - a0)))
+    p_inv_rho = s * rho - s * yt(solve(y(s * rho)))
+    err = jnp.sqrt(jnp.abs(jnp.sum(rho * p_inv_rho, axis=-1)))
+    finite = jnp.all(jnp.isfinite(L), axis=(1, 2)) & jnp.all(jnp.isfinite(x), axis=-1)
+    return x, direct_info(err, jnp.linalg.norm(rho, axis=-1) / jnp.linalg.norm(b, axis=-1), finite, tol)
 
 
 def beam_marginal_log_posterior(system: LinearSystem, block: BeamBlock, theta, *, log_u=None,
@@ -767,8 +838,8 @@ def beam_collapsed_step(key: jax.Array, state: BeamState, system: LinearSystem, 
     evidences (a Cholesky of the dense precision each) and one sky draw.  With the amplitude inferred
     (``state.log_u`` not None) the move is joint in ``(theta, log_u)``: the proposal's ``K`` is then
     ``theta.size + Nf``, ``theta`` flattened first (:func:`beam_log_evidence`'s covariance, in that order).
-    With ``gram`` (:func:`beam_gram`) the marginal comes from the data-space Grams (the sky draw still takes
-    ``options``' path).
+    With ``gram`` (:func:`beam_gram`) the marginal and the sky draw come from the data-space Grams
+    (:func:`beam_gram_sky_draw`); without, both take ``options``' path.
 
     Returns:
         ``(state, accepted)``; with ``with_info``, ``(state, (accepted, info))``, ``info`` the sky draw's
@@ -798,5 +869,6 @@ def beam_collapsed_step(key: jax.Array, state: BeamState, system: LinearSystem, 
     log_ratio = log_p(new) + log_q(old) - log_p(old) - log_q(new)
     accept = (jnp.log(jax.random.uniform(ku, (), log_ratio.dtype)) < log_ratio) & jnp.all(jnp.isfinite(new))
     theta, log_u = split(jnp.where(accept, new, old))
-    state, info = beam_sky_step(ka, state._replace(theta=theta, log_u=log_u), system, block, options=options)
+    state, info = beam_sky_step(ka, state._replace(theta=theta, log_u=log_u), system, block, options=options,
+                                gram=gram)
     return (state, (accept, info)) if with_info else (state, accept)

@@ -312,10 +312,11 @@ def _fit_from(prob, chain: BeamChain, key, log_u):
         chain = chain._replace(gram=_gram(chain))
     elif prob.sigma_sky is not None:  # the noise depends on u: the Grams' data and noise folded again (not the Grams)
         chain = chain._replace(gram=refold_gram(chain.gram, chain.system, chain.block))
-    warm = jax.jit(lambda k, st: beam_warmup_step(k, st, chain.system, chain.block, options=chain.options)[0])
+    warm = jax.jit(lambda k, st, g: beam_warmup_step(k, st, chain.system, chain.block, options=chain.options,
+                                                     gram=g)[0])
     start = chain.state
     for k in jax.random.split(jax.random.fold_in(key, _START), WARM_START_STEPS):
-        start = warm(k, start)
+        start = warm(k, start, chain.gram)
     ev = beam_log_evidence(chain.system, chain.block, theta0=start.theta, amplitude=log_u is not None, log_u0=log_u,
                            options=chain.options, newton_steps=NEWTON_STEPS, gram=chain.gram)
     return ev, chain
