@@ -11,9 +11,14 @@ antenna (``K = Nant x 10`` coefficients); every baseline kept.  Jitted, compile 
   its Cholesky, one draw) and, for reference, one GCR draw of the nominal system on the same path;
 * the antenna-by-antenna sweep (``beam_sweep``), the joint Metropolis-Hastings move
   (``beam_joint_move``: two ``K x K`` factorisations) and the collapsed step
-  (``beam_collapsed_step``: two dense sky evidences and a sky draw).
+  (``beam_collapsed_step``: two dense sky evidences and a sky draw);
+* where the data-space Grams fit (``--gram-max-gb``, default 2): the Grams (``beam_gram``, once), the sky step
+  given the beams on the data-space path (``DataSpaceOptions``: ``D`` formed from the response, ``O(N_d^2 n)``),
+  the same draw from the Grams (``beam_gram_sky_draw``: ``Y`` and ``Y^T`` on vectors) and the collapsed step
+  from the Grams (what ``gcrsky run --beams sample`` takes).
 
-Run: ``PYTHONPATH=. .venv/bin/python benchmarks/beam_step.py [--rows 2,3,2] [--lmax 8]`` (about a minute).
+Run: ``PYTHONPATH=. .venv/bin/python benchmarks/beam_step.py [--rows 2,3,2] [--lmax 8]`` (about a minute); the
+data-space regime of a real file (``n`` above ``N_d``): ``--modes 1 --nt 10 --lmax 60 --nf 1``.
 """
 
 from __future__ import annotations
@@ -34,6 +39,9 @@ import numpy as np  # noqa: E402
 from gcrsky.checks.uvsim import DipoleGaussianBeam  # noqa: E402
 from gcrsky.inference.beams import (  # noqa: E402
     beam_collapsed_step,
+    beam_gram,
+    beam_gram_bytes,
+    beam_gram_sky_draw,
     beam_init,
     beam_joint_move,
     beam_setup,
@@ -46,7 +54,7 @@ from gcrsky.instrument import HERA_LATITUDE_DEG, hex_array, make_array, response
 from gcrsky.instrument.beammodes import beam_modes, mode_responses  # noqa: E402
 from gcrsky.model import build_problem, isotropic_prior  # noqa: E402
 from gcrsky.model.gains import mode_basis  # noqa: E402
-from gcrsky.solvers import CholeskyOptions  # noqa: E402
+from gcrsky.solvers import CholeskyOptions, DataSpaceOptions  # noqa: E402
 
 
 def best(f, *args, repeat=5):
@@ -66,6 +74,8 @@ def main():
     ap.add_argument("--nside", type=int, default=32)
     ap.add_argument("--nf", type=int, default=3)
     ap.add_argument("--nt", type=int, default=24)
+    ap.add_argument("--modes", type=int, default=2, help="Zernike degree of the beam modes (1: the two tilts)")
+    ap.add_argument("--gram-max-gb", type=float, default=2.0, help="largest data-space Grams to time (GB)")
     args = ap.parse_args()
     pos = hex_array(tuple(int(r) for r in args.rows.split(",")))
     array = make_array(pos, HERA_LATITUDE_DEG, DipoleGaussianBeam(diameter=14.0))
@@ -77,14 +87,14 @@ def main():
                          sigma=1e-4, prior=prior, key=jax.random.PRNGKey(0))
     system = prob.system()
     pairs = np.asarray(prob.antpairs)
-    modes = beam_modes(2)
+    modes = beam_modes(args.modes)
     t = time.perf_counter()
     stack = jax.block_until_ready(mode_responses(array, pairs, freqs, args.lmax, args.nside, modes))
     t_stack = time.perf_counter() - t
     t = time.perf_counter()
     jax.block_until_ready(response_matrix(array, pairs, freqs, args.lmax, args.nside, method="rings"))
     t_resp = time.perf_counter() - t
-    block = beam_setup(stack, pairs, mode_basis(args.nf, 2, "legendre"), sigma=0.1, mean_sigma=0.01)
+    block = beam_setup(stack, pairs, mode_basis(args.nf, min(2, args.nf), "legendre"), sigma=0.1, mean_sigma=0.01)
     k = block.prior_mean.size
     state = beam_init(jnp.asarray(truth), block)
     key = jax.random.PRNGKey(1)
@@ -103,6 +113,23 @@ def main():
         ("collapsed step", best(jax.jit(lambda kk: beam_collapsed_step(kk, state, system, block, proposal)[0].theta),
                                 key), "two sky evidences + a sky draw"),
     ]
+    gb = beam_gram_bytes(system, block) / 1e9
+    if gb <= args.gram_max_gb:
+        t = time.perf_counter()
+        gram = jax.block_until_ready(jax.jit(beam_gram)(system, block))
+        ds = DataSpaceOptions()
+        rows += [
+            ("data-space Grams (once)", time.perf_counter() - t, f"{gb:.2f} GB, incl. compile"),
+            ("sky step, data space", best(jax.jit(lambda kk: beam_sky_step(kk, state, system, block,
+                                                                           options=ds)[0].sky), key),
+             "D formed from the response"),
+            ("sky draw from the Grams", best(jax.jit(lambda kk: beam_gram_sky_draw(kk, gram, system, block,
+                                                                                   state.theta)[0]), key), ""),
+            ("collapsed step from the Grams", best(jax.jit(lambda kk: beam_collapsed_step(
+                kk, state, system, block, proposal, gram=gram)[0].theta), key), "two marginals + a sky draw"),
+        ]
+    else:
+        print(f"(the data-space Grams, {gb:.1f} GB, exceed --gram-max-gb: not timed)")
     print(f"{len(pos)} dishes, {pairs.shape[0]} baselines, {args.nf} channels, {args.nt} LSTs, lmax {args.lmax} "
           f"(n = {n}), nside {args.nside}; {jax.devices()[0].platform}")
     print(f"| {'step':32s} | {'seconds':>9s} | note |")
