@@ -304,3 +304,43 @@ def test_sbc_of_the_joint_sky_beam_gain_kernel_and_a_mis_specified_gain_prior_fa
                        19)
     print(f"control: family p {bad['p_family']:.3g}")
     assert bad["p_family"] < 1e-3, bad
+
+
+def _banana(x):
+    """A non-Gaussian log density in 6 dimensions: Rosenbrock-like curved ridges (x1 ~ x0^2, x3 ~ x2^2) coupled to a
+    Student-t in the rest and a correlated Gaussian term; its maximum is not where a quadratic model puts it."""
+    ridge = -0.5 * ((x[1] - x[0] ** 2) / 0.1) ** 2 - 0.5 * ((x[3] - x[2] ** 2) / 0.2) ** 2
+    t = -2.5 * jnp.log1p((x[4] - 1.0) ** 2 / 3.0 + (x[5] + x[4]) ** 2 / 3.0)
+    gauss = -0.5 * ((x[0] - 0.7) ** 2 + (x[2] + 0.4) ** 2 + 0.9 * (x[0] - 0.7) * (x[2] + 0.4))
+    return ridge + t + gauss
+
+
+def test_newton_polish_with_secant_steps_reaches_the_exact_maximum_with_fewer_hessians():
+    """:func:`gcrsky.inference.beams.newton_polish` with ``secant=True`` (BFGS updates between exact Hessians) on a
+    curved, non-Gaussian density whose maximum is known: ``x* = (0.7, 0.49, -0.4, 0.16, 1, -1)``, ``f* = 0``.  Both
+    polishes reach it (decrement below the tolerance, ``f`` within 1e-7 of 0: a decrement ``delta`` puts ``f``
+    within ~``delta / 2``; ``x`` within 1e-4, the flattest direction's ``sqrt(delta / lambda_min)``), the Hessian
+    returned is the exact one at the returned point (what Laplace's evidence uses; to 1e-8), and the secant polish
+    takes fewer exact Hessians (measured 4 against 25, from a start far from the maximum).  Control: one Hessian
+    allowed and no secant steps stops short (decrement above the tolerance)."""
+    from gcrsky.inference.beams import NEWTON_DECREMENT_TOL, newton_polish
+
+    calls = {"n": 0}
+
+    def hess(x):
+        calls["n"] += 1
+        return jax.hessian(_banana)(x)
+
+    x0 = jnp.array([-1.0, 2.0, 1.5, -1.0, 4.0, 2.0])
+    truth = np.array([0.7, 0.49, -0.4, 0.16, 1.0, -1.0])
+    counts = []
+    for secant in (False, True):
+        calls["n"] = 0
+        x, f, h, dec = newton_polish(_banana, x0, 50, hess=hess, secant=secant)
+        counts.append(calls["n"])
+        assert float(dec) < NEWTON_DECREMENT_TOL and abs(float(f)) < 1e-7, (secant, dec, f)
+        np.testing.assert_allclose(np.asarray(x), truth, rtol=0, atol=1e-4)
+        np.testing.assert_allclose(np.asarray(h), -np.asarray(jax.hessian(_banana)(x)), rtol=0, atol=1e-8)
+    assert counts[1] < counts[0] / 2, counts
+    _, _, _, d_short = newton_polish(_banana, x0, 1, hess=hess)
+    assert float(d_short) > NEWTON_DECREMENT_TOL

@@ -229,7 +229,7 @@ def _laplace(args, kw, x0, steps: int):
     ``log int exp(f)``: (x, log Z, covariance, converged)."""
     x, obj, hess, decrement = newton_polish(lambda y: _VALUE(y, *args, **kw), x0, steps,
                                              value_grad=lambda y: _VALUE_GRAD(y, *args, **kw),
-                                             hess=lambda y: _HESSIAN(y, *args, **kw))
+                                             hess=lambda y: _HESSIAN(y, *args, **kw), secant=True)
     evals, vecs = jnp.linalg.eigh(hess)
     cov = (vecs / evals) @ vecs.T
     log_z = obj + 0.5 * x.size * jnp.log(2 * jnp.pi) - 0.5 * jnp.sum(jnp.log(jnp.abs(evals)))
@@ -249,7 +249,8 @@ def beam_gain_log_evidence(system, block: BeamBlock, gains: GainBlock, *, theta0
         system, block, gains, options, gram: as :func:`beam_gain_log_posterior`.
         theta0: the beams' start (default the prior mean); ``gain_theta0`` the gains' (default 0);
             ``log_u0`` (Nf,) the amplitude's start, or None (not inferred).
-        newton_steps: the most Newton steps of each fit (each one Hessian of ``K`` columns).
+        newton_steps: the most exact Hessians (``K`` columns each) of each fit; quasi-Newton steps between them
+            (:func:`gcrsky.inference.beams.newton_polish`'s ``secant``).
         nominal: also fit the nominal model (False: its fields are NaN, its maximum the joint one's; e.g. for a fit
             whose only use is to move the gains' linearisation point).
 

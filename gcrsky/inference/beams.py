@@ -457,43 +457,94 @@ def beam_log_prior(block: BeamBlock, theta) -> jax.Array:
 NEWTON_DECREMENT_TOL = 1e-6
 
 
-def newton_polish(fun, x, steps: int, *, jit: bool = False, value_grad=None, hess=None):
-    """``steps`` damped Newton steps maximising ``fun`` (flat -> scalar) from ``x``: the step
-    ``|-H|^-1 g`` (eigenvalues of ``-H`` taken in modulus: a saddle is left, not approached), halved up to 29
-    times until ``fun`` increases (else the step is not taken, and the polish ends).  The loop is eager; ``jit``:
-    its pieces (value and gradient, Hessian, value) each compiled once (the primal path's pieces jitted stalled
-    XLA's CPU runtime once, jax 0.10.2, and it stays eager; the Grams' are small and compile).  ``value_grad`` and
-    ``hess``: those of ``fun``, given (e.g. module-level compiled functions that a closure would recompile per fit).
-    Returns ``(x, fun(x), Hessian of -fun at x, Newton decrement at x)``."""
+#: Quasi-Newton steps :func:`newton_polish` may take per exact Hessian with ``secant=True``.
+SECANT_STEPS_PER_HESSIAN = 25
+
+
+def _modulus_step(h, g):
+    """``|h|^-1 g``: the eigenvalues of the symmetric ``h`` taken in modulus (floored at 1e-12 of the largest)."""
+    w, v = jnp.linalg.eigh(0.5 * (h + h.T))
+    w = jnp.maximum(jnp.abs(w), 1e-12 * jnp.max(jnp.abs(w)))
+    return v @ ((v.T @ g) / w)
+
+
+def newton_polish(fun, x, steps: int, *, jit: bool = False, value_grad=None, hess=None, secant: bool = False):
+    """Damped Newton steps maximising ``fun`` (flat -> scalar) from ``x``: the step ``|-H|^-1 g`` (eigenvalues of
+    ``-H`` taken in modulus: a saddle is left, not approached), halved up to 29 times until ``fun`` increases (else
+    the step is not taken, and the polish ends), until the Newton decrement ``g^T |-H|^-1 g`` falls below
+    :data:`NEWTON_DECREMENT_TOL` or after ``steps`` exact Hessians.
+
+    ``secant``: between exact Hessians, BFGS updates of the last one (a step then costs a gradient, not a Hessian's
+    ``K`` Hessian-vector products; the Grams' marginal's gradient costs ~1.1 of its value, its Hessian ~2 K):
+    an exact Hessian at the start, again wherever the secant step's line search stalls (halved below 1/16), after
+    :data:`SECANT_STEPS_PER_HESSIAN` secant steps, and where the secant decrement falls below the tolerance; the
+    polish ends only at an exact Hessian's decrement.  The maximum is the same (to the tolerance) and the returned
+    Hessian is always exact, at the returned point.
+
+    The loop is eager; ``jit``: its pieces (value and gradient, Hessian, value) each compiled once (the primal
+    path's pieces jitted stalled XLA's CPU runtime once, jax 0.10.2, and it stays eager; the Grams' are small and
+    compile).  ``value_grad`` and ``hess``: those of ``fun``, given (e.g. module-level compiled functions that a
+    closure would recompile per fit).  Returns ``(x, fun(x), Hessian of -fun at x, Newton decrement at x)``."""
     value_grad = jax.value_and_grad(fun) if value_grad is None else value_grad
     hess = jax.hessian(fun) if hess is None else hess
     if jit:
         value_grad, hess, fun = jax.jit(value_grad), jax.jit(hess), jax.jit(fun)
 
-    def direction(x):
-        f, g = value_grad(x)
+    def exact(x):
         h = -hess(x)
-        h = 0.5 * (h + h.T)
-        w, v = jnp.linalg.eigh(h)
-        w = jnp.maximum(jnp.abs(w), 1e-12 * jnp.max(jnp.abs(w)))
-        return f, g, h, v @ ((v.T @ g) / w)
+        return 0.5 * (h + h.T)
 
-    value = fun
-    f, g, h, step = direction(x)
-    for _ in range(steps):
-        if float(g @ step) < NEWTON_DECREMENT_TOL:
+    f, g = value_grad(x)
+    h = b = exact(x)
+    n_hess, since = 1, 0  # exact Hessians so far; secant steps since the last one
+    while True:
+        step = _modulus_step(b, g)
+        fresh = b is h  # the step is from the exact Hessian at x
+        if float(g @ step) < NEWTON_DECREMENT_TOL and fresh:
             break
+        if not fresh and (float(g @ step) < NEWTON_DECREMENT_TOL or since >= SECANT_STEPS_PER_HESSIAN):
+            if n_hess >= steps:
+                break
+            h = b = exact(x)
+            n_hess, since = n_hess + 1, 0
+            continue
         t = 1.0
         while t > 2.0**-30:
-            fx = float(value(x + t * step))
+            fx = float(fun(x + t * step))
             if np.isfinite(fx) and fx > float(f):
                 break
             t *= 0.5
         else:
+            t = 0.0
+        if not fresh and t < 1.0 / 16:  # the secant model is poor here: an exact Hessian
+            if n_hess >= steps:
+                break
+            h = b = exact(x)
+            n_hess, since = n_hess + 1, 0
+            continue
+        if t == 0.0:
             break
-        x = x + t * step
-        f, g, h, step = direction(x)
-    return x, f, h, g @ step
+        x_new = x + t * step
+        f_new, g_new = value_grad(x_new)
+        if secant:
+            s, y = x_new - x, g - g_new  # the gradient of -fun changes by y along s
+            sy = float(s @ y)
+            if sy > 1e-12 * float(jnp.linalg.norm(s) * jnp.linalg.norm(y)):
+                bs = b @ s
+                b = b + jnp.outer(y, y) / sy - jnp.outer(bs, bs) / float(s @ bs)
+            elif b is h:
+                b = h + 0.0  # a new object: the next step counts as a secant one
+            x, f, g, since = x_new, f_new, g_new, since + 1
+        else:
+            x, f, g = x_new, f_new, g_new
+            if n_hess >= steps:
+                h = b = None
+                break
+            h = b = exact(x)
+            n_hess += 1
+    if h is None or b is not h:  # ended on a secant model or at the step cap: the exact Hessian at x
+        h = exact(x)
+    return x, f, h, g @ _modulus_step(h, g)
 
 
 def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, amplitude: bool = False, log_u0=None,
@@ -531,7 +582,8 @@ def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, am
             :func:`gcrsky.inference.amplitude.local_modes`, and keep the best).
         options: the evidence path's options (default ``CholeskyOptions()``).
         max_steps: BFGS's step cap.
-        newton_steps: Newton steps after BFGS (each one Hessian: ``k`` Hessian-vector products); 0: none.
+        newton_steps: the most exact Hessians (``k`` Hessian-vector products each) after BFGS, with quasi-Newton
+            steps between them (:func:`newton_polish`'s ``secant``); 0: none.
         gram: the data-space Grams (:func:`beam_gram`): with ``newton_steps``, every evaluation of the marginal
             from them and no BFGS (Newton's steps from ``theta0`` alone, each Hessian cheap).
 
@@ -594,7 +646,7 @@ def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, am
         def fun(x):
             return beam_marginal_log_posterior(system, block, unravel(x), options=options, gram=gram)
 
-    flat, obj, hess, decrement = newton_polish(fun, flat, newton_steps, jit=gram is not None)
+    flat, obj, hess, decrement = newton_polish(fun, flat, newton_steps, jit=gram is not None, secant=True)
     k = flat.size
     evals, vecs = jnp.linalg.eigh(hess)
     cov = (vecs / evals) @ vecs.T
