@@ -43,6 +43,8 @@ in hundreds of sweeps) and the antenna-by-antenna sweep.
 
 from __future__ import annotations
 
+import logging
+import time
 from typing import NamedTuple
 
 import jax
@@ -55,6 +57,8 @@ from ..model.system import LinearSystem
 from ..solvers.info import SolveInfo
 from ..solvers.options import DEFAULT_TOL, CholeskyOptions
 from .gibbs import gcr_init, gcr_step
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "BeamBlock",
@@ -494,9 +498,10 @@ def newton_polish(fun, x, steps: int, *, jit: bool = False, value_grad=None, hes
         h = -hess(x)
         return 0.5 * (h + h.T)
 
+    t0 = time.perf_counter()
     f, g = value_grad(x)
     h = b = exact(x)
-    n_hess, since = 1, 0  # exact Hessians so far; secant steps since the last one
+    n_hess, since, n_steps = 1, 0, 0  # exact Hessians so far; secant steps since the last one; steps taken
     while True:
         step = _modulus_step(b, g)
         fresh = b is h  # the step is from the exact Hessian at x
@@ -525,6 +530,7 @@ def newton_polish(fun, x, steps: int, *, jit: bool = False, value_grad=None, hes
         if t == 0.0:
             break
         x_new = x + t * step
+        n_steps += 1
         f_new, g_new = value_grad(x_new)
         if secant:
             s, y = x_new - x, g - g_new  # the gradient of -fun changes by y along s
@@ -544,7 +550,11 @@ def newton_polish(fun, x, steps: int, *, jit: bool = False, value_grad=None, hes
             n_hess += 1
     if h is None or b is not h:  # ended on a secant model or at the step cap: the exact Hessian at x
         h = exact(x)
-    return x, f, h, g @ _modulus_step(h, g)
+        n_hess += 1
+    decrement = g @ _modulus_step(h, g)
+    log.info("newton_polish: %d steps, %d exact Hessians (K = %d), decrement %.3g, %.1f s", n_steps, n_hess, x.size,
+             float(decrement), time.perf_counter() - t0)
+    return x, f, h, decrement
 
 
 def beam_log_evidence(system: LinearSystem, block: BeamBlock, *, theta0=None, amplitude: bool = False, log_u0=None,
