@@ -505,23 +505,22 @@ def newton_polish(fun, x, steps: int, *, jit: bool = False, value_grad=None, hes
     while True:
         step = _modulus_step(b, g)
         fresh = b is h  # the step is from the exact Hessian at x
-        if float(g @ step) < NEWTON_DECREMENT_TOL and fresh:
+        dec = float(g @ step)
+        if fresh and (dec < NEWTON_DECREMENT_TOL or (not secant and n_steps >= steps)):
             break
-        if not fresh and (float(g @ step) < NEWTON_DECREMENT_TOL or since >= SECANT_STEPS_PER_HESSIAN):
-            if n_hess >= steps:
-                break
-            h = b = exact(x)
-            n_hess, since = n_hess + 1, 0
-            continue
-        t = 1.0
-        while t > 2.0**-30:
-            fx = float(fun(x + t * step))
-            if np.isfinite(fx) and fx > float(f):
-                break
-            t *= 0.5
-        else:
-            t = 0.0
-        if not fresh and t < 1.0 / 16:  # the secant model is poor here: an exact Hessian
+        stale = not fresh and (dec < NEWTON_DECREMENT_TOL or since >= SECANT_STEPS_PER_HESSIAN)
+        t = 0.0
+        if not stale:
+            t = 1.0
+            while t > 2.0**-30:
+                fx = float(fun(x + t * step))
+                if np.isfinite(fx) and fx > float(f):
+                    break
+                t *= 0.5
+            else:
+                t = 0.0
+            stale = not fresh and t < 1.0 / 16  # the secant model is poor here
+        if stale:  # an exact Hessian at x, within the budget
             if n_hess >= steps:
                 break
             h = b = exact(x)
@@ -540,15 +539,12 @@ def newton_polish(fun, x, steps: int, *, jit: bool = False, value_grad=None, hes
                 b = b + jnp.outer(y, y) / sy - jnp.outer(bs, bs) / float(s @ bs)
             elif b is h:
                 b = h + 0.0  # a new object: the next step counts as a secant one
-            x, f, g, since = x_new, f_new, g_new, since + 1
-        else:
-            x, f, g = x_new, f_new, g_new
-            if n_hess >= steps:
-                h = b = None
-                break
+            since += 1
+        x, f, g = x_new, f_new, g_new
+        if not secant:
             h = b = exact(x)
             n_hess += 1
-    if h is None or b is not h:  # ended on a secant model or at the step cap: the exact Hessian at x
+    if b is not h:  # ended on a secant model: the exact Hessian at x
         h = exact(x)
         n_hess += 1
     decrement = g @ _modulus_step(h, g)
